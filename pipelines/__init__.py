@@ -1,0 +1,1 @@
+"""radarseg: pipelines."""

@@ -1,0 +1,3 @@
+"""The `radarseg` command line."""
+def main(argv=None) -> int:
+    raise SystemExit("radarseg: not implemented yet")
