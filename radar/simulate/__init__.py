@@ -1,1 +1,6 @@
-"""radarseg: radar/simulate."""
+"""FMCW scene simulator with exact labels (the embedded default data source)."""
+
+from radar.simulate.fmcw import point_target_cube
+from radar.simulate.simulator import SimulatorConfig, sequence_name, simulate_frame, simulate_sequence
+
+__all__ = ["SimulatorConfig", "point_target_cube", "sequence_name", "simulate_frame", "simulate_sequence"]

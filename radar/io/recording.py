@@ -1,0 +1,204 @@
+"""The radarseg recording layout: simulated (or converted) sequences on disk.
+
+::
+
+    DIR/
+      recording.json             format, version, preset, radar parameters, classes, sequences, source
+      seq_000/
+        cubes/000000.npy         complex64 (R, A, D) RAD cube in the project's frame (SPEC section 2)
+        labels/000000.npz        compressed: labels uint8 (R, A, D) classes, instances uint8 (R, A, D)
+        objects.json             {"frames": [[object, ...], ...]}: one object table per frame
+
+Every file is written to a temporary name and renamed, and ``recording.json`` is written last, so an
+interrupted write leaves no file that looks complete and no recording that looks finished.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from radar.frame import ObjectRecord, RadarFrame
+from radar.io.errors import DataError
+from radar.io.npy import check_array, load_npy
+from radar.profiles import RadarProfile, UnknownPresetError, get_profile
+
+FORMAT = "radarseg.recording"
+VERSION = 1
+
+
+def _atomic_write(path: Path, write) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    with tmp.open("wb") as fh:
+        write(fh)
+    os.replace(tmp, path)
+
+
+def _frame_name(index: int) -> str:
+    return f"{index:06d}"
+
+
+class RecordingWriter:
+    """Writes frames sequence by sequence; ``close()`` (or the context manager) writes recording.json."""
+
+    def __init__(self, out_dir: str | Path, profile: RadarProfile, *, source: dict[str, Any] | None = None):
+        self.root = Path(out_dir)
+        if (self.root / "recording.json").exists():
+            raise FileExistsError(f"{self.root}: a recording already exists here; choose another --out")
+        self.root.mkdir(parents=True, exist_ok=True)
+        self.profile = profile
+        self.source = source or {}
+        self.sequences: dict[str, int] = {}
+        self._objects: dict[str, list[list[dict]]] = {}
+
+    def write(self, frame: RadarFrame) -> None:
+        if frame.cube.shape != self.profile.shape:
+            raise ValueError(f"frame cube {frame.cube.shape} does not match profile {self.profile.shape}")
+        seq_dir = self.root / frame.sequence
+        (seq_dir / "cubes").mkdir(parents=True, exist_ok=True)
+        (seq_dir / "labels").mkdir(exist_ok=True)
+        name = _frame_name(frame.index)
+        _atomic_write(seq_dir / "cubes" / f"{name}.npy", lambda fh: np.save(fh, frame.cube, allow_pickle=False))
+        if frame.labels is not None:
+            _atomic_write(seq_dir / "labels" / f"{name}.npz",
+                          lambda fh: np.savez_compressed(fh, labels=frame.labels, instances=frame.instances))
+        tables = self._objects.setdefault(frame.sequence, [])
+        if frame.index != len(tables):
+            raise ValueError(f"{frame.sequence}: frames must be written in order; got {frame.index} "
+                             f"after {len(tables)} frames")
+        tables.append([o.to_dict() for o in frame.objects])
+        self.sequences[frame.sequence] = len(tables)
+        # Object tables are rewritten per frame so that a sequence is readable up to the last frame.
+        payload = json.dumps({"frames": tables}).encode()
+        _atomic_write(seq_dir / "objects.json", lambda fh: fh.write(payload))
+
+    def close(self) -> Path:
+        meta = {
+            "format": FORMAT,
+            "version": VERSION,
+            "preset": self.profile.name,
+            "radar": self.profile.to_dict(),
+            "classes": list(self.profile.all_class_names),
+            "sequences": dict(sorted(self.sequences.items())),
+            "source": self.source,
+        }
+        payload = json.dumps(meta, indent=2).encode()
+        _atomic_write(self.root / "recording.json", lambda fh: fh.write(payload))
+        return self.root
+
+    def __enter__(self) -> RecordingWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:  # an interrupted write leaves no recording.json behind
+            self.close()
+
+
+def write_recording(frames: Iterable[RadarFrame], out_dir: str | Path, profile: RadarProfile,
+                    *, source: dict[str, Any] | None = None) -> Path:
+    with RecordingWriter(out_dir, profile, source=source) as writer:
+        for frame in frames:
+            writer.write(frame)
+    return Path(out_dir)
+
+
+class Recording:
+    """Reader of a recording directory. Frames come back as :class:`RadarFrame`, checked on load."""
+
+    def __init__(self, root: str | Path):
+        self.root = Path(root)
+        meta_path = self.root / "recording.json"
+        if not self.root.is_dir():
+            raise DataError(self.root, "no such recording directory")
+        if not meta_path.is_file():
+            raise DataError(meta_path, "missing recording.json (not a radarseg recording, or its "
+                                       "writing was interrupted)")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise DataError(meta_path, f"not valid JSON ({exc})") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise DataError(meta_path, f"expected a JSON object with format {FORMAT!r}")
+        if meta.get("version") != VERSION:
+            raise DataError(meta_path, f"unsupported recording version {meta.get('version')!r}, expected {VERSION}")
+        try:
+            self.profile = get_profile(meta.get("preset"))
+        except UnknownPresetError as exc:
+            raise DataError(meta_path, str(exc)) from None
+        sequences = meta.get("sequences")
+        if not isinstance(sequences, dict) or not all(isinstance(n, int) and n >= 0 for n in sequences.values()):
+            raise DataError(meta_path, "expected 'sequences' to map sequence names to frame counts")
+        self.meta = meta
+        self._sequences: dict[str, int] = sequences
+        self._objects: dict[str, list[list[dict]]] = {}
+
+    def sequences(self) -> list[str]:
+        return list(self._sequences)
+
+    def n_frames(self, sequence: str) -> int:
+        self._check_sequence(sequence)
+        return self._sequences[sequence]
+
+    def __len__(self) -> int:
+        return sum(self._sequences.values())
+
+    def split(self, sequence: str) -> str | None:
+        """Recordings carry no split; the preprocessing job assigns one by sequence."""
+        return None
+
+    def _check_sequence(self, sequence: str) -> None:
+        if sequence not in self._sequences:
+            raise DataError(self.root, f"unknown sequence {sequence!r}; recording has {self.sequences()}")
+
+    def _object_tables(self, sequence: str) -> list[list[dict]]:
+        if sequence not in self._objects:
+            path = self.root / sequence / "objects.json"
+            if not path.is_file():
+                raise DataError(path, "missing file (expected the sequence's object tables)")
+            try:
+                frames = json.loads(path.read_text())["frames"]
+            except (json.JSONDecodeError, KeyError, TypeError, UnicodeDecodeError) as exc:
+                raise DataError(path, f"expected JSON {{'frames': [[object, ...], ...]}} ({exc!r})") from None
+            if len(frames) < self._sequences[sequence]:
+                raise DataError(path, f"holds {len(frames)} frames, recording.json says {self._sequences[sequence]}")
+            self._objects[sequence] = frames
+        return self._objects[sequence]
+
+    def read_frame(self, sequence: str, index: int) -> RadarFrame:
+        self._check_sequence(sequence)
+        if not 0 <= index < self._sequences[sequence]:
+            raise DataError(self.root / sequence, f"frame {index} out of range [0, {self._sequences[sequence]})")
+        name = _frame_name(index)
+        seq_dir = self.root / sequence
+        cube = load_npy(seq_dir / "cubes" / f"{name}.npy", shape=self.profile.shape,
+                        dtypes=(np.complexfloating, np.floating), what="RAD cube")
+        labels_path = seq_dir / "labels" / f"{name}.npz"
+        if not labels_path.is_file():
+            raise DataError(labels_path, "missing file (expected the frame's labels and instances)")
+        try:
+            with np.load(labels_path, allow_pickle=False) as npz:
+                labels, instances = npz["labels"], npz["instances"]
+        except (KeyError, ValueError, OSError, zipfile.BadZipFile) as exc:
+            raise DataError(labels_path, f"expected a .npz with arrays 'labels' and 'instances' ({exc})") from None
+        for arr, what in ((labels, "labels"), (instances, "instances")):
+            check_array(arr, source=labels_path, shape=self.profile.shape, dtypes=(np.uint8,), what=what)
+        if labels.max(initial=0) >= self.profile.num_classes:
+            raise DataError(labels_path, f"labels hold class {labels.max()}, expected < {self.profile.num_classes}")
+        try:
+            objects = tuple(ObjectRecord.from_dict(o) for o in self._object_tables(sequence)[index])
+        except (TypeError, ValueError) as exc:
+            raise DataError(seq_dir / "objects.json", f"frame {index}: bad object record ({exc})") from None
+        return RadarFrame(cube=cube, profile=self.profile, sequence=sequence, index=index, labels=labels,
+                          instances=instances, objects=objects)
+
+    def frames(self, sequence: str | None = None) -> Iterator[RadarFrame]:
+        """Frames of one sequence, or of all sequences in order."""
+        for seq in [sequence] if sequence is not None else self.sequences():
+            for index in range(self.n_frames(seq)):
+                yield self.read_frame(seq, index)
