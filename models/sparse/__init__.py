@@ -1,0 +1,37 @@
+"""Pure-PyTorch sparse convolution: sparse tensors, kernel maps by coordinate hashing, conv layers.
+
+No sparse-convolution library trains on CPU here (SPEC section 7), so the project owns this one.
+"""
+
+from models.sparse.conv import (
+    BatchNorm,
+    MACCounted,
+    PointwiseConv,
+    ReLU,
+    StridedConv3d,
+    SubmanifoldConv3d,
+    TransposedConv3d,
+    apply_kernel_map,
+    count_macs,
+)
+from models.sparse.kernel_map import KernelMap, build_kernel_map, downsample_coords, kernel_offsets
+from models.sparse.tensor import KernelMapCache, SparseTensor, cat_features
+
+__all__ = [
+    "BatchNorm",
+    "KernelMap",
+    "KernelMapCache",
+    "MACCounted",
+    "PointwiseConv",
+    "ReLU",
+    "SparseTensor",
+    "StridedConv3d",
+    "SubmanifoldConv3d",
+    "TransposedConv3d",
+    "apply_kernel_map",
+    "build_kernel_map",
+    "cat_features",
+    "count_macs",
+    "downsample_coords",
+    "kernel_offsets",
+]
