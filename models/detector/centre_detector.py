@@ -1,0 +1,263 @@
+"""Stage 1 of ERASE-Net: the centre detector (SPEC section 5) and its registered builders.
+
+Input: normalised log power with Doppler as channels, ``(B, D, R, A)``. A 1x1 conv compresses the
+``D`` Doppler channels to 3; two channels with each RA cell's Cartesian (x, y), divided by the
+largest range so they lie in [-1, 1] and [0, 1], are appended: 5 channels go into the backbone.
+Backbone (MBConv, strides 4..32) -> BiFPN neck (P3..P7, fused down to stride 4) -> CenterNet heads.
+Outputs are on the stride-4 grid ``(ceil(R / 4), ceil(A / 4))`` (dict, see :class:`CentreNetHead`).
+
+Any ``(R, A)`` works: the input is zero-padded to a multiple of ``pad_multiple`` (4 by default, so
+output cell ``i`` covers input bins ``4i .. 4i+3`` on every axis) and the outputs are cropped back;
+the backbone and BiFPN handle sizes that are not multiples of 32 or 128 themselves (every level is
+``ceil`` of the one above and upsampling targets the exact size), which costs fewer MACs than padding
+424 x 512 up to 512 x 512.
+
+Registered models (``models.registry.create_model``):
+
+- ``centre_detector``: ``variant`` one of :data:`VARIANTS` (default :data:`SMALLER_VARIANT`), width
+  and depth multipliers, neck and head widths;
+- ``centre_detector_tiny``: the same builder with widths x0.25, one block per stage, a 1-layer
+  16-channel BiFPN and 16-channel heads, for tests.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from models.detector.bifpn import BiFPNNeck
+from models.detector.centernet import CentreNetHead
+from models.detector.efficientnet import (
+    B0_STAGES,
+    EfficientNetBackbone,
+    MBConvStage,
+    build_efficientnet,
+    smaller_stages,
+)
+from models.detector.targets import CentreTargets
+from models.registry import register_model
+from radar.profiles import RadarProfile, get_profile
+
+COMPRESSED_DOPPLER_CHANNELS = 3
+CARTESIAN_CHANNELS = 2
+
+
+@dataclass(frozen=True)
+class DetectorVariant:
+    """A reading of the paper's "smaller" EfficientNet: a stage table and the head conv type."""
+
+    stages: tuple[MBConvStage, ...]
+    separable_heads: bool
+    description: str
+
+
+VARIANTS: dict[str, DetectorVariant] = {
+    "b0": DetectorVariant(B0_STAGES, False, "plain EfficientNet-B0 stages, dense 3x3 heads"),
+    "slim": DetectorVariant(
+        smaller_stages(), False, "last three stages x2/3 channels, repeats unchanged, dense 3x3 heads"
+    ),
+    "slim_sep": DetectorVariant(
+        smaller_stages(), True, "last three stages x2/3 channels, repeats unchanged, separable 3x3 heads"
+    ),
+    "literal": DetectorVariant(
+        smaller_stages(fewer_repeats=(3, 4, 5)),
+        False,
+        "last three stages x2/3 channels and stages 4-6 one repeat fewer, dense 3x3 heads",
+    ),
+    "literal_sep": DetectorVariant(
+        smaller_stages(fewer_repeats=(3, 4, 5)),
+        True,
+        "last three stages x2/3 channels and stages 4-6 one repeat fewer, separable 3x3 heads",
+    ),
+}
+# Closest to the paper's 2.08 M params / 0.49 GMACs at 256 x 256 (figures in efficientnet.py).
+SMALLER_VARIANT = "slim_sep"
+
+
+def normalised_cartesian(x: np.ndarray, y: np.ndarray) -> torch.Tensor:
+    """Cartesian channels ``(2, R, A)`` float32 from per-cell ``x, y`` in metres ``(R, A)``.
+
+    Both are divided by the largest range on the grid, so x lies in [-1, 1] and y in [0, 1].
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if x.shape != y.shape or x.ndim != 2:
+        raise ValueError(f"cartesian x and y must both be (R, A), got {x.shape} and {y.shape}")
+    scale = float(np.hypot(x, y).max())
+    if not np.isfinite(scale) or scale <= 0:
+        raise ValueError("cartesian x, y must be finite and not all zero")
+    return torch.from_numpy(np.stack([x, y]) / scale).float()
+
+
+class CentreDetector(nn.Module):
+    """Doppler 1x1 conv + Cartesian channels -> backbone -> neck -> head.
+
+    ``backbone(image (B, 5, R', A')) -> list of 4 features`` (strides 4, 8, 16, 32, with a
+    ``feature_channels`` attribute), ``neck(features) -> (B, C, ceil(R'/4), ceil(A'/4))`` and ``head``
+    a :class:`CentreNetHead`; defaults (the chosen smaller variant, BiFPN D0) are built
+    for any of them given as ``None``. ``cartesian``: ``(x, y)`` in metres, each ``(R, A)``.
+    """
+
+    def __init__(
+        self,
+        *,
+        doppler_bins: int,
+        cartesian: tuple[np.ndarray, np.ndarray],
+        backbone: nn.Module | None = None,
+        neck: nn.Module | None = None,
+        head: CentreNetHead | None = None,
+        pad_multiple: int = 4,
+    ) -> None:
+        super().__init__()
+        if doppler_bins < 1:
+            raise ValueError(f"doppler_bins must be >= 1, got {doppler_bins}")
+        if pad_multiple < 1 or pad_multiple % 4:
+            raise ValueError(
+                f"pad_multiple must be a positive multiple of the output stride 4, got {pad_multiple}"
+            )
+        self.doppler_compress = nn.Conv2d(doppler_bins, COMPRESSED_DOPPLER_CHANNELS, 1)
+        self.register_buffer("cartesian", normalised_cartesian(*cartesian)[None], persistent=False)
+        in_channels = COMPRESSED_DOPPLER_CHANNELS + CARTESIAN_CHANNELS
+        self.backbone = (
+            backbone
+            if backbone is not None
+            else build_efficientnet(in_channels=in_channels, stages=VARIANTS[SMALLER_VARIANT].stages)
+        )
+        self.neck = neck if neck is not None else BiFPNNeck(self.backbone.feature_channels)
+        self.head = (
+            head
+            if head is not None
+            else CentreNetHead(
+                doppler_bins=doppler_bins,
+                in_channels=getattr(self.neck, "out_channels", 64),
+                separable=VARIANTS[SMALLER_VARIANT].separable_heads,
+            )
+        )
+        self.doppler_bins = doppler_bins
+        self.pad_multiple = pad_multiple
+        self.output_stride = 4
+
+    @property
+    def grid_shape(self) -> tuple[int, int]:
+        """The ``(R, A)`` grid this detector's Cartesian channels were built for."""
+        return tuple(self.cartesian.shape[-2:])
+
+    def forward(self, log_power: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``(B, D, R, A)`` normalised log power -> dict of ``(B, ., ceil(R/4), ceil(A/4))`` outputs."""
+        if (
+            log_power.ndim != 4
+            or log_power.shape[1] != self.doppler_bins
+            or log_power.shape[-2:] != self.cartesian.shape[-2:]
+        ):
+            raise ValueError(
+                f"expected log power (B, {self.doppler_bins}, {self.grid_shape[0]}, {self.grid_shape[1]}), "
+                f"got {tuple(log_power.shape)}"
+            )
+        batch, _, n_range, n_angle = log_power.shape
+        image = torch.cat(
+            [self.doppler_compress(log_power), self.cartesian.expand(batch, -1, -1, -1)], dim=1
+        )  # (B, 5, R, A)
+        pad_range = -n_range % self.pad_multiple
+        pad_angle = -n_angle % self.pad_multiple
+        if pad_range or pad_angle:
+            image = F.pad(image, (0, pad_angle, 0, pad_range))
+        outputs = self.head(self.neck(self.backbone(image)))
+        out_range = -(-n_range // self.output_stride)
+        out_angle = -(-n_angle // self.output_stride)
+        return {name: value[..., :out_range, :out_angle] for name, value in outputs.items()}
+
+    def compute_loss(
+        self, outputs: dict[str, torch.Tensor], targets: CentreTargets
+    ) -> dict[str, torch.Tensor]:
+        """Named losses, see :meth:`CentreNetHead.compute_loss`."""
+        return self.head.compute_loss(outputs, targets)
+
+    def decode(
+        self, outputs: dict[str, torch.Tensor], k: int = 100, score_threshold: float = 0.1
+    ) -> list[dict[str, torch.Tensor]]:
+        """Centres per frame in input bins, see :meth:`CentreNetHead.decode`."""
+        return self.head.decode(outputs, k=k, score_threshold=score_threshold)
+
+
+def _resolve_grid(
+    preset: str | RadarProfile, cartesian: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[int, tuple[np.ndarray, np.ndarray]]:
+    profile = get_profile(preset)
+    if cartesian is None:
+        cartesian = profile.ra_cartesian
+    elif np.shape(cartesian[0]) != (profile.n_range, profile.n_angle):
+        raise ValueError(
+            f"cartesian grids must be (R, A) = {(profile.n_range, profile.n_angle)} for preset "
+            f"{profile.name!r}, got {np.shape(cartesian[0])}"
+        )
+    return profile.n_doppler, cartesian
+
+
+@register_model("centre_detector")
+def build_centre_detector(
+    *,
+    preset: str | RadarProfile = "carrada",
+    variant: str = SMALLER_VARIANT,
+    width_mult: float = 1.0,
+    depth_mult: float = 1.0,
+    neck_channels: int = 64,
+    neck_layers: int = 3,
+    head_channels: int = 64,
+    separable_heads: bool | None = None,
+    stages: Sequence[MBConvStage] | None = None,
+    cartesian: tuple[np.ndarray, np.ndarray] | None = None,
+) -> CentreDetector:
+    """Centre detector for a radar preset.
+
+    ``variant`` picks the stage table and head conv type from :data:`VARIANTS`; ``stages`` and
+    ``separable_heads`` override them. ``cartesian`` (x, y metres, each (R, A)) defaults to the
+    preset's RA grid.
+    """
+    if variant not in VARIANTS:
+        raise ValueError(f"variant must be one of {sorted(VARIANTS)}, got {variant!r}")
+    for name, value in (
+        ("neck_channels", neck_channels),
+        ("neck_layers", neck_layers),
+        ("head_channels", head_channels),
+    ):
+        if not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name} must be a positive int, got {value!r}")
+    chosen = VARIANTS[variant]
+    doppler_bins, cartesian = _resolve_grid(preset, cartesian)
+    backbone: EfficientNetBackbone = build_efficientnet(
+        in_channels=COMPRESSED_DOPPLER_CHANNELS + CARTESIAN_CHANNELS,
+        stages=chosen.stages if stages is None else tuple(stages),
+        width_mult=width_mult,
+        depth_mult=depth_mult,
+    )
+    neck = BiFPNNeck(backbone.feature_channels, channels=neck_channels, num_layers=neck_layers)
+    head = CentreNetHead(
+        doppler_bins=doppler_bins,
+        in_channels=neck_channels,
+        head_channels=head_channels,
+        separable=chosen.separable_heads if separable_heads is None else separable_heads,
+    )
+    return CentreDetector(
+        doppler_bins=doppler_bins, cartesian=cartesian, backbone=backbone, neck=neck, head=head
+    )
+
+
+@register_model("centre_detector_tiny")
+def build_centre_detector_tiny(
+    *, preset: str | RadarProfile = "small", variant: str = SMALLER_VARIANT
+) -> CentreDetector:
+    """A few-thousand-parameter detector with the real structure, for tests."""
+    return build_centre_detector(
+        preset=preset,
+        variant=variant,
+        width_mult=0.25,
+        depth_mult=0.25,
+        neck_channels=16,
+        neck_layers=1,
+        head_channels=16,
+    )
