@@ -1,0 +1,1 @@
+"""Stage 2 of ERASE-Net: sparse segmenters labelling region-grown ROI voxels (SPEC section 7)."""
