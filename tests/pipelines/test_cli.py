@@ -1,0 +1,34 @@
+import json
+
+from pipelines.cli import main
+from pipelines.demo import run_demo
+
+
+def test_simulate_writes_the_documented_layout(tmp_path, capsys):
+    out = tmp_path / "rec"
+    code = main(["simulate", "--preset", "small", "--sequences", "2", "--frames", "2", "--seed", "4",
+                 "--out", str(out)])
+    assert code == 0
+    meta = json.loads((out / "recording.json").read_text())
+    assert meta["sequences"] == {"seq_000": 2, "seq_001": 2}
+    assert meta["source"]["seed"] == 4
+    for seq in ("seq_000", "seq_001"):
+        assert sorted(p.name for p in (out / seq / "cubes").iterdir()) == ["000000.npy", "000001.npy"]
+        assert sorted(p.name for p in (out / seq / "labels").iterdir()) == ["000000.npz", "000001.npz"]
+        assert len(json.loads((out / seq / "objects.json").read_text())["frames"]) == 2
+    assert str(out) in capsys.readouterr().out
+
+
+def test_cli_errors_are_one_clear_line(tmp_path, capsys):
+    out = tmp_path / "rec"
+    assert main(["simulate", "--sequences", "1", "--frames", "1", "--out", str(out)]) == 0
+    assert main(["simulate", "--sequences", "1", "--frames", "1", "--out", str(out)]) == 2
+    assert "a recording already exists" in capsys.readouterr().err
+    assert main(["simulate", "--sequences", "0", "--frames", "1", "--out", str(tmp_path / "x")]) == 2
+
+
+def test_demo_writes_pictures(tmp_path):
+    result = run_demo(tmp_path / "demo", sequences=1, frames=2, pictures=2)
+    assert len(result["pictures"]) == 2
+    for path in result["pictures"]:
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
