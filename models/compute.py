@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -257,48 +258,68 @@ def _normalise_shapes(input_shapes: Sequence) -> tuple[tuple[int, ...], ...]:
     return tuple(shapes)
 
 
-def count_macs(
-    model: nn.Module, *input_shapes: Sequence[int], dtype: torch.dtype = torch.float32
-) -> ComputeReport:
-    """Report for one forward of ``model`` on inputs of ``input_shapes`` (batch included).
+def _meta_copy(model: nn.Module) -> nn.Module:
+    return copy.deepcopy(model).to("meta").eval()
 
-    Runs on a ``meta``-device deep copy in eval mode: no arithmetic, no change to ``model`` (eval also
-    lets batch-1 shapes through BatchNorm on 1x1 maps). Only for models whose
-    cost is fixed by the input shape (no ``last_macs`` modules, which need real data: use
-    :class:`MacRecorder` on a real forward for those).
-    """
-    shapes = _normalise_shapes(input_shapes)
-    meta_model = copy.deepcopy(model).to("meta").eval()
+
+def _count_on_meta(
+    meta_model: nn.Module, shapes: tuple[tuple[int, ...], ...], params: int, dtype: torch.dtype
+) -> ComputeReport:
     inputs = [torch.empty(shape, dtype=dtype, device="meta") for shape in shapes]
     with torch.no_grad(), MacRecorder(meta_model) as recorder:
         meta_model(*inputs)
-    report = recorder.report()
     return ComputeReport(
-        params=count_params(model),
-        macs=report.macs,
-        macs_paper=report.macs_paper,
-        dynamic_macs=report.dynamic_macs,
-        by_stage=report.by_stage,
+        params=params,
+        macs=recorder.macs,
+        macs_paper=recorder.macs_paper,
+        dynamic_macs=recorder.dynamic_macs,
+        by_stage=dict(recorder.by_stage),
         input_shapes=shapes,
     )
+
+
+def count_macs(model: nn.Module, *input_shapes: Sequence[int], dtype: torch.dtype = torch.float32) -> ComputeReport:
+    """Report for one forward of ``model`` on inputs of ``input_shapes`` (batch included).
+
+    Runs on a ``meta``-device deep copy in eval mode: no arithmetic, no change to ``model`` (eval also
+    lets batch-1 shapes through BatchNorm on 1x1 maps). Only for models whose cost is fixed by the
+    input shape (no ``last_macs`` modules, which need real data: use :class:`MacRecorder` on a real
+    forward for those). Costs about as much as one real forward of a small model (the copy dominates);
+    :class:`ComputeCounter` keeps the copy and caches per shape.
+    """
+    shapes = _normalise_shapes(input_shapes)
+    return _count_on_meta(_meta_copy(model), shapes, count_params(model), dtype)
 
 
 class ComputeCounter:
     """Per-input-shape cache of :func:`count_macs` for one dense model (cheap per request).
 
-    ``counter.report((1, 64, 256, 256))`` costs one meta forward the first time and a dict lookup
-    afterwards. Build a new counter when the architecture changes (e.g. after slimming).
+    ``counter.report((1, 64, 256, 256))`` costs one meta forward the first time (about 0.1 s for the
+    detector, plus a one-off copy of the model to the meta device) and a dict lookup afterwards. Build
+    a new counter when the architecture changes (e.g. after slimming).
     """
 
-    def __init__(self, model: nn.Module) -> None:
+    def __init__(self, model: nn.Module, *, dtype: torch.dtype = torch.float32) -> None:
         self.model = model
+        self.dtype = dtype
+        self._meta_model: nn.Module | None = None
         self._cache: dict[tuple[tuple[int, ...], ...], ComputeReport] = {}
+        # Hooks on the shared meta copy would mix two concurrent counts: one count at a time.
+        self._lock = threading.Lock()
 
     def report(self, *input_shapes: Sequence[int]) -> ComputeReport:
+        """Cached report for inputs of ``input_shapes`` (batch included); thread-safe."""
         shapes = _normalise_shapes(input_shapes)
         cached = self._cache.get(shapes)
-        if cached is None:
-            cached = self._cache[shapes] = count_macs(self.model, *shapes)
+        if cached is not None:
+            return cached
+        with self._lock:
+            cached = self._cache.get(shapes)
+            if cached is None:
+                if self._meta_model is None:
+                    self._meta_model = _meta_copy(self.model)
+                cached = _count_on_meta(self._meta_model, shapes, count_params(self.model), self.dtype)
+                self._cache[shapes] = cached
         return cached
 
 
