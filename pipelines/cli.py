@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 
@@ -30,6 +31,24 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    from pipelines.preprocess import config_from_args, main
+
+    result = main(config_from_args(args))
+    print(f"store {result['store']}: {result['written']}/{result['frames']} frames written, "
+          f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
+          f"{result['shards_skipped']} already done")
+    return 0
+
+
+def _cmd_store_info(args: argparse.Namespace) -> int:
+    from pipelines.store import format_summary, summarise
+
+    summary = summarise(args.store)
+    print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="radarseg", description="ERASE-Net radar semantic segmentation")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -42,6 +61,19 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--out", required=True, help="output directory (must not hold a recording yet)")
     sim.set_defaults(func=_cmd_simulate)
+
+    from pipelines.preprocess import add_arguments
+
+    pre = sub.add_parser("preprocess", help="Ray job: cubes into the zarr store of inputs and targets")
+    add_arguments(pre)
+    pre.set_defaults(func=_cmd_preprocess)
+
+    store = sub.add_parser("store", help="inspect a preprocessed store")
+    store_sub = store.add_subparsers(dest="store_command", required=True)
+    info = store_sub.add_parser("info", help="frames per split, class counts, statistics, quarantined frames")
+    info.add_argument("store", help="store path")
+    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.set_defaults(func=_cmd_store_info)
 
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")
     demo.add_argument("--out", default="out/demo")

@@ -1,0 +1,585 @@
+"""Ray job: RAD cubes into the zarr v3 store of inputs and targets (SPEC section 4).
+
+::
+
+    python -m pipelines.preprocess --source sim --preset small --sequences 3 --frames 8 --seed 11 --out STORE.zarr
+    python -m pipelines.preprocess --source recording:DIR --out STORE.zarr [--split-fractions 0.7 0.15 0.15]
+    python -m pipelines.preprocess --source carrada:ROOT --out STORE.zarr      # split from data_seq_ref.json
+    ray job submit --address http://127.0.0.1:8265 --working-dir . -- \
+        python -m pipelines.preprocess ... --out /abs/STORE.zarr
+
+The job is ``parse_args() -> main(cfg) -> dict``. With no ``--address`` (and no ``RAY_ADDRESS``, which
+``ray job submit`` sets for its drivers) it starts an embedded local Ray with a capped object store.
+
+How the work is cut: frames are laid out sequence by sequence (sequences sorted by name) in ``N``
+store slots; every array is sharded along the frame axis every ``--shard-frames`` slots; one Ray task
+per shard reads (or, for ``sim``, simulates: nothing but the store is written) its frames, encodes
+them and writes the whole shard of every array, then its progress marker (last). At most ``--tasks``
+shard tasks are in flight (``ray.wait``). A rerun with the same arguments skips shards whose marker
+exists, so an interrupted job resumes and ends with the same arrays, byte for byte, as a straight run.
+
+Bad cubes (unreadable, wrong shape or dtype, NaN/Inf) are not written: the slot keeps its fill
+values with ``valid = 0`` and the frame goes to the quarantine list in the store's ``report``
+attribute with the reason; the job carries on. A job whose every frame is bad fails.
+
+Each shard task also returns the moments of the train frames' ``input`` per Doppler bin and the
+class voxel counts; a Ray reduction task merges them (Chan's parallel variance, in shard order so the
+result is deterministic) into the store's ``normalisation`` and ``class_voxel_counts`` attributes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import ray
+from tqdm import tqdm
+
+from pipelines.store import (
+    FORMAT,
+    FRAME_ARRAYS,
+    MAX_OBJECTS,
+    OBJECT_FIELDS,
+    SPLIT_CODE,
+    SPLITS,
+    StoreLayout,
+    create_store,
+    done_shards,
+    encode_frame,
+    finish_store,
+    mark_shard_done,
+    write_shard_arrays,
+)
+from radar.frame import RadarFrame
+from radar.io.carrada import CarradaReader
+from radar.io.errors import DataError
+from radar.io.recording import Recording
+from radar.profiles import PRESETS, get_profile
+from radar.simulate import SimulatorConfig, sequence_name, simulate_frame
+from radar.simulate.scene import SceneGenerator, static_clutter
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SPLIT_FRACTIONS = (0.7, 0.15, 0.15)
+DEFAULT_SHARD_FRAMES = 8
+OBJECT_STORE_BYTES = 256 * 2**20  # embedded Ray: task results are small summaries, the data goes to disk
+SOURCE_KINDS = ("sim", "recording", "carrada")
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    """Arguments of the job, as given (None = the source's default, resolved by :func:`plan_job`)."""
+
+    source: str  # "sim", "recording:DIR" or "carrada:ROOT"
+    out: str  # store path (a directory ending in .zarr by convention)
+    preset: str | None = None  # sim only (default small)
+    sequences: int | None = None  # sim only (default 2)
+    frames: int | None = None  # sim only: frames per sequence (default 8)
+    seed: int = 0  # sim only
+    split_fractions: tuple[float, float, float] | None = None  # train, val, test by sequence
+    address: str | None = None  # Ray address; None = embedded local Ray (or RAY_ADDRESS under a job)
+    tasks: int | None = None  # shard tasks in flight; None = the cluster's CPUs
+    shard_frames: int = DEFAULT_SHARD_FRAMES
+    max_objects: int = MAX_OBJECTS
+    progress: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["split_fractions"] = None if self.split_fractions is None else list(self.split_fractions)
+        return data
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """Where a shard task gets its frames: enough to reopen the source inside a Ray worker."""
+
+    kind: str  # one of SOURCE_KINDS
+    path: str | None  # recording dir or CARRADA root (absolute); None for sim
+    preset: str
+    seed: int = 0  # sim only
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Slot:
+    """One frame slot of the store."""
+
+    slot: int
+    sequence_id: int
+    sequence: str
+    index: int  # frame index within the sequence
+    split: int  # SPLIT_CODE
+
+
+@dataclass(frozen=True)
+class JobPlan:
+    """Everything fixed before any work: the source, the store layout and the slot of every frame."""
+
+    cfg: PreprocessConfig
+    out: Path
+    source: SourceSpec
+    layout: StoreLayout
+    sequences: tuple[str, ...]
+    slots: tuple[Slot, ...]
+    split_rule: dict[str, Any]
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the run that created the store."""
+        return {"source": self.source.to_dict(), "layout": self.layout.to_dict(), "sequences": list(self.sequences),
+                "split_rule": self.split_rule,
+                "slots": [[s.sequence_id, s.index, s.split] for s in self.slots]}
+
+    def shard_slots(self, shard: int) -> tuple[Slot, ...]:
+        start, stop = self.layout.shard_bounds(shard)
+        return self.slots[start:stop]
+
+
+@dataclass(frozen=True)
+class ShardJob:
+    """The payload of one shard task."""
+
+    store: str
+    layout: StoreLayout
+    source: SourceSpec
+    shard: int
+    slots: tuple[Slot, ...]
+
+
+# --------------------------------------------------------------------------- arguments
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The job's arguments (shared by ``python -m pipelines.preprocess`` and ``radarseg preprocess``)."""
+    parser.add_argument("--source", required=True,
+                        help="'sim' (the FMCW simulator, run inside the Ray tasks), 'recording:DIR' or 'carrada:ROOT'")
+    parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
+    parser.add_argument("--preset", choices=sorted(PRESETS), help="sim: radar preset (default small)")
+    parser.add_argument("--sequences", type=int, help="sim: number of sequences (default 2)")
+    parser.add_argument("--frames", type=int, help="sim: frames per sequence (default 8)")
+    parser.add_argument("--seed", type=int, default=0, help="sim: scene seed")
+    parser.add_argument("--split-fractions", type=float, nargs=3, metavar=("TRAIN", "VAL", "TEST"),
+                        help="split by sequence in name order (default 0.7 0.15 0.15; CARRADA: its split file)")
+    parser.add_argument("--address", help="Ray address (default: embedded local Ray, or the job's cluster)")
+    parser.add_argument("--tasks", type=int, help="shard tasks in flight (default: the cluster's CPUs)")
+    parser.add_argument("--shard-frames", type=int, default=DEFAULT_SHARD_FRAMES, help="frames per shard")
+    parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS, help="width of the object table")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+
+
+def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
+    return PreprocessConfig(
+        source=args.source, out=str(Path(args.out).expanduser().absolute()), preset=args.preset,
+        sequences=args.sequences, frames=args.frames, seed=args.seed,
+        split_fractions=None if args.split_fractions is None else tuple(args.split_fractions),
+        address=args.address, tasks=args.tasks, shard_frames=args.shard_frames, max_objects=args.max_objects,
+        progress=args.progress,
+    )
+
+
+def parse_args(argv: Sequence[str] | None = None) -> PreprocessConfig:
+    """Parse and check the command line; wrong arguments exit with status 2 before any work."""
+    parser = argparse.ArgumentParser(prog="python -m pipelines.preprocess", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    cfg = config_from_args(parser.parse_args(argv))
+    try:
+        plan_job(cfg)
+    except (ValueError, DataError) as exc:
+        parser.error(str(exc))
+    return cfg
+
+
+# --------------------------------------------------------------------------- planning
+def _split_by_fractions(sequences: Sequence[str], fractions: Sequence[float]) -> dict[str, str]:
+    """Sequence ``i`` of ``n`` (name order) goes to the split whose cumulative fraction first exceeds (i + 0.5) / n."""
+    edges = np.cumsum(fractions)
+    out = {}
+    for i, seq in enumerate(sequences):
+        position = (i + 0.5) / len(sequences)
+        out[seq] = SPLITS[min(int(np.searchsorted(edges, position, side="right")), len(SPLITS) - 1)]
+    return out
+
+
+def plan_job(cfg: PreprocessConfig) -> JobPlan:
+    """Check every argument and the source's metadata, and lay out the store. Raises ValueError or
+    DataError saying what is wrong; nothing is written."""
+    kind, _, location = cfg.source.partition(":")
+    if kind not in SOURCE_KINDS or (kind == "sim") != (location == ""):
+        raise ValueError(f"--source must be 'sim', 'recording:DIR' or 'carrada:ROOT', got {cfg.source!r}")
+    for name in ("tasks", "shard_frames", "max_objects"):
+        value = getattr(cfg, name)
+        if value is not None and value < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    if cfg.split_fractions is not None:
+        fractions = tuple(float(f) for f in cfg.split_fractions)
+        if len(fractions) != 3 or min(fractions) < 0 or abs(sum(fractions) - 1) > 1e-6 or fractions[0] <= 0:
+            raise ValueError(f"--split-fractions must be 3 non-negative numbers (train > 0) summing to 1, "
+                             f"got {list(cfg.split_fractions)}")
+    if not cfg.out:
+        raise ValueError("--out must name the store path")
+
+    splits: dict[str, str]
+    if kind == "sim":
+        preset = cfg.preset or "small"
+        get_profile(preset)
+        n_sequences = 2 if cfg.sequences is None else cfg.sequences
+        n_frames = 8 if cfg.frames is None else cfg.frames
+        if n_sequences < 1 or n_frames < 1:
+            raise ValueError(f"--sequences and --frames must be >= 1, got {n_sequences} and {n_frames}")
+        source = SourceSpec("sim", None, preset, cfg.seed)
+        frame_counts = {sequence_name(i): n_frames for i in range(n_sequences)}
+    else:
+        given = [f"--{n}" for n in ("preset", "sequences", "frames") if getattr(cfg, n) is not None]
+        if given or cfg.seed != 0:
+            raise ValueError(f"{', '.join(given + (['--seed'] if cfg.seed else []))}: only with --source sim "
+                             f"(the {kind} source fixes them)")
+        root = Path(location).expanduser().absolute()
+        reader = Recording(root) if kind == "recording" else CarradaReader(root)
+        source = SourceSpec(kind, str(root), reader.profile.name)
+        frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
+        if not any(frame_counts.values()):
+            raise DataError(root, "the source holds no frame")
+        if kind == "carrada" and cfg.split_fractions is None:
+            splits = {seq: reader.split(seq) for seq in frame_counts}
+    names = tuple(sorted(frame_counts))
+    if kind != "carrada" or cfg.split_fractions is not None:
+        fractions = cfg.split_fractions or DEFAULT_SPLIT_FRACTIONS
+        splits = _split_by_fractions(names, fractions)
+        split_rule = {"rule": "fractions", "fractions": list(fractions)}
+    else:
+        split_rule = {"rule": "carrada data_seq_ref.json"}
+    if not any(splits[s] == "train" and frame_counts[s] for s in names):
+        raise ValueError(f"the split rule {split_rule} leaves the train split empty ({len(names)} sequences); "
+                         "the normalisation statistics need train frames")
+
+    slots: list[Slot] = []
+    for sequence_id, seq in enumerate(names):
+        for index in range(frame_counts[seq]):
+            slots.append(Slot(len(slots), sequence_id, seq, index, SPLIT_CODE[splits[seq]]))
+    layout = StoreLayout(get_profile(source.preset), len(slots), cfg.shard_frames, max_objects=cfg.max_objects)
+    plan = JobPlan(cfg, Path(cfg.out).expanduser().absolute(), source, layout, names, tuple(slots), split_rule)
+    _check_out(plan)
+    return plan
+
+
+def _check_out(plan: JobPlan) -> None:
+    """An existing ``--out`` must be empty, or a store made by the same job (which is then resumed)."""
+    out = plan.out
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a directory")
+    meta = out / "zarr.json"
+    if not meta.is_file():
+        if any(out.iterdir()):
+            raise ValueError(f"--out {out} exists and is not a radarseg store; choose another path")
+        return
+    try:
+        attrs = json.loads(meta.read_text()).get("attributes", {})
+    except json.JSONDecodeError as exc:
+        raise DataError(meta, f"not valid JSON ({exc})") from None
+    if attrs.get("format") != FORMAT:
+        raise ValueError(f"--out {out} is a zarr store but not a radarseg store; choose another path")
+    if attrs.get("plan") != plan.identity():
+        raise ValueError(f"--out {out} holds a store written with other source, layout or split arguments "
+                         f"(it can only be resumed with the same ones); choose another path or remove it")
+
+
+# --------------------------------------------------------------------------- frames of a source
+def simulated_frames(preset: str, seed: int, sequence_index: int, indices: Sequence[int]) -> Iterator[RadarFrame]:
+    """Frames ``indices`` (ascending) of simulated sequence ``sequence_index``, as ``simulate_sequence``
+    would yield them, without synthesising the frames before the first one.
+
+    Mirrors :func:`radar.simulate.simulate_sequence` (the scene is stepped frame by frame from its
+    own generator; each frame has its own generator): the scene stepping is cheap, the cube is not.
+    """
+    profile = get_profile(preset)
+    config = SimulatorConfig()
+    scene_rng = np.random.default_rng([seed, sequence_index, 0])
+    scene = SceneGenerator(profile, scene_rng)
+    clutter = static_clutter(profile, scene_rng)
+    wanted = iter(indices)
+    target = next(wanted, None)
+    index = 0
+    while target is not None:
+        states = scene.step()
+        if index == target:
+            frame_rng = np.random.default_rng([seed, sequence_index, 1, index])
+            yield simulate_frame(profile, states, clutter, t=index * profile.frame_period_s, rng=frame_rng,
+                                 config=config, sequence=sequence_name(sequence_index), index=index)
+            target = next(wanted, None)
+        index += 1
+
+
+def _source_frames(source: SourceSpec, slots: Sequence[Slot]) -> Iterator[tuple[Slot, RadarFrame | DataError]]:
+    """Each slot's frame, or the DataError that reading it raised."""
+    if source.kind == "sim":
+        by_sequence: dict[int, list[Slot]] = {}
+        for slot in slots:
+            by_sequence.setdefault(slot.sequence_id, []).append(slot)
+        for sequence_id, group in by_sequence.items():
+            frames = simulated_frames(source.preset, source.seed, sequence_id, [s.index for s in group])
+            yield from zip(group, frames, strict=True)
+        return
+    reader = Recording(source.path) if source.kind == "recording" else CarradaReader(source.path)
+    for slot in slots:
+        try:
+            yield slot, reader.read_frame(slot.sequence, slot.index)
+        except DataError as exc:
+            yield slot, exc
+
+
+# --------------------------------------------------------------------------- the shard task
+def _frame_moments(values: np.ndarray) -> dict[str, Any]:
+    """Count, mean and sum of squared deviations per Doppler bin of a (R, A, D) float16 cube."""
+    x = values.astype(np.float64).reshape(-1, values.shape[-1])
+    mean = x.mean(axis=0)
+    return {"count": int(x.shape[0]), "mean": mean, "m2": ((x - mean) ** 2).sum(axis=0)}
+
+
+def _merge_moments(a: dict[str, Any] | None, b: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Chan et al.'s parallel combination of two per-Doppler-bin moment sets (either may be None)."""
+    if a is None or b is None:
+        return a if b is None else b
+    n = a["count"] + b["count"]
+    mean_a, mean_b = np.asarray(a["mean"]), np.asarray(b["mean"])
+    delta = mean_b - mean_a
+    return {"count": n, "mean": mean_a + delta * (b["count"] / n),
+            "m2": np.asarray(a["m2"]) + np.asarray(b["m2"]) + delta**2 * (a["count"] * b["count"] / n)}
+
+
+def process_shard(job: ShardJob) -> dict[str, Any]:
+    """Encode the frames of one shard, write the whole shard of every array, then its marker.
+
+    Returns (and stores in the marker) the shard's summary: frames written, quarantined frames with
+    reasons, class voxel counts per split, and the train frames' ``input`` moments per Doppler bin.
+    """
+    layout = job.layout
+    buffers = layout.empty_shard(job.shard)
+    start, _ = layout.shard_bounds(job.shard)
+    num_classes = layout.profile.num_classes
+    class_counts = {name: np.zeros(num_classes, np.int64) for name in SPLITS}
+    moments = None
+    quarantined = []
+    for slot, frame in _source_frames(job.source, job.slots):
+        k = slot.slot - start
+        buffers["frame_index"][k], buffers["sequence_id"][k], buffers["split"][k] = (
+            slot.index, slot.sequence_id, slot.split)
+        try:
+            if isinstance(frame, DataError):
+                raise frame
+            encoded = encode_frame(frame, layout)
+        except (DataError, ValueError) as exc:
+            log.warning("quarantined %s/%d: %s", slot.sequence, slot.index, exc)
+            quarantined.append({"frame": slot.slot, "sequence": slot.sequence, "index": slot.index,
+                                "reason": str(exc)})
+            continue
+        for name in FRAME_ARRAYS:
+            buffers[name][k] = encoded[name]
+        buffers["valid"][k] = 1
+        class_counts[SPLITS[slot.split]] += np.bincount(encoded["labels"].ravel(), minlength=num_classes)
+        if slot.split == SPLIT_CODE["train"]:
+            moments = _merge_moments(moments, _frame_moments(encoded["input"]))
+    write_shard_arrays(job.store, layout, job.shard, buffers)
+    summary = {
+        "shard": job.shard,
+        "frames": len(job.slots),
+        "written": int(buffers["valid"].sum()),
+        "train_frames_written": int(sum(1 for s in job.slots
+                                        if s.split == SPLIT_CODE["train"] and buffers["valid"][s.slot - start])),
+        "quarantined": quarantined,
+        "class_counts": {name: counts.tolist() for name, counts in class_counts.items()},
+        "moments": None if moments is None else {"count": moments["count"], "mean": moments["mean"].tolist(),
+                                                 "m2": moments["m2"].tolist()},
+    }
+    mark_shard_done(job.store, job.shard, summary)
+    return summary
+
+
+def reduce_summaries(*summaries: dict[str, Any]) -> dict[str, Any]:
+    """Merge shard summaries (in shard order, so the float result does not depend on task timing)."""
+    ordered = sorted(summaries, key=lambda s: s["shard"])
+    moments = None
+    class_counts: dict[str, np.ndarray] = {}
+    for s in ordered:
+        moments = _merge_moments(moments, s["moments"])
+        for name, counts in s["class_counts"].items():
+            class_counts[name] = class_counts.get(name, 0) + np.asarray(counts, np.int64)
+    normalisation = None
+    if moments is not None:
+        mean_d, var_d = np.asarray(moments["mean"]), np.asarray(moments["m2"]) / moments["count"]
+        mean = float(mean_d.mean())  # every Doppler bin has the same count
+        var = float((var_d + (mean_d - mean) ** 2).mean())
+        normalisation = {
+            "mean": mean, "std": float(np.sqrt(var)),
+            "mean_per_doppler": mean_d.tolist(), "std_per_doppler": np.sqrt(var_d).tolist(),
+            "frames": int(sum(s["train_frames_written"] for s in ordered)),
+            "voxels": int(moments["count"]) * len(mean_d), "units": "dB", "split": "train",
+        }
+    return {
+        "frames": int(sum(s["frames"] for s in ordered)),
+        "written": int(sum(s["written"] for s in ordered)),
+        "quarantined": sorted((q for s in ordered for q in s["quarantined"]), key=lambda q: q["frame"]),
+        "class_voxel_counts": {name: counts.tolist() for name, counts in class_counts.items()},
+        "normalisation": normalisation,
+    }
+
+
+_process_shard_task = ray.remote(num_cpus=1)(process_shard)
+_reduce_task = ray.remote(num_cpus=1)(reduce_summaries)
+
+
+# --------------------------------------------------------------------------- the job
+def code_version() -> dict[str, Any]:
+    """Package version and, when run from a git checkout, the commit (and whether the tree is dirty)."""
+    try:
+        package = importlib.metadata.version("radarseg")
+    except importlib.metadata.PackageNotFoundError:
+        package = None
+    repo = Path(__file__).resolve().parent.parent
+    commit = dirty = None
+    if (repo / ".git").exists():
+        try:
+            commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True,
+                                    check=True, timeout=10).stdout.strip()
+            dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
+                                        capture_output=True, text=True, check=True, timeout=10).stdout.strip())
+        except (OSError, subprocess.SubprocessError):
+            commit = dirty = None
+    return {"package": package, "git_commit": commit, "git_dirty": dirty}
+
+
+def init_ray(address: str | None) -> bool:
+    """Connect to Ray unless already connected; returns True when this call connected (so main shuts down).
+
+    ``address`` None and no ``RAY_ADDRESS``: a new embedded local Ray (never a cluster that happens
+    to run on this machine), object store capped, token auth and usage stats off. Under ``ray job
+    submit`` the job's ``RAY_ADDRESS`` names the cluster.
+    """
+    if ray.is_initialized():
+        return False
+    if address is None and not os.environ.get("RAY_ADDRESS"):
+        os.environ.setdefault("RAY_AUTH_MODE", "disabled")
+        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        ray.init(address="local", object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False,
+                 logging_level=logging.WARNING)
+    else:
+        ray.init(address=address, logging_level=logging.WARNING)
+    return True
+
+
+def store_attributes(plan: JobPlan, stats: dict[str, Any]) -> dict[str, Any]:
+    """The store's final attributes from the plan and the reduced shard summaries."""
+    profile = plan.layout.profile
+    return {
+        "preset": profile.name,
+        "radar": profile.to_dict(),
+        "class_names": list(profile.all_class_names),
+        "splits": list(SPLITS),
+        "sequences": list(plan.sequences),
+        "object_fields": list(OBJECT_FIELDS),
+        "normalisation": stats["normalisation"],
+        "class_voxel_counts": stats["class_voxel_counts"],
+        "report": {"frames": stats["frames"], "written": stats["written"], "quarantined": stats["quarantined"]},
+        "source": plan.source.to_dict(),
+        "split_rule": plan.split_rule,
+        "job": plan.cfg.to_dict(),
+        "code_version": code_version(),
+    }
+
+
+def check_stats(plan: JobPlan, stats: dict[str, Any]) -> None:
+    """Fail (DataError) when every frame, or every train frame, was quarantined."""
+    where = plan.source.path or f"sim:{plan.source.preset}"
+    if stats["written"] == 0:
+        reasons = "; ".join(f"{q['sequence']}/{q['index']}: {q['reason']}" for q in stats["quarantined"][:3])
+        raise DataError(where, f"every one of the {stats['frames']} input frames is bad, nothing to "
+                               f"preprocess (first: {reasons})")
+    if stats["normalisation"] is None:
+        raise DataError(where, "every train frame is bad: no normalisation statistics can be computed")
+
+
+def main(cfg: PreprocessConfig) -> dict[str, Any]:
+    """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, seconds)."""
+    plan = plan_job(cfg)  # every argument is checked before Ray starts or anything is written
+    started = time.perf_counter()
+    if (plan.out / "zarr.json").is_file():
+        done = done_shards(plan.out)
+    else:
+        done = {}
+        create_store(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
+    connected = init_ray(cfg.address)
+    try:
+        ray_ready = time.perf_counter()
+        tasks = cfg.tasks or max(1, int(ray.cluster_resources().get("CPU", 1)))
+        todo = [s for s in range(plan.layout.n_shards) if s not in done]
+        log.info("%s: %d shards (%d done before), %d tasks in flight", plan.out, plan.layout.n_shards, len(done), tasks)
+        results: list[Any] = list(done.values())  # summaries of done shards, refs of the new ones
+        pending: list[ray.ObjectRef] = []
+        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
+                  desc=f"preprocess {plan.source.preset}", disable=not cfg.progress) as bar:
+
+            def collect() -> None:
+                nonlocal pending
+                ready, pending = ray.wait(pending, num_returns=1)
+                for ref in ready:
+                    bar.update(ray.get(ref)["frames"])  # a failed task raises here
+
+            for shard in todo:
+                if len(pending) >= tasks:
+                    collect()
+                job = ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_slots(shard))
+                ref = _process_shard_task.remote(job)
+                pending.append(ref)
+                results.append(ref)
+            while pending:
+                collect()
+        processed = time.perf_counter()
+        stats = ray.get(_reduce_task.remote(*results))  # the reduction runs as a Ray task
+    finally:
+        if connected:
+            ray.shutdown()
+    check_stats(plan, stats)
+    finish_store(plan.out, store_attributes(plan, stats))  # `complete` goes last
+    finished = time.perf_counter()
+    n_new = sum(len(plan.shard_slots(s)) for s in todo)
+    return {
+        "store": str(plan.out),
+        "frames": stats["frames"],
+        "written": stats["written"],
+        "quarantined": len(stats["quarantined"]),
+        "shards": plan.layout.n_shards,
+        "shards_run": len(todo),
+        "shards_skipped": len(done),
+        "tasks_in_flight": tasks,
+        "seconds_ray_start": ray_ready - started,
+        "seconds_shards": processed - ray_ready,
+        "seconds_total": finished - started,
+        "frames_per_second": n_new / (processed - ray_ready) if n_new else None,
+    }
+
+
+def _run(argv: Sequence[str] | None = None) -> int:
+    cfg = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        result = main(cfg)
+    except (DataError, ValueError) as exc:
+        print(f"preprocess: error: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_run())

@@ -1,0 +1,196 @@
+"""Shared fixtures of the pipeline tests: a real local Ray head on loopback, and process clean-up.
+
+Ray processes are stopped by process group, never by ``ray stop``: ``ray stop`` kills every Ray
+process of the machine's user, including the clusters of other jobs running beside the tests.
+Each Ray we start runs in its own session (``start_new_session``), so its daemons, workers and job
+drivers share one process group that we signal, then check empty.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+
+
+def ray_env(**extra: str) -> dict[str, str]:
+    """Environment for Ray subprocesses: the venv first on PATH (so a job's ``python`` is the venv's),
+    token auth and usage stats off, no inherited cluster address."""
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    env.update(PATH=f"{BIN}{os.pathsep}{env.get('PATH', '')}", RAY_AUTH_MODE="disabled",
+               RAY_USAGE_STATS_ENABLED="0", PYTHONUNBUFFERED="1")
+    env.update(extra)
+    return env
+
+
+def free_port(preferred: int | None = None) -> int:
+    for port in ([preferred] if preferred else []) + [0]:
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return s.getsockname()[1]
+    raise RuntimeError("no free port")
+
+
+def group_alive(pgid: int) -> list[int]:
+    """Pids (not zombies) whose process group is ``pgid``."""
+    alive = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[0] != "Z" and int(fields[2]) == pgid:
+            alive.append(int(entry.name))
+    return alive
+
+
+def stop_group(pgid: int, *, grace_s: float = 10.0) -> list[int]:
+    """SIGTERM the group, wait, SIGKILL what is left; returns the pids still alive afterwards."""
+    for sig, wait in ((signal.SIGTERM, grace_s), (signal.SIGKILL, 5.0)):
+        try:
+            os.killpg(pgid, sig)
+        except ProcessLookupError:
+            return []
+        deadline = time.monotonic() + wait
+        while group_alive(pgid) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        if not group_alive(pgid):
+            return []
+    return group_alive(pgid)
+
+
+class RayHead:
+    def __init__(self, dashboard_url: str, pgid: int, temp_dir: Path):
+        self.dashboard_url = dashboard_url
+        self.pgid = pgid
+        self.temp_dir = temp_dir
+
+
+@pytest.fixture(scope="session")
+def ray_head(tmp_path_factory):
+    """``ray start --head`` on loopback with the dashboard (for ``ray job submit``); stopped at the end."""
+    temp_dir = Path(f"/tmp/rsg-ray-{os.getpid()}")  # short: Ray's unix socket paths must fit 107 bytes
+    dashboard_port = free_port(8265)
+    cmd = [str(BIN / "ray"), "start", "--head", f"--port={free_port()}", "--node-ip-address", "127.0.0.1",
+           "--dashboard-host", "127.0.0.1", f"--dashboard-port={dashboard_port}", "--include-dashboard=true",
+           f"--ray-client-server-port={free_port()}", "--num-cpus", "2", "--object-store-memory", "200000000",
+           "--temp-dir", str(temp_dir), "--disable-usage-stats"]
+    proc = subprocess.Popen(cmd, env=ray_env(), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+    pgid = proc.pid
+    head = RayHead(f"http://127.0.0.1:{dashboard_port}", pgid, temp_dir)
+    try:
+        out, _ = proc.communicate(timeout=120)
+        if proc.returncode != 0:
+            raise RuntimeError(f"ray start failed ({proc.returncode}):\n{out[-3000:]}")
+        deadline = time.monotonic() + 60
+        while True:  # the jobs API comes up a little after `ray start` returns
+            try:
+                with urllib.request.urlopen(f"{head.dashboard_url}/api/version", timeout=2) as resp:
+                    if resp.status == 200:
+                        break
+            except OSError:
+                pass
+            if time.monotonic() > deadline:
+                raise RuntimeError("the Ray dashboard did not come up within 60 s")
+            time.sleep(0.5)
+        yield head
+    finally:
+        left = stop_group(pgid)
+        assert not left, f"Ray processes left after stopping the head: {left}"
+
+
+def build_store_inline(cfg):
+    """The job's work without Ray (shard tasks run in this process, in order): fast stores for tests
+    of the store and the Dataset. The Ray paths are tested in test_preprocess.py."""
+    from pipelines.preprocess import (
+        ShardJob,
+        check_stats,
+        plan_job,
+        process_shard,
+        reduce_summaries,
+        store_attributes,
+    )
+    from pipelines.store import create_store, finish_store
+
+    plan = plan_job(cfg)
+    create_store(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
+    summaries = [process_shard(ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_slots(shard)))
+                 for shard in range(plan.layout.n_shards)]
+    stats = reduce_summaries(*summaries)
+    check_stats(plan, stats)
+    finish_store(plan.out, store_attributes(plan, stats))
+    return plan.out
+
+
+@pytest.fixture(scope="session")
+def small_store(tmp_path_factory):
+    """A store of the small preset built without Ray: 2 sequences x 3 frames, seed 5, shards of 2 frames."""
+    from pipelines.preprocess import PreprocessConfig
+
+    out = tmp_path_factory.mktemp("store") / "small.zarr"
+    cfg = PreprocessConfig(source="sim", out=str(out), preset="small", sequences=2, frames=3, seed=5,
+                           split_fractions=(0.5, 0.5, 0.0), shard_frames=2, progress=False)
+    return build_store_inline(cfg)
+
+
+def assert_store_matches_simulator(path, *, preset: str, sequences: int, frames: int, seed: int) -> None:
+    """Every array of a ``sim`` store equals what the simulator's own frames, labels and object table give."""
+    import numpy as np
+    import zarr
+
+    from models.detector.targets import render_heatmap
+    from pipelines.store import OBJECT_FIELDS, open_store
+    from radar import transforms
+    from radar.simulate import simulate_sequence
+
+    root = open_store(path)
+    assert root.attrs["preset"] == preset
+    assert root["input"].shape[0] == sequences * frames
+    assert isinstance(root["input"].metadata.codecs[0], zarr.codecs.ShardingCodec)
+    col = {name: i for i, name in enumerate(OBJECT_FIELDS)}
+    slot = 0
+    for s in range(sequences):
+        for frame in simulate_sequence(preset, frames, seed=seed, sequence_index=s):
+            assert root["valid"][slot] == 1
+            assert root["sequence_id"][slot] == s and root.attrs["sequences"][s] == frame.sequence
+            assert root["frame_index"][slot] == frame.index
+            np.testing.assert_array_equal(root["input"][slot], transforms.log_power(frame.cube).astype(np.float16))
+            np.testing.assert_array_equal(root["labels"][slot], frame.labels)
+            np.testing.assert_array_equal(root["instances"][slot], frame.instances)
+            np.testing.assert_array_equal(root["ra_mask"][slot], frame.ra_mask())
+            np.testing.assert_array_equal(root["rd_mask"][slot], frame.rd_mask())
+            targets = [o for o in frame.objects if o.n_voxels > 0]
+            table = root["objects"][slot]
+            assert root["n_objects"][slot] == len(targets)
+            assert np.isnan(table[len(targets):]).all()
+            for row, o in zip(table, targets, strict=False):
+                assert row[col["instance_id"]] == o.instance_id and row[col["class_id"]] == o.class_id
+                np.testing.assert_allclose(row[[col["range_bin"], col["angle_bin"], col["doppler_bin"],
+                                                col["x"], col["y"]]],
+                                           [o.centre_range_bin, o.centre_angle_bin, o.doppler_bin,
+                                            o.centre_x, o.centre_y], rtol=1e-6, atol=1e-5)
+                cells = np.array([o.centre_range_bin, o.centre_angle_bin]) / 4
+                np.testing.assert_allclose(row[[col["offset_range"], col["offset_angle"]]],
+                                           cells - np.floor(cells), atol=1e-5)
+                assert row[col["n_voxels"]] == o.n_voxels
+            centres = [[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin] for o in targets]
+            expected = render_heatmap(np.array(centres).reshape(-1, 3), frame.cube.shape[:2])
+            np.testing.assert_array_equal(root["heatmap"][slot], expected.astype(np.float16))
+            slot += 1
