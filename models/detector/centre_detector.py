@@ -101,6 +101,9 @@ class CentreDetector(nn.Module):
     ``feature_channels`` attribute), ``neck(features) -> (B, C, ceil(R'/4), ceil(A'/4))`` and ``head``
     a :class:`CentreNetHead`; defaults (the chosen smaller variant, BiFPN D0) are built
     for any of them given as ``None``. ``cartesian``: ``(x, y)`` in metres, each ``(R, A)``.
+
+    In training mode a batch of 1 at 128 x 128 fails in BatchNorm: P7 is then 1 x 1 (one value per
+    channel). Train with batches of 2 or more there.
     """
 
     def __init__(
@@ -251,7 +254,7 @@ def build_centre_detector(
 def build_centre_detector_tiny(
     *, preset: str | RadarProfile = "small", variant: str = SMALLER_VARIANT
 ) -> CentreDetector:
-    """A few-thousand-parameter detector with the real structure, for tests."""
+    """A 67 k-parameter detector with the real structure (every stage, BiFPN, three heads), for tests."""
     return build_centre_detector(
         preset=preset,
         variant=variant,
