@@ -68,6 +68,9 @@ class Scatterers:
                             ("x", "y", "vx", "vy", "amplitude")))
 
 
+SMALL_ARRAY = 16  # up to this many virtual elements the angle DFT is a matrix product, above an FFT
+
+
 def hann(n: int) -> np.ndarray:
     """Hann window of ``n`` points without the zero end points (matters for an 8-element array)."""
     return np.hanning(n + 2)[1:-1]
@@ -162,8 +165,12 @@ def adc_to_rad(profile: RadarProfile, adc: np.ndarray) -> np.ndarray:
     x = scipy.fft.fft(x, n=profile.n_range, axis=0)  # (R, Nc, K)
     x = x * cc.window_doppler[None, :, None].astype(np.float32)
     x = scipy.fft.fftshift(scipy.fft.fft(x, n=profile.n_doppler, axis=1), axes=1)  # (R, D, K)
-    # (A, K) @ (R, K, D) -> (R, A, D): window, zero-padding and fftshift are in the DFT matrix.
-    return np.matmul(cc.angle_dft, x.transpose(0, 2, 1))
+    if profile.n_virtual <= SMALL_ARRAY:
+        # (A, K) @ (R, K, D) -> (R, A, D): window, zero-padding and fftshift are in the DFT matrix.
+        return np.matmul(cc.angle_dft, x.transpose(0, 2, 1))
+    x = x * cc.window_array[None, None, :].astype(np.float32)
+    x = scipy.fft.fftshift(scipy.fft.fft(x, n=profile.n_angle, axis=2), axes=2)  # (R, D, A)
+    return np.ascontiguousarray(x.transpose(0, 2, 1))
 
 
 def axis_kernels(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool = False
@@ -181,7 +188,8 @@ def axis_kernels(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool 
         scipy.fft.fft(cc.window_doppler * np.exp(2j * np.pi * f_doppler[:, None] * m), n=profile.n_doppler, axis=1),
         axes=1,
     )
-    k_angle = _element_phasors(profile, f_doppler, sin_t, tdm_coupling) @ cc.angle_dft.T.astype(np.complex128)
+    elements = cc.window_array * _element_phasors(profile, f_doppler, sin_t, tdm_coupling)  # (P, K)
+    k_angle = scipy.fft.fftshift(scipy.fft.fft(elements, n=profile.n_angle, axis=1), axes=1)
     return k_range, k_angle, k_doppler
 
 

@@ -1,0 +1,105 @@
+import numpy as np
+import pytest
+
+from radar.cfar import CfarConfig, cfar_centres
+from radar.detections import Centres
+from radar.profiles import SMALL
+from radar.region_growing import RegionGrowingConfig, grow_regions, noise_level_db
+from radar.simulate import SimulatorConfig, simulate_frame, simulate_sequence
+from radar.simulate.scene import ObjectState
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return list(simulate_sequence("small", 8, seed=21))[::2]
+
+
+def _true_seeds(frame):
+    return np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin] for o in frame.objects if o.n_voxels])
+
+
+def test_seeded_at_true_centres_covers_the_labelled_voxels(frames):
+    recalls = [grow_regions(f.log_power(), _true_seeds(f), f.profile).recall(f.instances) for f in frames]
+    assert np.mean(recalls) >= 0.95, recalls
+
+
+def test_regions_respect_the_distance_and_intensity_thresholds(frames):
+    config = RegionGrowingConfig(intensity_ratio=0.5, distance_m=4.0)
+    cart_x, cart_y = SMALL.ra_cartesian
+    for f in frames:
+        lp = f.log_power()
+        noise = noise_level_db(lp)
+        regions = grow_regions(lp, _true_seeds(f), f.profile, config)
+        assert len(regions) > 0
+        for i, (r0, a0, d0) in enumerate(regions.seeds):
+            own = regions.voxels[regions.seed_index == i]
+            r, a, d = own.T
+            dist = np.hypot(cart_x[r, a] - cart_x[r0, a0], cart_y[r, a] - cart_y[r0, a0])
+            assert (dist <= config.distance_m + 1e-4).all()
+            seed_db = lp[r0, a0, d0] - noise
+            floor = noise + max(config.intensity_ratio * seed_db, config.min_snr_db)
+            assert (lp[r, a, d] >= floor - 1e-4).all()
+
+
+def test_visited_count_is_exact_on_a_hand_built_cube():
+    lp = np.zeros(SMALL.shape, np.float32)
+    lp[40, 60, 10:13] = 50.0  # a 3-voxel line along Doppler: the region
+    lp[40, 61, 11] = 20.0  # a neighbour below half the seed: examined, rejected
+    regions = grow_regions(lp, np.array([[40, 60, 11]]), SMALL,
+                           RegionGrowingConfig(intensity_ratio=0.5, distance_m=3.0, seed_search=(0, 0, 0)),
+                           noise_db=0.0)
+    assert sorted(map(tuple, regions.voxels.tolist())) == [(40, 60, 10), (40, 60, 11), (40, 60, 12)]
+    # 3 members + 2 at the line's ends + 4 sides x 3 voxels = 17 examined
+    assert regions.visited == 17
+    assert regions.mask().sum() == 3 and (regions.seed_index == 0).all()
+
+
+def test_distance_threshold_stops_a_long_region():
+    lp = np.zeros(SMALL.shape, np.float32)
+    lp[10:120, 64, 16] = 40.0  # a ridge along range at broadside
+    config = RegionGrowingConfig(intensity_ratio=0.5, distance_m=5.0, seed_search=(0, 0, 0))
+    regions = grow_regions(lp, np.array([[60, 64, 16]]), SMALL, config, noise_db=0.0)
+    ranges = SMALL.range_m(regions.voxels[:, 0])
+    assert ranges.min() >= SMALL.range_m(60) - 5.0 - 1e-6 and ranges.max() <= SMALL.range_m(60) + 5.0 + 1e-6
+    assert len(regions) == 2 * int(5.0 / SMALL.range_res) + 1
+
+
+def test_overlapping_regions_keep_the_first_seed_and_bad_input_is_refused():
+    lp = np.zeros(SMALL.shape, np.float32)
+    lp[50:60, 64, 16] = 40.0
+    seeds = Centres.from_bins(np.array([[52, 64, 16], [57, 64, 16]]))
+    regions = grow_regions(lp, seeds, SMALL, RegionGrowingConfig(distance_m=8.0, seed_search=(0, 0, 0)), noise_db=0.0)
+    assert len(regions) == 10 and (regions.seed_index == 0).all()
+    with pytest.raises(ValueError, match="shape"):
+        grow_regions(lp[:10], seeds, SMALL)
+    with pytest.raises(ValueError, match="finite"):
+        grow_regions(lp, np.array([[np.nan, 1, 1]]), SMALL)
+    with pytest.raises(ValueError, match="distance_m"):
+        RegionGrowingConfig(distance_m=0)
+
+
+def _easy_frame(x, y, heading, speed, class_name="car", seed=0):
+    class_id = SMALL.class_names.index(class_name) + 1
+    state = ObjectState(track_id=1, class_id=class_id, class_name=class_name, x=x, y=y, heading=heading,
+                        speed=speed, yaw_rate=0.0, rcs_dbsm=15.0, gait_phase=0.0)
+    return simulate_frame(SMALL, [state], None, t=0.0, rng=np.random.default_rng(seed),
+                          config=SimulatorConfig(clutter=False))
+
+
+@pytest.mark.parametrize("method", ["ca", "os"])
+def test_cfar_finds_single_moving_objects(method):
+    for i, (x, y, heading, speed) in enumerate([(0.0, 15.0, np.pi / 2, 6.0), (-6.0, 25.0, -np.pi / 2, 5.0),
+                                                 (8.0, 30.0, np.pi / 3, 8.0)]):
+        frame = _easy_frame(x, y, heading, speed, seed=i)
+        (obj,) = frame.objects
+        centres = cfar_centres(frame.log_power(), SMALL, CfarConfig(method=method))
+        assert len(centres) >= 1
+        cx, cy = SMALL.xy(centres.range_bin[0], centres.angle_bin[0])
+        assert np.hypot(cx - obj.centre_x, cy - obj.centre_y) < 3.0
+        assert abs(centres.doppler_bin[0] - obj.doppler_bin) < 3.0
+        assert np.all(np.diff(centres.score) <= 0)
+
+
+def test_cfar_on_noise_alone_finds_little():
+    frame = simulate_frame(SMALL, [], None, t=0.0, rng=np.random.default_rng(3), config=SimulatorConfig(clutter=False))
+    assert len(cfar_centres(frame.log_power(), SMALL)) <= 2
