@@ -32,9 +32,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_preprocess(args: argparse.Namespace) -> int:
-    from pipelines.preprocess import config_from_args, main
+    from pipelines.preprocess import main, parse_args
 
-    result = main(config_from_args(args))
+    result = main(parse_args(args.job_args, prog="radarseg preprocess"))
     print(f"store {result['store']}: {result['written']}/{result['frames']} frames written, "
           f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
           f"{result['shards_skipped']} already done")
@@ -62,10 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", required=True, help="output directory (must not hold a recording yet)")
     sim.set_defaults(func=_cmd_simulate)
 
-    from pipelines.preprocess import add_arguments
-
-    pre = sub.add_parser("preprocess", help="Ray job: cubes into the zarr store of inputs and targets")
-    add_arguments(pre)
+    # The job's own parser (pipelines.preprocess.parse_args) reads the arguments, so they are exactly
+    # those of `python -m pipelines.preprocess`, and Ray and torch load only when this command runs.
+    pre = sub.add_parser("preprocess", add_help=False, help="Ray job: cubes into the zarr store of inputs and "
+                                                            "targets (arguments: radarseg preprocess --help)")
+    pre.set_defaults(job_args=[])
     pre.set_defaults(func=_cmd_preprocess)
 
     store = sub.add_parser("store", help="inspect a preprocessed store")
@@ -82,7 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, extra = parser.parse_known_args(argv)
+    if args.command == "preprocess":
+        args.job_args = extra  # read by the job's own parser
+    elif extra:
+        parser.error(f"unrecognized arguments: {' '.join(extra)}")
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:

@@ -187,9 +187,9 @@ def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
     )
 
 
-def parse_args(argv: Sequence[str] | None = None) -> PreprocessConfig:
+def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.preprocess") -> PreprocessConfig:
     """Parse and check the command line; wrong arguments exit with status 2 before any work."""
-    parser = argparse.ArgumentParser(prog="python -m pipelines.preprocess", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
     add_arguments(parser)
     cfg = config_from_args(parser.parse_args(argv))
     try:

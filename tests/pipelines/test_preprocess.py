@@ -1,0 +1,215 @@
+"""The preprocessing job: arguments, a real ``ray job submit`` to a local head, the embedded-Ray run,
+resume after a killed run, and quarantine of bad cubes."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipelines.cli import main as cli_main
+from pipelines.preprocess import (
+    PreprocessConfig,
+    _split_by_fractions,
+    main,
+    parse_args,
+    plan_job,
+    simulated_frames,
+)
+from pipelines.store import array_checksums, done_shards, open_store, summarise
+from radar import transforms
+from radar.io.errors import DataError
+from radar.io.recording import Recording
+from radar.simulate import simulate_sequence
+from tests.pipelines.conftest import REPO, assert_store_matches_simulator, ray_env, stop_group
+
+SUBMIT_ARGS = ["--source", "sim", "--preset", "small", "--sequences", "3", "--frames", "8", "--seed", "11"]
+
+
+# --------------------------------------------------------------------------- no Ray
+def test_wrong_arguments_fail_before_any_work(tmp_path, small_recording, capsys):
+    import ray
+
+    out = tmp_path / "s.zarr"
+    bad = [
+        (["--source", "simulator"], "--source must be"),
+        (["--source", "recording:" + str(tmp_path / "missing")], "no such recording directory"),
+        (["--source", f"recording:{small_recording}", "--preset", "small"], "only with --source sim"),
+        (["--source", "sim", "--sequences", "0"], "must be >= 1"),
+        (["--source", "sim", "--tasks", "0"], "--tasks must be >= 1"),
+        (["--source", "sim", "--split-fractions", "0.5", "0.2", "0.2"], "summing to 1"),
+        (["--source", "sim", "--split-fractions", "0", "0.5", "0.5"], "train > 0"),
+        (["--source", "sim", "--preset", "tiny"], "invalid choice"),
+    ]
+    for args, message in bad:
+        with pytest.raises(SystemExit) as exc:
+            parse_args([*args, "--out", str(out)])
+        assert exc.value.code == 2
+        assert message in capsys.readouterr().err, args
+    assert not out.exists()
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match="not a radarseg store"):
+        main(PreprocessConfig(source="sim", out=str(tmp_path / "busy")))
+    with pytest.raises(ValueError, match="train split empty"):
+        main(PreprocessConfig(source="sim", out=str(out), sequences=1, split_fractions=(0.4, 0.6, 0.0)))
+    assert not ray.is_initialized() and not out.exists()
+    with pytest.raises(SystemExit):
+        cli_main(["preprocess", "--source", "sim", "--frames", "-1", "--out", str(out)])
+    assert not out.exists()
+
+
+def test_split_by_sequence_fractions():
+    names = [f"seq_{i:03d}" for i in range(10)]
+    splits = _split_by_fractions(names, (0.6, 0.2, 0.2))
+    assert [splits[n] for n in names] == ["train"] * 6 + ["val"] * 2 + ["test"] * 2
+    assert set(_split_by_fractions(names[:1], (0.7, 0.15, 0.15)).values()) == {"train"}
+
+
+def test_simulated_frames_start_mid_sequence_as_simulate_sequence():
+    reference = list(simulate_sequence("small", 4, seed=3, sequence_index=1))
+    frames = list(simulated_frames("small", 3, 1, [1, 3]))
+    assert [f.index for f in frames] == [1, 3]
+    for frame, ref in zip(frames, (reference[1], reference[3]), strict=True):
+        np.testing.assert_array_equal(frame.cube, ref.cube)
+        np.testing.assert_array_equal(frame.labels, ref.labels)
+        assert frame.objects == ref.objects
+
+
+# --------------------------------------------------------------------------- Ray
+@pytest.mark.ray
+@pytest.mark.slow
+def test_ray_job_submit_on_a_local_cluster(ray_head, tmp_path):
+    out = tmp_path / "STORE.zarr"
+    cmd = [str(Path(sys.executable).parent / "ray"), "job", "submit", "--address", ray_head.dashboard_url,
+           "--working-dir", ".", "--", "python", "-m", "pipelines.preprocess", *SUBMIT_ARGS, "--out", str(out),
+           "--no-progress"]
+    proc = subprocess.run(cmd, cwd=REPO, env=ray_env(), capture_output=True, text=True, timeout=240)
+    log = proc.stdout + proc.stderr
+    assert proc.returncode == 0, log[-4000:]
+    assert "succeeded" in log, log[-4000:]
+    result = json.loads(next(line for line in log.splitlines() if line.startswith('{"store"')))
+    assert result["written"] == 24 and result["quarantined"] == 0 and result["shards_run"] == 3
+    assert_store_matches_simulator(out, preset="small", sequences=3, frames=8, seed=11)
+    attrs = open_store(out).attrs.asdict()
+    assert attrs["job"]["address"] is None and attrs["normalisation"]["frames"] == 16
+
+
+@pytest.fixture(scope="module")
+def embedded_ray():
+    """One embedded local Ray for the in-process runs of this module (main() reuses it)."""
+    import ray
+
+    ray.init(address="local", num_cpus=2, object_store_memory=200_000_000, include_dashboard=False)
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+def _job(*args: str, env_extra: dict[str, str] | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "pipelines.preprocess", *args, "--no-progress"], cwd=REPO,
+                            env=ray_env(**(env_extra or {})), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, start_new_session=True)
+
+
+@pytest.mark.ray
+@pytest.mark.slow
+def test_killed_run_resumes_to_an_identical_store(tmp_path, embedded_ray):
+    args = ["--source", "sim", "--preset", "small", "--sequences", "2", "--frames", "10", "--seed", "4",
+            "--shard-frames", "1", "--tasks", "1"]
+    out = tmp_path / "resumed.zarr"
+    # 1. an embedded-Ray run, killed (SIGKILL to its whole process group) once a few shards are done
+    proc = _job(*args, "--out", str(out))
+    deadline = time.monotonic() + 120
+    while len(done_shards(out)) < 2 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    os.killpg(proc.pid, signal.SIGKILL)  # the driver, its embedded Ray and the workers mid-write
+    left = stop_group(proc.pid, grace_s=2.0)
+    proc.wait(timeout=10)
+    assert not left, f"processes left after killing the job: {left}"
+    n_done = len(done_shards(out))
+    assert 0 < n_done < 20, f"the kill should land mid-run ({n_done} of 20 shards done)"
+    assert not open_store(out, require_complete=False).attrs["complete"]
+    # 2. the same command again, embedded: skips the done shards and finishes
+    proc = _job(*args, "--out", str(out))
+    output, _ = proc.communicate(timeout=180)
+    assert proc.returncode == 0, output[-3000:]
+    result = json.loads(output.strip().splitlines()[-1])
+    assert result["shards_skipped"] >= n_done and result["shards_skipped"] + result["shards_run"] == 20
+    # 3. a straight run gives the same arrays, byte for byte
+    straight = tmp_path / "straight.zarr"
+    main(parse_args([*args, "--out", str(straight), "--no-progress"]))
+    assert array_checksums(out) == array_checksums(straight)
+    for key in ("normalisation", "class_voxel_counts", "report"):
+        assert open_store(out).attrs[key] == open_store(straight).attrs[key]
+    assert_store_matches_simulator(out, preset="small", sequences=2, frames=10, seed=4)
+    # 4. a rerun of a complete store does no work; other arguments on it are refused
+    again = main(parse_args([*args, "--out", str(out), "--no-progress"]))
+    assert again["shards_run"] == 0 and array_checksums(out) == array_checksums(straight)
+    with pytest.raises(ValueError, match="other source, layout or split"):
+        plan_job(PreprocessConfig(source="sim", out=str(out), preset="small", sequences=2, frames=10, seed=5,
+                                  shard_frames=1))
+
+
+def _corrupt(recording: Path, sequence: str, index: int, how: str) -> None:
+    path = recording / sequence / "cubes" / f"{index:06d}.npy"
+    if how == "nan":
+        cube = np.load(path)
+        cube[3, 4, 5] = np.nan
+        np.save(path, cube)
+    elif how == "shape":
+        np.save(path, np.zeros((64, 128, 32), np.complex64))
+    elif how == "dtype":
+        np.save(path, np.zeros((128, 128, 32), np.int16))
+    elif how == "truncated":
+        path.write_bytes(path.read_bytes()[:5000])
+
+
+@pytest.mark.ray
+@pytest.mark.slow
+def test_bad_cubes_are_quarantined_and_the_job_carries_on(tmp_path, small_recording, embedded_ray, capsys):
+    rec = tmp_path / "rec"
+    shutil.copytree(small_recording, rec)  # 2 sequences x 3 frames
+    bad = {("seq_000", 1): ("nan", "NaN or Inf"), ("seq_001", 0): ("shape", "shape"),
+           ("seq_001", 1): ("dtype", "dtype"), ("seq_001", 2): ("truncated", "truncated")}
+    for (seq, index), (how, _) in bad.items():
+        _corrupt(rec, seq, index, how)
+    out = tmp_path / "q.zarr"
+    assert cli_main(["preprocess", "--source", f"recording:{rec}", "--out", str(out), "--shard-frames", "2",
+                     "--split-fractions", "0.5", "0.5", "0", "--no-progress"]) == 0
+    assert "2/6 frames written, 4 quarantined" in capsys.readouterr().out
+    root = open_store(out)
+    report = root.attrs["report"]
+    assert [(q["sequence"], q["index"]) for q in report["quarantined"]] == sorted(bad)
+    for q in report["quarantined"]:
+        assert bad[(q["sequence"], q["index"])][1] in q["reason"] and q["sequence"] in q["reason"]
+    np.testing.assert_array_equal(root["valid"][:], [1, 0, 1, 0, 0, 0])
+    assert not root["input"][1].any() and np.isnan(root["objects"][1]).all()  # quarantined: nothing written
+    reader = Recording(small_recording)
+    for slot, (seq, index) in ((0, ("seq_000", 0)), (2, ("seq_000", 2))):
+        frame = reader.read_frame(seq, index)
+        np.testing.assert_array_equal(root["input"][slot], transforms.log_power(frame.cube).astype(np.float16))
+        np.testing.assert_array_equal(root["labels"][slot], frame.labels)
+    assert summarise(out)["frames"] == {"train": 2, "val": 0, "test": 0}
+    assert cli_main(["store", "info", str(out)]) == 0
+    info = capsys.readouterr().out
+    assert "quarantined: 4" in info and "seq_001/2 (slot 5)" in info
+
+    # every input bad: a clear failure, no complete store
+    all_bad = tmp_path / "allbad"
+    shutil.copytree(small_recording, all_bad)
+    for seq in ("seq_000", "seq_001"):
+        for index in range(3):
+            _corrupt(all_bad, seq, index, "nan")
+    with pytest.raises(DataError, match="every one of the 6 input frames is bad"):
+        main(PreprocessConfig(source=f"recording:{all_bad}", out=str(tmp_path / "bad.zarr"), progress=False))
+    assert not open_store(tmp_path / "bad.zarr", require_complete=False).attrs["complete"]
