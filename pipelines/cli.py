@@ -28,6 +28,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print("RA/RD pictures with labels:")
     for path in result["pictures"]:
         print(f"  {path}")
+    if "store" in result:
+        from pipelines.store import format_summary, summarise
+
+        print(f"preprocessed with embedded Ray into {result['store']} (radarseg store info {result['store']}):")
+        print(format_summary(summarise(result["store"])))
     return 0
 
 
