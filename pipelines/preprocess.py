@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 import ray
+import zarr
 from tqdm import tqdm
 
 from pipelines.store import (
@@ -390,7 +391,9 @@ def process_shard(job: ShardJob) -> dict[str, Any]:
         class_counts[SPLITS[slot.split]] += np.bincount(encoded["labels"].ravel(), minlength=num_classes)
         if slot.split == SPLIT_CODE["train"]:
             moments = _merge_moments(moments, _frame_moments(encoded["input"]))
-    write_shard_arrays(job.store, layout, job.shard, buffers)
+    # One task = one core: Ray gives each task one CPU, so zarr's codec thread pool stays at one thread.
+    with zarr.config.set({"threading.max_workers": 1}):
+        write_shard_arrays(job.store, layout, job.shard, buffers)
     summary = {
         "shard": job.shard,
         "frames": len(job.slots),
