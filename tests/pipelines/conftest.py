@@ -9,6 +9,7 @@ drivers share one process group that we signal, then check empty.
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -113,6 +114,7 @@ def ray_head(tmp_path_factory):
         yield head
     finally:
         left = stop_group(pgid, grace_s=3.0)
+        shutil.rmtree(temp_dir, ignore_errors=True)
         assert not left, f"Ray processes left after stopping the head: {left}"
 
 
