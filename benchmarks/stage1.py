@@ -1,0 +1,120 @@
+"""Stage 1 side by side: detector forward, region growing and CFAR per frame, each as a ratio to the
+log transform of the same cube (the floor every method pays), and a D_thresh sweep of region growing
+(visited points and recall, seeded at true centres) like the paper's table (SPEC section 6).
+Prints tables and writes benchmarks/results/stage1.json.
+
+    .venv/bin/python benchmarks/stage1.py [--frames 4] [--sweep-frames 3] [--threads 1]
+
+Target (issue 4): region growing at most 10% of the detector's forward time. The detector is
+untrained here (its cost does not depend on its weights); region growing is seeded at the true
+centres so that its cost and recall are those of a detector that finds every object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from models.registry import create_model
+from radar.cfar import cfar_centres
+from radar.profiles import get_profile
+from radar.region_growing import RegionGrowingConfig, grow_regions
+from radar.simulate import simulate_sequence
+from radar.transforms import log_power
+
+PAPER_SWEEP = {3: (20731, 0.901), 4: (41579, 0.946), 5: (66527, 0.958), 6: (94504, 0.962), 7: (126127, 0.965),
+               8: (160323, 0.967)}
+
+
+def _seeds(frame) -> np.ndarray:
+    return np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin] for o in frame.objects if o.n_voxels])
+
+
+def _best_of(fn, *args, repeats: int = 3) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn(*args)
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def stage_times(preset: str, n_frames: int) -> dict:
+    profile = get_profile(preset)
+    detector = create_model("centre_detector", preset=preset).eval()
+    rows = []
+    for frame in simulate_sequence(preset, n_frames, seed=17):
+        lp = log_power(frame.cube)
+        x = torch.from_numpy(np.ascontiguousarray(lp.transpose(2, 0, 1)))[None]  # (1, D, R, A)
+        with torch.no_grad():
+            detector(x)  # warm-up
+            t_detect = _best_of(detector, x)
+        seeds = _seeds(frame)
+        regions = grow_regions(lp, seeds, profile)
+        rows.append({
+            "log_transform_s": _best_of(log_power, frame.cube),
+            "detector_s": t_detect,
+            "region_growing_s": _best_of(grow_regions, lp, seeds, profile),
+            "cfar_s": _best_of(cfar_centres, lp, profile),
+            "visited": regions.visited, "roi_voxels": len(regions), "recall": regions.recall(frame.instances),
+            "objects": len(seeds),
+        })
+    mean = {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
+    floor = mean["log_transform_s"]
+    return {**mean, "frames": n_frames, "cube_voxels": int(np.prod(profile.shape)),
+            "ratio_to_log_transform": {k: mean[f"{k}_s"] / floor for k in ("detector", "region_growing", "cfar")},
+            "region_growing_over_detector": mean["region_growing_s"] / mean["detector_s"],
+            "config": RegionGrowingConfig.for_profile(profile).__dict__}
+
+
+def sweep(preset: str, n_frames: int, distances=(3, 4, 5, 6, 7, 8)) -> dict:
+    profile = get_profile(preset)
+    frames = [(log_power(f.cube), _seeds(f), f.instances) for f in simulate_sequence(preset, n_frames, seed=29)]
+    out = {}
+    for d in distances:
+        config = RegionGrowingConfig.for_profile(profile, distance_m=float(d))
+        results = [grow_regions(lp, seeds, profile, config) for lp, seeds, _ in frames]
+        out[d] = {"visited": float(np.mean([r.visited for r in results])),
+                  "roi_voxels": float(np.mean([len(r) for r in results])),
+                  "recall": float(np.mean([r.recall(inst) for r, (_, _, inst) in zip(results, frames, strict=True)]))}
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=4)
+    parser.add_argument("--sweep-frames", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "stage1.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    results = {"threads": args.threads, "presets": {}, "sweep": {}}
+    print(f"{'preset':8} {'log tf ms':>9} {'detector':>9} {'grow':>7} {'cfar':>7} {'grow/det':>8} "
+          f"{'visited':>8} {'roi':>7} {'recall':>6}")
+    for preset in ("small", "carrada", "nxp"):
+        r = stage_times(preset, args.frames)
+        results["presets"][preset] = r
+        print(f"{preset:8} {r['log_transform_s'] * 1e3:9.1f} {r['detector_s'] * 1e3:9.1f} "
+              f"{r['region_growing_s'] * 1e3:7.1f} {r['cfar_s'] * 1e3:7.1f} {r['region_growing_over_detector']:8.1%} "
+              f"{r['visited']:8.0f} {r['roi_voxels']:7.0f} {r['recall']:6.3f}")
+    for preset in ("nxp", "carrada"):
+        results["sweep"][preset] = sweep(preset, args.sweep_frames)
+    print("\nD_thresh sweep (seeded at true centres): visited / recall; paper (NXP) in brackets")
+    for d, row in results["sweep"]["nxp"].items():
+        paper = PAPER_SWEEP[d]
+        car = results["sweep"]["carrada"][d]
+        print(f"  {d} m  nxp {row['visited']:8.0f} / {row['recall']:.3f}   [{paper[0]:6d} / {paper[1]:.3f}]"
+              f"   carrada {car['visited']:8.0f} / {car['recall']:.3f}")
+    results["paper_sweep_nxp"] = PAPER_SWEEP
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(results, indent=2))
+    print(f"written to {args.out}")
+
+
+if __name__ == "__main__":
+    main()
