@@ -81,9 +81,7 @@ class UpBlock(nn.Module):
     (M, C_in) at tensor stride 2s and the skip (N, C_skip) at stride s -> (N, C_out) at stride s.
     """
 
-    def __init__(
-        self, in_channels: int, skip_channels: int, out_channels: int, *, num_blocks: int = 2
-    ) -> None:
+    def __init__(self, in_channels: int, skip_channels: int, out_channels: int, *, num_blocks: int = 2) -> None:
         super().__init__()
         self.up = conv_bn_relu(TransposedConv3d(in_channels, out_channels), out_channels)
         self.fuse = residual_stack(out_channels + skip_channels, out_channels, num_blocks)
@@ -96,9 +94,7 @@ class PointMLP(nn.Sequential):
     """SPVCNN point transform: linear -> BatchNorm1d -> ReLU on point features (N, C_in) -> (N, C_out)."""
 
     def __init__(self, in_channels: int, out_channels: int) -> None:
-        super().__init__(
-            PointwiseConv(in_channels, out_channels), nn.BatchNorm1d(out_channels), nn.ReLU(inplace=True)
-        )
+        super().__init__(PointwiseConv(in_channels, out_channels), nn.BatchNorm1d(out_channels), nn.ReLU(inplace=True))
 
     def forward(self, feats: Tensor) -> Tensor:  # type: ignore[override]
         return super().forward(feats)

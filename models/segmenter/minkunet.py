@@ -95,9 +95,7 @@ class MinkUNet(nn.Module):
         self.classifier = PointwiseConv(decoder_widths[-1], num_classes, bias=True)
 
     @classmethod
-    def from_ratio(
-        cls, ratio: float, *, in_channels: int = 4, num_classes: int = 5, **kwargs: Any
-    ) -> MinkUNet:
+    def from_ratio(cls, ratio: float, *, in_channels: int = 4, num_classes: int = 5, **kwargs: Any) -> MinkUNet:
         """The preset of the paper: widths `[32,32,64,128,256,256,128,96,96] x ratio` (0.37 -> 2.92 M).
 
         Subclasses (SPVCNN) get their own preset through this same method.

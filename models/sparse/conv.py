@@ -38,9 +38,58 @@ def count_macs(model: nn.Module) -> int:
     return sum(module.last_macs for module in model.modules() if isinstance(module, MACCounted))
 
 
-def apply_kernel_map(
-    feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, transposed: bool
-) -> tuple[Tensor, int]:
+class _GatherMatmulScatter(torch.autograd.Function):
+    """out[targets_k] += feats[sources_k] @ weight[k] over offsets k, with a hand-written backward.
+
+    Autograd's own backward of `index_select` allocates a zero (N_in, C_in) gradient per offset and then
+    sums them; here all offsets scatter into one gradient buffer, and the gathered inputs are gathered
+    again in the backward instead of being kept alive between the passes.
+    """
+
+    @staticmethod
+    def forward(ctx, feats, weight, sources, targets, pair_counts, identity, num_out):  # noqa: D102
+        ctx.save_for_backward(feats, weight)
+        ctx.plan = (sources, targets, pair_counts, identity)
+        if identity is not None:
+            # Centre offset of a submanifold conv: every voxel pairs with itself, no gather or scatter.
+            out = feats @ weight[identity]
+        else:
+            out = feats.new_zeros(num_out, weight.shape[2])
+        for offset, count in enumerate(pair_counts):
+            if offset == identity or count == 0:
+                continue
+            gathered = feats.index_select(0, sources[offset])  # (P_k, C_in)
+            out.index_add_(0, targets[offset], gathered @ weight[offset])
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        feats, weight = ctx.saved_tensors
+        sources, targets, pair_counts, identity = ctx.plan
+        need_feats, need_weight = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        grad_feats = grad_weight = None
+        if need_weight:
+            grad_weight = torch.zeros_like(weight)
+        if need_feats:
+            if identity is not None:
+                grad_feats = grad_out @ weight[identity].T
+            else:
+                grad_feats = torch.zeros_like(feats)
+        if identity is not None and need_weight:
+            grad_weight[identity] = feats.T @ grad_out
+        for offset, count in enumerate(pair_counts):
+            if offset == identity or count == 0:
+                continue
+            grad_rows = grad_out.index_select(0, targets[offset])  # (P_k, C_out)
+            if need_feats:
+                grad_feats.index_add_(0, sources[offset], grad_rows @ weight[offset].T)
+            if need_weight:
+                grad_weight[offset] = feats.index_select(0, sources[offset]).T @ grad_rows
+        return grad_feats, grad_weight, None, None, None, None, None
+
+
+def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, transposed: bool) -> tuple[Tensor, int]:
     """Run one sparse convolution over a kernel map.
 
     Args:
@@ -56,19 +105,10 @@ def apply_kernel_map(
         sources, targets, num_out = kernel_map.out_indices, kernel_map.in_indices, kernel_map.num_in
     else:
         sources, targets, num_out = kernel_map.in_indices, kernel_map.out_indices, kernel_map.num_out
-    c_in, c_out = weight.shape[1], weight.shape[2]
-    identity = kernel_map.identity_offset
-    if identity is not None:
-        # Centre offset of a submanifold conv: every voxel pairs with itself, no gather or scatter.
-        out = feats @ weight[identity]
-    else:
-        out = feats.new_zeros(num_out, c_out)
-    for offset, count in enumerate(kernel_map.pair_counts):
-        if offset == identity or count == 0:
-            continue
-        gathered = feats.index_select(0, sources[offset])  # (P_k, C_in)
-        out.index_add_(0, targets[offset], gathered @ weight[offset])
-    return out, kernel_map.num_pairs * c_in * c_out
+    out = _GatherMatmulScatter.apply(
+        feats, weight, sources, targets, kernel_map.pair_counts, kernel_map.identity_offset, num_out
+    )
+    return out, kernel_map.num_pairs * weight.shape[1] * weight.shape[2]
 
 
 class _KernelConv(MACCounted):
@@ -94,9 +134,7 @@ class _KernelConv(MACCounted):
 
     def _check(self, x: SparseTensor) -> None:
         if x.num_channels != self.in_channels:
-            raise ValueError(
-                f"{type(self).__name__} expects {self.in_channels} input channels, got {x.num_channels}"
-            )
+            raise ValueError(f"{type(self).__name__} expects {self.in_channels} input channels, got {x.num_channels}")
 
     def _finish(self, out: Tensor) -> Tensor:
         return out if self.bias is None else out + self.bias
@@ -112,9 +150,7 @@ class SubmanifoldConv3d(_KernelConv):
     Input (N, C_in) at tensor stride s -> output (N, C_out) at tensor stride s, same coordinates.
     """
 
-    def __init__(
-        self, in_channels: int, out_channels: int, kernel_size: int = 3, *, bias: bool = False
-    ) -> None:
+    def __init__(self, in_channels: int, out_channels: int, kernel_size: int = 3, *, bias: bool = False) -> None:
         if kernel_size % 2 != 1:
             raise ValueError(f"kernel_size must be odd, got {kernel_size}")
         super().__init__(in_channels, out_channels, kernel_size, bias=bias)

@@ -197,23 +197,28 @@ def build_kernel_map(
     Returns:
         The map; its index tensors live on the device of `out_coords`.
     """
-    offsets = kernel_offsets(kernel_size, stride, out_coords.device)  # (K, 3)
+    device = out_coords.device
+    offsets = kernel_offsets(kernel_size, stride, device)  # (K, 3)
     num_offsets = offsets.shape[0]
     identity_offset = num_offsets // 2 if (same_coords and stride == 1) else None
-    searched = torch.arange(num_offsets, device=out_coords.device)
+    searched = torch.arange(num_offsets, device=device)
     if identity_offset is not None:
         searched = searched[searched != identity_offset]
 
-    # One batched search: queries (K', N_out) = key(batch, stride * q + d) for every searched offset d.
-    spatial = stride * out_coords[None, :, 1:] + offsets[searched, None, :]  # (K', N_out, 3)
-    batch = out_coords[None, :, 0].expand(spatial.shape[0], -1)
-    in_rows, found = lookup(in_sorted_keys, in_perm, pack_keys(batch, spatial))
+    # Packing is additive while every biased field stays inside its 16 bits (guaranteed by the
+    # coordinate range check), so key(b, stride*q + d) = key(b, stride*q) + key of the offset d alone.
+    # Sorting the base keys makes every row of queries ascending, which keeps the search cache-friendly.
+    base_keys, out_order = torch.sort(pack_keys(out_coords[:, 0], stride * out_coords[:, 1:]))
+    field_scale = torch.tensor([1 << (2 * COORD_BITS), 1 << COORD_BITS, 1], dtype=torch.int64, device=device)
+    offset_keys = (offsets[searched] * field_scale).sum(dim=1)  # (K',)
+    # One batched search over all offsets: queries (K', N_out).
+    in_rows, found = lookup(in_sorted_keys, in_perm, base_keys[None, :] + offset_keys[:, None])
 
     # nonzero() lists pairs grouped by offset, so one split recovers the per-offset lists.
-    offset_slot, out_rows = found.nonzero(as_tuple=True)
+    offset_slot, sorted_out = found.nonzero(as_tuple=True)
     counts = found.sum(dim=1).tolist()
-    in_split = in_rows[offset_slot, out_rows].split(counts)
-    out_split = out_rows.split(counts)
+    in_split = in_rows[offset_slot, sorted_out].split(counts)
+    out_split = out_order[sorted_out].split(counts)
 
     num_out = out_coords.shape[0]
     in_indices: list[Tensor] = [torch.empty(0, dtype=torch.int64, device=out_coords.device)] * num_offsets

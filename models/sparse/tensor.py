@@ -101,9 +101,7 @@ class SparseTensor:
         cache: kernel-map cache shared with every tensor derived from the same input coordinates.
     """
 
-    def __init__(
-        self, coords: Tensor, feats: Tensor, stride: int = 1, *, cache: KernelMapCache | None = None
-    ) -> None:
+    def __init__(self, coords: Tensor, feats: Tensor, stride: int = 1, *, cache: KernelMapCache | None = None) -> None:
         """Wrap coordinates and features.
 
         Args:
@@ -118,8 +116,7 @@ class SparseTensor:
         """
         if feats.ndim != 2 or feats.shape[0] != coords.shape[0]:
             raise ValueError(
-                f"features must have shape (N, C) with N = {coords.shape[0]} coordinates, "
-                f"got {tuple(feats.shape)}"
+                f"features must have shape (N, C) with N = {coords.shape[0]} coordinates, got {tuple(feats.shape)}"
             )
         if stride < 1:
             raise ValueError(f"tensor stride must be >= 1, got {stride}")
