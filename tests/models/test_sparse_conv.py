@@ -132,9 +132,7 @@ def test_strided_conv_output_voxels_are_unique_halved_coordinates():
 def test_transposed_conv_matches_dense_conv_transpose3d_and_reuses_the_strided_map(monkeypatch):
     generator = torch.Generator().manual_seed(4)
     extent, batch_size = 10, 2
-    fine_coords = random_coords(
-        generator, num_per_sample=200, extent=extent, batch_size=batch_size, shared=150
-    )
+    fine_coords = random_coords(generator, num_per_sample=200, extent=extent, batch_size=batch_size, shared=150)
     builds = []
     real_build = sparse_tensor_module.build_kernel_map
 
