@@ -67,8 +67,7 @@ from radar.io.carrada import CarradaReader
 from radar.io.errors import DataError
 from radar.io.recording import Recording
 from radar.profiles import PRESETS, get_profile
-from radar.simulate import SimulatorConfig, sequence_name, simulate_frame
-from radar.simulate.scene import SceneGenerator, static_clutter
+from radar.simulate import sequence_name, simulate_sequence
 
 log = logging.getLogger(__name__)
 
@@ -298,28 +297,10 @@ def _check_out(plan: JobPlan) -> None:
 
 # --------------------------------------------------------------------------- frames of a source
 def simulated_frames(preset: str, seed: int, sequence_index: int, indices: Sequence[int]) -> Iterator[RadarFrame]:
-    """Frames ``indices`` (ascending) of simulated sequence ``sequence_index``, as ``simulate_sequence``
-    would yield them, without synthesising the frames before the first one.
-
-    Mirrors :func:`radar.simulate.simulate_sequence` (the scene is stepped frame by frame from its
-    own generator; each frame has its own generator): the scene stepping is cheap, the cube is not.
-    """
-    profile = get_profile(preset)
-    config = SimulatorConfig()
-    scene_rng = np.random.default_rng([seed, sequence_index, 0])
-    scene = SceneGenerator(profile, scene_rng)
-    clutter = static_clutter(profile, scene_rng)
-    wanted = iter(indices)
-    target = next(wanted, None)
-    index = 0
-    while target is not None:
-        states = scene.step()
-        if index == target:
-            frame_rng = np.random.default_rng([seed, sequence_index, 1, index])
-            yield simulate_frame(profile, states, clutter, t=index * profile.frame_period_s, rng=frame_rng,
-                                 config=config, sequence=sequence_name(sequence_index), index=index)
-            target = next(wanted, None)
-        index += 1
+    """Frames ``indices`` (ascending) of simulated sequence ``sequence_index``, exactly as a full
+    ``simulate_sequence`` run yields them, without synthesising the frames before the first one."""
+    n_frames = max(indices) + 1 if indices else 0
+    return simulate_sequence(preset, n_frames, seed=seed, sequence_index=sequence_index, only=indices)
 
 
 def _source_frames(source: SourceSpec, slots: Sequence[Slot]) -> Iterator[tuple[Slot, RadarFrame | DataError]]:

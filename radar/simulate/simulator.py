@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -111,23 +111,33 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
 
 
 def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, sequence_index: int = 0,
-                      config: SimulatorConfig | None = None,
-                      timings: dict[str, float] | None = None) -> Iterator[RadarFrame]:
+                      config: SimulatorConfig | None = None, timings: dict[str, float] | None = None,
+                      only: Iterable[int] | None = None) -> Iterator[RadarFrame]:
     """Frames of one simulated sequence, reproducible from ``(seed, sequence_index)``.
 
     Objects move along smooth trajectories at the profile's frame rate; the static clutter of the
-    scene stays put. Frames are generated lazily (one cube in memory at a time).
+    scene stays put. Frames are generated lazily (one cube in memory at a time). ``only`` (ascending
+    frame indices) yields just those frames, identical to the full run's: the scene is stepped
+    through the others (cheap) and no cube is synthesised for them (for shard-parallel jobs).
     """
     if n_frames < 0:
         raise ValueError(f"n_frames must be >= 0, got {n_frames}")
+    wanted = range(n_frames) if only is None else list(only)
+    if any(b <= a for a, b in zip(wanted, wanted[1:], strict=False)) or any(not 0 <= i < n_frames for i in wanted):
+        raise ValueError(f"only must list ascending frame indices in [0, {n_frames}), got {list(wanted)}")
     profile = get_profile(preset)
     config = config or SimulatorConfig()
     scene_rng = np.random.default_rng([seed, sequence_index, 0])
     scene = SceneGenerator(profile, scene_rng)
     clutter = static_clutter(profile, scene_rng)
     name = sequence_name(sequence_index)
-    for index in range(n_frames):
+    index = 0
+    for target in wanted:
+        while index < target:  # step the scene through the frames nobody asked for
+            scene.step()
+            index += 1
         states = scene.step()
-        frame_rng = np.random.default_rng([seed, sequence_index, 1, index])
-        yield simulate_frame(profile, states, clutter, t=index * profile.frame_period_s, rng=frame_rng,
-                             config=config, sequence=name, index=index, timings=timings)
+        index += 1
+        frame_rng = np.random.default_rng([seed, sequence_index, 1, target])
+        yield simulate_frame(profile, states, clutter, t=target * profile.frame_period_s, rng=frame_rng,
+                             config=config, sequence=name, index=target, timings=timings)

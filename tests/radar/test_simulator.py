@@ -123,3 +123,14 @@ def test_every_class_of_every_preset_is_simulated():
     for name, profile in PRESETS.items():
         for class_name in profile.class_names:
             assert class_model(class_name).length > 0, name
+
+
+def test_only_yields_the_same_frames_as_the_full_run():
+    full = list(simulate_sequence("small", 5, seed=9, sequence_index=2))
+    some = list(simulate_sequence("small", 5, seed=9, sequence_index=2, only=[1, 4]))
+    assert [f.index for f in some] == [1, 4]
+    for frame in some:
+        assert np.array_equal(frame.cube, full[frame.index].cube)
+        assert np.array_equal(frame.instances, full[frame.index].instances)
+    with pytest.raises(ValueError, match="ascending"):
+        list(simulate_sequence("small", 5, seed=9, only=[3, 1]))
