@@ -6,7 +6,7 @@ no bias because a BatchNorm follows each of them.
 
 from __future__ import annotations
 
-from torch import Tensor, nn
+from torch import nn
 
 from models.sparse import (
     BatchNorm,
@@ -95,6 +95,3 @@ class PointMLP(nn.Sequential):
 
     def __init__(self, in_channels: int, out_channels: int) -> None:
         super().__init__(PointwiseConv(in_channels, out_channels), nn.BatchNorm1d(out_channels), nn.ReLU(inplace=True))
-
-    def forward(self, feats: Tensor) -> Tensor:  # type: ignore[override]
-        return super().forward(feats)

@@ -9,7 +9,7 @@ classifier per voxel.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Self
 
 from torch import Tensor, nn
 
@@ -95,12 +95,18 @@ class MinkUNet(nn.Module):
         self.classifier = PointwiseConv(decoder_widths[-1], num_classes, bias=True)
 
     @classmethod
-    def from_ratio(cls, ratio: float, *, in_channels: int = 4, num_classes: int = 5, **kwargs: Any) -> MinkUNet:
-        """The preset of the paper: widths `[32,32,64,128,256,256,128,96,96] x ratio` (0.37 -> 2.92 M).
+    def from_ratio(cls, ratio: float, *, in_channels: int = 4, num_classes: int = 5, blocks_per_stage: int = 2) -> Self:
+        """The paper's preset: widths `[32,32,64,128,256,256,128,96,96] x ratio` (0.37 -> 2.92 M params).
 
-        Subclasses (SPVCNN) get their own preset through this same method.
+        Called on `SPVCNN` it builds an SPVCNN with the same widths. Small ratios (0.1) are the tiny
+        test variants.
         """
-        return cls(in_channels=in_channels, num_classes=num_classes, widths=scaled_widths(ratio), **kwargs)
+        return cls(
+            in_channels=in_channels,
+            num_classes=num_classes,
+            widths=scaled_widths(ratio),
+            blocks_per_stage=blocks_per_stage,
+        )
 
     def encode(self, x: SparseTensor) -> list[SparseTensor]:
         """Stem and encoder: [stem output at stride 1, stage outputs at strides 2, 4, 8, 16]."""

@@ -14,13 +14,14 @@ tensor stride `s` voxel `c` covers `[s*c, s*(c + 1))`. RAD bins given as points 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from models.segmenter.blocks import PointMLP
-from models.segmenter.minkunet import MinkUNet
+from models.segmenter.minkunet import BASE_WIDTHS, MinkUNet
 from models.sparse import SparseTensor
 from models.sparse.kernel_map import check_coords, lookup, pack_keys, unpack_keys
 
@@ -123,9 +124,18 @@ class SPVCNN(MinkUNet):
     re-voxelised first (the same thing when points sit at voxel centres, the RAD-bin case).
     """
 
-    def __init__(self, **kwargs) -> None:
-        """Same keyword arguments as `MinkUNet` (in_channels, num_classes, widths, blocks_per_stage)."""
-        super().__init__(**kwargs)
+    def __init__(
+        self,
+        *,
+        in_channels: int,
+        num_classes: int,
+        widths: Sequence[int] = BASE_WIDTHS,
+        blocks_per_stage: int = 2,
+    ) -> None:
+        """Same arguments as `MinkUNet`; the point MLPs take their widths from stages 0, 4, 6 and 8."""
+        super().__init__(
+            in_channels=in_channels, num_classes=num_classes, widths=widths, blocks_per_stage=blocks_per_stage
+        )
         widths = self.config["widths"]
         stem, bottleneck, decoder_2, decoder_4 = widths[0], widths[4], widths[6], widths[8]
         self.point_mlps = nn.ModuleList(

@@ -136,3 +136,12 @@ def test_loss_falls_when_overfitting_a_tiny_example(architecture):
     with torch.no_grad():  # still in train mode: BN running statistics lag after 25 steps
         accuracy = (model(inputs).argmax(dim=1) == labels).float().mean().item()
     assert accuracy > 0.95
+
+
+def test_empty_input_gives_empty_logits_in_eval_mode():
+    """A frame without detections has no ROI voxels; inference must not fail on it."""
+    with torch.no_grad():
+        voxels = SparseTensor(torch.zeros(0, 4, dtype=torch.int64), torch.zeros(0, 4))
+        assert MinkUNet.from_ratio(0.1, num_classes=3).eval()(voxels).shape == (0, 3)
+        points = PointTensor(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3), torch.zeros(0, 4))
+        assert SPVCNN.from_ratio(0.1, num_classes=3).eval()(points).shape == (0, 3)
