@@ -1,8 +1,9 @@
 """Benchmark of the pure-PyTorch sparse convolution against dense Conv3d, and a MinkUNet training step.
 
 Measured side by side in one run:
-- a 3^3 submanifold conv 32 -> 32, forward + backward, at 20k and 100k voxels (clustered blobs, like
-  region-grown ROIs, about 5% of their bounding grid), next to a dense `nn.Conv3d` on that bounding grid;
+- a 3^3 submanifold conv 32 -> 32, forward + backward, at 20k and 100k voxels filling about 5% of their
+  bounding grid, next to a dense `nn.Conv3d` on that bounding grid; two layouts: solid blobs like
+  region-grown ROIs (about 21 neighbours per voxel) and uniformly random voxels (about 2);
 - a MinkUNet (ratio 0.37, 4 features, 5 classes) SGD training step at 5k and 20k voxels, kernel maps
   built inside the step as in training.
 
@@ -37,6 +38,7 @@ class BenchConfig:
 
     device: str = "cpu"
     conv_voxels: tuple[int, ...] = (20_000, 100_000)
+    layouts: tuple[str, ...] = ("blobs", "uniform")  # solid ROI-like blobs; uniform random voxels
     step_voxels: tuple[int, ...] = (5_000, 20_000)
     density: float = 0.05
     repeats: int = 7
@@ -102,10 +104,22 @@ def timed(fn: Callable[[], object], repeats: int, device: torch.device) -> list[
     return times
 
 
-def bench_submanifold_vs_dense(num_voxels: int, cfg: BenchConfig, device: torch.device) -> dict:
+def uniform_voxels(num_voxels: int, density: float, generator: torch.Generator) -> Tensor:
+    """Unique voxels (num_voxels, 4), batch 0, drawn uniformly from a cube they fill to `density`
+    (few neighbours per voxel: the easy case for sparse convolution)."""
+    side = round((num_voxels / density) ** (1 / 3))
+    flat = torch.randperm(side**3, generator=generator)[:num_voxels]
+    spatial = torch.stack([flat // side**2, (flat // side) % side, flat % side], dim=1)
+    return torch.cat([torch.zeros(num_voxels, 1, dtype=torch.int64), spatial], dim=1)
+
+
+LAYOUTS = {"blobs": clustered_voxels, "uniform": uniform_voxels}
+
+
+def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, device: torch.device) -> dict:
     """One 3^3 conv 32 -> 32, forward + backward, sparse (map cached, map build apart) and dense."""
     generator = torch.Generator().manual_seed(cfg.seed)
-    coords = clustered_voxels(num_voxels, cfg.density, generator).to(device)
+    coords = LAYOUTS[layout](num_voxels, cfg.density, generator).to(device)
     grid_shape = [int(v) + 1 for v in coords[:, 1:].max(dim=0).values]
     feats = torch.randn(num_voxels, 32, generator=generator).to(device).requires_grad_(True)
     conv = SubmanifoldConv3d(32, 32).to(device)
@@ -130,6 +144,7 @@ def bench_submanifold_vs_dense(num_voxels: int, cfg: BenchConfig, device: torch.
     sparse_s, dense_s = statistics.median(sparse_times), statistics.median(dense_times)
     return {
         "voxels": num_voxels,
+        "layout": layout,
         "bounding_grid": grid_shape,
         "density": num_voxels / grid_cells,
         "pairs_per_voxel": kernel_map.num_pairs / num_voxels,
@@ -179,7 +194,9 @@ def main(cfg: BenchConfig) -> dict:
             "threads": torch.get_num_threads(),
             "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
         },
-        "submanifold_conv_32_32": [bench_submanifold_vs_dense(n, cfg, device) for n in cfg.conv_voxels],
+        "submanifold_conv_32_32": [
+            bench_submanifold_vs_dense(n, layout, cfg, device) for layout in cfg.layouts for n in cfg.conv_voxels
+        ],
         "minkunet_r037_train_step": [bench_minkunet_step(n, cfg, device) for n in cfg.step_voxels],
     }
     output = Path(cfg.output)
@@ -206,12 +223,12 @@ def report(results: dict) -> None:
     """Print the figures as two small tables."""
     print(f"machine: {results['machine']}")
     print("submanifold 3^3 conv 32->32, forward+backward (median s)")
-    print(f"{'voxels':>8} {'grid':>16} {'density':>8} {'pairs/vox':>9} {'map s':>8} "
+    print(f"{'layout':>8} {'voxels':>8} {'grid':>16} {'density':>8} {'pairs/vox':>9} {'map s':>8} "
           f"{'sparse s':>9} {'(min)':>7} {'dense s':>9} {'(min)':>7} {'dense/sparse':>12}")  # fmt: skip
     for row in results["submanifold_conv_32_32"]:
         grid = "x".join(str(v) for v in row["bounding_grid"])
         print(
-            f"{row['voxels']:>8} {grid:>16} {row['density']:>8.3f} {row['pairs_per_voxel']:>9.2f} "
+            f"{row['layout']:>8} {row['voxels']:>8} {grid:>16} {row['density']:>8.3f} {row['pairs_per_voxel']:>9.2f} "
             f"{row['kernel_map_build_s']:>8.4f} {row['sparse_fwd_bwd_s']:>9.4f} "
             f"{row['sparse_fwd_bwd_min_s']:>7.4f} {row['dense_fwd_bwd_s']:>9.3f} {row['dense_fwd_bwd_min_s']:>7.3f} "
             f"{row['dense_over_sparse']:>12.1f}"
