@@ -54,6 +54,38 @@ def _cmd_store_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_segment(args: argparse.Namespace) -> int:
+    import json
+
+    from pipelines.segment import segment_file
+
+    result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
+                          is_log_power=args.log_power, png=args.png, score_threshold=args.score_threshold)
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    for obj in result["objects"]:
+        print(f"{obj['class_name']:>10}  score {obj['score']:.2f}  range {obj['range_m']:6.2f} m  "
+              f"angle {obj['angle_deg']:6.1f} deg  v {obj['velocity_mps']:6.2f} m/s  voxels {obj['n_voxels']}")
+    compute = result["compute"]
+    print(f"objects: {len(result['objects'])}  MACs: {compute['macs']['total'] / 1e9:.3f} G "
+          f"(detect {compute['macs']['detect'] / 1e9:.3f}, segment {compute['macs']['segment'] / 1e9:.3f})  "
+          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms")
+    if result["png"]:
+        print(f"picture: {result['png']}")
+    return 0
+
+
+def _cmd_models_summary(args: argparse.Namespace) -> int:
+    import json
+
+    from pipelines.summary import format_summary, models_summary
+
+    rows = models_summary(tuple(args.preset) if args.preset else ("small", "carrada", "nxp"))
+    print(json.dumps(rows, indent=2) if args.json else format_summary(rows))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="radarseg", description="ERASE-Net radar semantic segmentation")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -80,6 +112,23 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("store", help="store path")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(func=_cmd_store_info)
+
+    seg = sub.add_parser("segment", help="run ERASE-Net on one .npy cube and print objects and compute")
+    seg.add_argument("cube", help=".npy file: complex RAD cube (R, A, D) of the checkpoint's preset")
+    seg.add_argument("--detector", required=True, help="detector checkpoint")
+    seg.add_argument("--segmenter", required=True, help="segmenter checkpoint")
+    seg.add_argument("--log-power", action="store_true", help="the cube holds log power (dB), not complex values")
+    seg.add_argument("--score-threshold", type=float, default=0.3)
+    seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
+    seg.add_argument("--json", action="store_true")
+    seg.set_defaults(func=_cmd_segment)
+
+    models = sub.add_parser("models", help="describe the models")
+    models_sub = models.add_subparsers(dest="models_command", required=True)
+    summary = models_sub.add_parser("summary", help="params and MACs per model and preset")
+    summary.add_argument("--preset", action="append", choices=sorted(PRESETS), help="repeat for several")
+    summary.add_argument("--json", action="store_true")
+    summary.set_defaults(func=_cmd_models_summary)
 
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")
     demo.add_argument("--out", default="out/demo")

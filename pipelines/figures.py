@@ -13,6 +13,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 
 from radar import transforms  # noqa: E402
 from radar.frame import RadarFrame  # noqa: E402
+from radar.profiles import RadarProfile  # noqa: E402
 
 CLASS_COLOURS = ["#00000000", "#ff4040", "#40c0ff", "#ffd000", "#60ff60"]
 
@@ -27,38 +28,62 @@ def _overlay(ax, mask: np.ndarray, extent, num_classes: int) -> None:
                        origin="lower", extent=extent)
 
 
-def plot_frame_views(frame: RadarFrame, path: str | Path, *, title: str | None = None) -> Path:
-    """Write a PNG with the RA view (angle x range) and the RD view (velocity x range) of ``frame``,
-    label masks and object names drawn over them. Axes in degrees-as-sin bins, metres and m/s."""
-    p = frame.profile
-    lp = frame.log_power()
-    ra, rd = transforms.ra_view(lp, is_log_power=True), transforms.rd_view(lp, is_log_power=True)
-    ra_extent = (-1.0, 1.0, 0.0, p.max_range)  # sin(theta) across, range up
+def draw_views(axes, log_power: np.ndarray, profile: RadarProfile, ra_mask: np.ndarray | None,
+               rd_mask: np.ndarray | None, annotations: list[tuple[str, float, float, float]], *,
+               colorbar: bool = True) -> None:
+    """RA view (sin(azimuth) x range) on ``axes[0]`` and RD view (velocity x range) on ``axes[1]``, masks
+    drawn over them and ``annotations`` ``(text, x m, y m, radial velocity m/s)`` placed on both."""
+    p = profile
+    ra, rd = transforms.ra_view(log_power, is_log_power=True), transforms.rd_view(log_power, is_log_power=True)
+    ra_extent = (-1.0, 1.0, 0.0, p.max_range)
     rd_extent = (float(p.velocity_mps(0)), float(p.velocity_mps(p.n_doppler)), 0.0, p.max_range)
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), gridspec_kw={"width_ratios": [1.3, 1]})
     im = axes[0].imshow(ra, origin="lower", aspect="auto", extent=ra_extent, cmap="viridis")
     axes[1].imshow(rd, origin="lower", aspect="auto", extent=rd_extent, cmap="viridis")
-    fig.colorbar(im, ax=axes[0], label="dB")
-    if frame.labels is not None:
-        _overlay(axes[0], frame.ra_mask(), ra_extent, p.num_classes)
-        _overlay(axes[1], frame.rd_mask(), rd_extent, p.num_classes)
-    for o in frame.objects:
-        if o.n_voxels == 0:
-            continue
-        rng = float(np.hypot(o.centre_x, o.centre_y))
-        axes[0].annotate(o.class_name, (o.centre_x / max(rng, 1e-6), rng), color="white", fontsize=8,
-                         xytext=(4, 4), textcoords="offset points")
-        axes[1].annotate(o.class_name, (float(p.velocity_mps(o.doppler_bin)), rng), color="white", fontsize=8,
-                         xytext=(4, 4), textcoords="offset points")
+    if colorbar:
+        axes[0].figure.colorbar(im, ax=axes[0], label="dB")
+    if ra_mask is not None:
+        _overlay(axes[0], ra_mask, ra_extent, p.num_classes)
+    if rd_mask is not None:
+        _overlay(axes[1], rd_mask, rd_extent, p.num_classes)
+    for text, x, y, velocity in annotations:
+        rng = float(np.hypot(x, y))
+        axes[0].annotate(text, (x / max(rng, 1e-6), rng), color="white", fontsize=8, xytext=(4, 4),
+                         textcoords="offset points")
+        axes[1].annotate(text, (velocity, rng), color="white", fontsize=8, xytext=(4, 4), textcoords="offset points")
     axes[0].set(xlabel="sin(azimuth)  (right > 0)", ylabel="range (m)", title="RA: max log power over Doppler")
     axes[1].set(xlabel="radial velocity (m/s, receding > 0)", ylabel="range (m)",
                 title="RD: log power summed over angle")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=CLASS_COLOURS[c][:7]) for c in range(1, p.num_classes)]
-    fig.legend(handles, p.class_names, loc="lower center", ncol=p.num_classes - 1, frameon=False)
-    fig.suptitle(title or f"{p.name}  {frame.sequence} frame {frame.index}")
+
+
+def _finish(fig, profile: RadarProfile, title: str, path: str | Path) -> Path:
+    handles = [plt.Rectangle((0, 0), 1, 1, color=CLASS_COLOURS[c][:7]) for c in range(1, profile.num_classes)]
+    fig.legend(handles, profile.class_names, loc="lower center", ncol=profile.num_classes - 1, frameon=False)
+    fig.suptitle(title)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def plot_frame_views(frame: RadarFrame, path: str | Path, *, title: str | None = None) -> Path:
+    """Write a PNG with the RA and RD views of ``frame``, its label masks and object names drawn over them."""
+    p = frame.profile
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), gridspec_kw={"width_ratios": [1.3, 1]})
+    has_labels = frame.labels is not None
+    annotations = [(o.class_name, o.centre_x, o.centre_y, float(p.velocity_mps(o.doppler_bin)))
+                   for o in frame.objects if o.n_voxels > 0]
+    draw_views(axes, frame.log_power(), p, frame.ra_mask() if has_labels else None,
+               frame.rd_mask() if has_labels else None, annotations)
+    return _finish(fig, p, title or f"{p.name}  {frame.sequence} frame {frame.index}", path)
+
+
+def plot_prediction(log_power: np.ndarray, profile: RadarProfile, ra_mask: np.ndarray, rd_mask: np.ndarray,
+                    objects: list, path: str | Path, *, title: str = "prediction") -> Path:
+    """Write a PNG with the RA and RD views of a cube and a prediction's masks and objects drawn over them
+    (``objects`` carry ``class_name, score, x, y, velocity_mps``, as :class:`models.erasenet.SegmentedObject`)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), gridspec_kw={"width_ratios": [1.3, 1]})
+    annotations = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in objects]
+    draw_views(axes, log_power, profile, ra_mask, rd_mask, annotations)
+    return _finish(fig, profile, title, path)

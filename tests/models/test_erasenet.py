@@ -1,0 +1,88 @@
+import numpy as np
+import pytest
+import torch
+
+from models.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from models.erasenet import EraseNet
+from models.registry import create_model
+from radar import transforms
+from radar.simulate import simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return list(simulate_sequence("small", 2, seed=3))[1]
+
+
+def _net(segmenter="minkunet_tiny", **kwargs):
+    torch.manual_seed(0)
+    return EraseNet(create_model("centre_detector_tiny", preset="small"), create_model(segmenter, preset="small"),
+                    "small", mean_db=60.0, std_db=8.0, **kwargs)
+
+
+@pytest.mark.parametrize("segmenter", ["minkunet_tiny", "spvcnn_tiny"])
+def test_end_to_end_output_is_well_formed_and_consistent(frame, segmenter):
+    net = _net(segmenter, score_threshold=0.0, max_objects=4)  # untrained: take the top 4 peaks
+    result = net.segment(frame.cube)
+    assert result.labels.shape == frame.profile.shape and result.labels.dtype == np.uint8
+    assert len(result.centres) == 4 and len(result.regions) > 0
+    # background outside the ROI, masks are the projections of the RAD cube
+    outside = ~result.regions.mask()
+    assert (result.labels[outside] == 0).all()
+    assert np.array_equal(result.ra_mask, transforms.project_ra(result.labels, 4))
+    assert np.array_equal(result.rd_mask, transforms.project_rd(result.labels, 4))
+    macs = result.compute["macs"]
+    assert macs["total"] == macs["detect"] + macs["grow"] + macs["segment"] and macs["segment"] > 0
+    assert macs["detect"] == net.detector_macs()
+    assert result.compute["roi_voxels"] == len(result.regions)
+    assert result.compute["visited_points"] >= result.compute["roi_voxels"]
+    assert result.compute["seconds"]["total"] == pytest.approx(
+        sum(v for k, v in result.compute["seconds"].items() if k != "total"))
+    for obj in result.objects:
+        assert 1 <= obj.class_id < 4 and obj.n_voxels > 0
+        assert obj.n_voxels <= (result.labels == obj.class_id).sum() + len(result.regions)
+        assert obj.range_m == pytest.approx(np.hypot(obj.x, obj.y))
+
+
+def test_log_power_input_gives_the_same_answer(frame):
+    net = _net(score_threshold=0.0, max_objects=3)
+    a = net.segment(frame.cube)
+    b = net.segment(transforms.log_power(frame.cube), is_log_power=True)
+    assert np.array_equal(a.labels, b.labels)
+
+
+def test_no_detection_gives_an_all_background_answer(frame):
+    result = _net(score_threshold=1.01).segment(frame.cube)  # a sigmoid never reaches 1.01
+    assert len(result.centres) == 0 and len(result.regions) == 0 and result.objects == []
+    assert not result.labels.any() and not result.ra_mask.any()
+    assert result.compute["macs"]["segment"] == 0 and result.compute["macs"]["detect"] > 0
+
+
+def test_wrong_shape_is_refused(frame):
+    with pytest.raises(ValueError, match=r"shape \(128, 128, 32\)"):
+        _net().segment(frame.cube[:64])
+
+
+def test_checkpoints_rebuild_the_pipeline(tmp_path, frame):
+    net = _net(score_threshold=0.0, max_objects=2)
+    det = save_checkpoint(Checkpoint("centre_detector_tiny", {"preset": "small"}, net.detector.state_dict(), "small",
+                                     ("background", "pedestrian", "cyclist", "car"), {"mean": 60.0, "std": 8.0}),
+                          tmp_path / "det.pt")
+    seg = save_checkpoint(Checkpoint("minkunet_tiny", {"preset": "small"}, net.segmenter.state_dict(), "small",
+                                     ("background", "pedestrian", "cyclist", "car")), tmp_path / "seg.pt")
+    loaded = EraseNet.from_checkpoints(det, seg, score_threshold=0.0, max_objects=2)
+    assert np.array_equal(loaded.segment(frame.cube).labels, net.segment(frame.cube).labels)
+
+
+def test_bad_checkpoints_are_refused(tmp_path):
+    with pytest.raises(CheckpointError, match="no such checkpoint"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a loadable"):
+        load_checkpoint(tmp_path / "junk.pt")
+    torch.save({"format": "something-else"}, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match="not a radarseg checkpoint"):
+        load_checkpoint(tmp_path / "other.pt")
+    torch.save({"format": "radarseg.checkpoint", "payload": Checkpoint}, tmp_path / "code.pt")  # needs unpickling code
+    with pytest.raises(CheckpointError, match="not a loadable"):
+        load_checkpoint(tmp_path / "code.pt")
