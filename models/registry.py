@@ -19,7 +19,7 @@ from torch import nn
 Builder = TypeVar("Builder", bound=Callable[..., nn.Module])
 
 # Modules whose import registers models (each decorates its builders with @register_model).
-BUILTIN_MODEL_MODULES: tuple[str, ...] = ("models.detector", "models.segmenter.builders")
+BUILTIN_MODEL_MODULES: tuple[str, ...] = ("models.detector", "models.segmenter.builders", "models.baselines")
 
 _REGISTRY: dict[str, Callable[..., nn.Module]] = {}
 _builtins_loaded = False
