@@ -96,7 +96,8 @@ class MultiViewLoss(nn.Module):
         self.dice_weight = dice_weight
         self.coherence_weight = coherence_weight
 
-    def forward(self, outputs: Mapping[str, torch.Tensor], masks: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    def forward(self, outputs: Mapping[str, torch.Tensor],
+                masks: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         missing = [view for view in outputs if view not in self.views or view not in masks]
         if missing:
             raise ValueError(f"views {missing} have no class weights or no masks (weights for {self.views}, "

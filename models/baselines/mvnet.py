@@ -137,7 +137,8 @@ class MultiViewNet(nn.Module):
         if temporal and n_frames != TEMPORAL_FRAMES:
             raise ValueError(f"n_frames must be {TEMPORAL_FRAMES} for the temporal (3-D conv) encoder, got {n_frames}")
         if n_frames < 1 or width < 1 or num_classes < 2:
-            raise ValueError(f"need n_frames >= 1, width >= 1, num_classes >= 2; got {n_frames}, {width}, {num_classes}")
+            raise ValueError(f"need n_frames >= 1, width >= 1 and num_classes >= 2; got n_frames={n_frames}, "
+                             f"width={width}, num_classes={num_classes}")
         self.num_classes = num_classes
         self.temporal = temporal
         self.n_frames = n_frames

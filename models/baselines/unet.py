@@ -65,8 +65,9 @@ class UNet(nn.Module):
         self.num_classes = num_classes
         self.n_frames = 1
         self.stem = _double_conv(in_channels, widths[0])
-        self.down = nn.ModuleList(_double_conv(c_in, c_out) for c_in, c_out in zip(widths[:-1], widths[1:], strict=True))
-        self.up = nn.ModuleList(UpStage(c_in, c_out) for c_in, c_out in zip(widths[:0:-1], widths[-2::-1], strict=True))
+        pairs = list(zip(widths[:-1], widths[1:], strict=True))  # (64, 128), ..., (512, 1024)
+        self.down = nn.ModuleList(_double_conv(c_in, c_out) for c_in, c_out in pairs)
+        self.up = nn.ModuleList(UpStage(c_out, c_in) for c_in, c_out in reversed(pairs))
         self.classifier = nn.Conv2d(widths[0], num_classes, 1)
 
     @property
