@@ -87,3 +87,61 @@ def plot_prediction(log_power: np.ndarray, profile: RadarProfile, ra_mask: np.nd
     annotations = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in objects]
     draw_views(axes, log_power, profile, ra_mask, rd_mask, annotations)
     return _finish(fig, profile, title, path)
+
+
+def plot_truth_vs_prediction(log_power: np.ndarray, profile: RadarProfile, truth: tuple[np.ndarray, np.ndarray],
+                             prediction: tuple[np.ndarray, np.ndarray], path: str | Path, *,
+                             truth_objects: list[tuple[str, float, float, float]] | None = None,
+                             predicted_objects: list[tuple[str, float, float, float]] | None = None,
+                             title: str = "ground truth (top) / prediction (bottom)") -> Path:
+    """Write a PNG of one frame: RA and RD views with the ground-truth masks ``truth`` ((R, A), (R, D))
+    on the top row and the predicted masks ``prediction`` on the bottom row; optional annotations
+    ``(text, x m, y m, radial velocity m/s)`` per row."""
+    fig, axes = plt.subplots(2, 2, figsize=(11, 9.6), gridspec_kw={"width_ratios": [1.3, 1]})
+    for row, (masks, notes, label) in enumerate(((truth, truth_objects, "truth"),
+                                                 (prediction, predicted_objects, "prediction"))):
+        draw_views(axes[row], log_power, profile, masks[0], masks[1], notes or [], colorbar=False)
+        for ax in axes[row]:
+            ax.set_title(f"{label}: {ax.get_title()}", fontsize=9)
+    return _finish(fig, profile, title, path)
+
+
+def plot_pr_curves(curves: dict[str, tuple[np.ndarray, np.ndarray, float]], path: str | Path, *,
+                   title: str = "detection precision-recall") -> Path:
+    """Write a PNG of precision-recall curves; ``curves[label] = (recall (N,), precision (N,), AP)``."""
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    for label, (recall, precision, ap) in curves.items():
+        ax.plot(np.concatenate([[0.0], recall]), np.concatenate([[1.0], precision]), label=f"{label} (AP {ap:.3f})")
+    ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.02), title=title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower left")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def plot_confusion(confusion: np.ndarray, class_names: tuple[str, ...] | list[str], path: str | Path, *,
+                   title: str = "confusion matrix") -> Path:
+    """Write a PNG of a (C, C) confusion matrix (rows truth, columns prediction), normalised per row,
+    with the raw counts printed in the cells."""
+    confusion = np.asarray(confusion, np.float64)
+    rows = confusion / np.maximum(confusion.sum(axis=1, keepdims=True), 1)
+    fig, ax = plt.subplots(figsize=(5.2, 4.6))
+    im = ax.imshow(rows, cmap="Blues", vmin=0, vmax=1)
+    fig.colorbar(im, ax=ax, label="fraction of the true class")
+    for i in range(len(rows)):
+        for j in range(len(rows)):
+            ax.text(j, i, f"{rows[i, j]:.2f}\n{int(confusion[i, j])}", ha="center", va="center", fontsize=7,
+                    color="white" if rows[i, j] > 0.5 else "black")
+    ax.set(xticks=range(len(rows)), yticks=range(len(rows)), xlabel="predicted", ylabel="true", title=title)
+    ax.set_xticklabels(class_names, rotation=30)
+    ax.set_yticklabels(class_names)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

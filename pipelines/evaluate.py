@@ -1,0 +1,277 @@
+"""Evaluation of a trained ERASE-Net on a split of a store (issue 6; SPEC sections 6, 10 and 12).
+
+``radarseg evaluate --detector CKPT --segmenter CKPT --store STORE --split test --out DIR`` (or
+``python -m pipelines.evaluate ...``) runs :class:`models.erasenet.EraseNet` on every frame of the
+split and writes ``DIR/metrics.json``, ``DIR/report.md`` (:mod:`pipelines.report`) and pictures:
+
+- detection: AP at k = 1, 3, 5 (metres and Doppler bins) and mAP (:mod:`radar.metrics`). The detector
+  is decoded for AP down to a score of ``AP_SCORE_THRESHOLD`` (a full precision-recall curve); the
+  segmentation runs at the network's operating threshold (``--score-threshold``);
+- region growing: recall (ground-truth object voxels inside the ROI over all of them, pooled over the
+  split) and visited points from the predicted seeds and from the ground-truth centres, plus a
+  D_thresh sweep for both on up to ``--sweep-frames`` frames;
+- segmentation: one RA and one RD confusion matrix over the split (background included), IoU per
+  class and mIoU; the same with ground-truth seeds (stage 2 alone, "oracle seeds");
+- cost: parameters and MACs per stage (mean per frame), seconds per stage (mean per frame);
+- pictures: PR curves, the RA/RD confusion matrices, and RA/RD maps of ``--pictures`` frames with the
+  ground truth above the prediction.
+
+Figures in ``metrics.json`` are fractions (IoU, recall, AP in [0, 1]); the report prints IoU in %.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from models.checkpoint import load_checkpoint
+from models.erasenet import EraseNet
+from pipelines.store import OBJECT_FIELDS, frames_of_split, open_store
+from radar.detections import Centres
+from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, mean_iou
+from radar.region_growing import RegionGrowingConfig, grow_regions
+
+log = logging.getLogger(__name__)
+
+COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
+AP_SCORE_THRESHOLD = 0.01  # detections kept for the PR curve
+D_THRESH_SWEEP_M = (4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    detector: str
+    segmenter: str
+    store: str
+    out: str
+    split: str = "test"
+    max_frames: int = 0  # 0 = every frame of the split
+    pictures: int = 4
+    sweep: tuple[float, ...] = D_THRESH_SWEEP_M
+    sweep_frames: int = 48
+    score_threshold: float | None = None  # operating threshold (None = EraseNet's default)
+    oracle: bool = True  # also segment from ground-truth seeds
+    device: str = "cpu"
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.max_frames < 0 or self.pictures < 0 or self.sweep_frames < 0:
+            raise ValueError("max_frames, pictures and sweep_frames must be >= 0")
+        if any(d <= 0 for d in self.sweep):
+            raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
+
+
+class _RecallCounter:
+    """Pooled region-growing recall and mean visited points / ROI voxels over frames."""
+
+    def __init__(self) -> None:
+        self.inside = self.truth = self.visited = self.roi = self.frames = 0
+
+    def add(self, regions, instances: np.ndarray) -> None:
+        self.truth += int(np.count_nonzero(instances))
+        self.inside += int(np.count_nonzero(instances[tuple(regions.voxels.T)])) if len(regions) else 0
+        self.visited += regions.visited
+        self.roi += len(regions)
+        self.frames += 1
+
+    def summary(self) -> dict[str, float]:
+        frames = max(self.frames, 1)
+        return {"recall": self.inside / self.truth if self.truth else float("nan"),
+                "visited_mean": self.visited / frames, "roi_voxels_mean": self.roi / frames, "frames": self.frames}
+
+
+def _spread(n: int, k: int) -> list[int]:
+    if k <= 0 or n == 0:
+        return []
+    return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n))})
+
+
+def _view_summary(confusion: np.ndarray, class_names: Sequence[str]) -> dict[str, Any]:
+    iou = iou_per_class(confusion)
+    return {"iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(class_names, iou, strict=True)},
+            "mIoU": mean_iou(confusion), "confusion": confusion.tolist()}
+
+
+def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
+    """Run the evaluation; writes ``metrics.json``, ``report.md`` and pictures into ``cfg.out``; returns the metrics."""
+    from pipelines.figures import plot_confusion, plot_pr_curves, plot_truth_vs_prediction
+    from pipelines.report import write_report
+
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    det_ckpt, seg_ckpt = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
+    kwargs = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
+    net = EraseNet.from_checkpoints(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
+    profile, class_names, num_classes = net.profile, net.class_names, net.profile.num_classes
+    root = open_store(cfg.store)
+    if root.attrs["preset"] != profile.name:
+        raise ValueError(f"store {cfg.store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
+    frames = frames_of_split(root, cfg.split)
+    if cfg.max_frames:
+        frames = frames[_spread(len(frames), cfg.max_frames)]
+    if len(frames) == 0:
+        raise ValueError(f"split {cfg.split!r} of {cfg.store} has no frames")
+    arrays = {name: root[name] for name in ("input", "instances", "ra_mask", "rd_mask", "objects", "n_objects")}
+    picture_frames = {int(frames[i]) for i in _spread(len(frames), cfg.pictures)}
+    sweep_frames = {int(frames[i]) for i in _spread(len(frames), cfg.sweep_frames)}
+
+    detection = DetectionEvaluator()
+    confusion = {view: np.zeros((num_classes, num_classes), np.int64) for view in ("RA", "RD")}
+    oracle_confusion = {view: np.zeros((num_classes, num_classes), np.int64) for view in ("RA", "RD")}
+    predicted_seeds, truth_seeds = _RecallCounter(), _RecallCounter()
+    sweep = {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in cfg.sweep}
+    macs: dict[str, list[float]] = {}
+    seconds: dict[str, list[float]] = {}
+    pictures: list[str] = []
+    started = time.perf_counter()
+    for slot in tqdm(frames, desc=f"evaluate {cfg.split}", unit="frame", disable=not cfg.progress):
+        slot = int(slot)
+        log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
+        instances = arrays["instances"][slot]
+        truth_ra, truth_rd = arrays["ra_mask"][slot], arrays["rd_mask"][slot]
+        table = arrays["objects"][slot][: int(arrays["n_objects"][slot])].astype(np.float64)
+        truth_bins = table[:, [COL["range_bin"], COL["angle_bin"], COL["doppler_bin"]]]
+
+        # detection AP: the detector's scored centres down to a low threshold
+        x = torch.from_numpy(np.ascontiguousarray(((log_power - net.mean_db) / net.std_db).transpose(2, 0, 1)))
+        with torch.no_grad():
+            decoded = net.detector.decode(net.detector(x[None].to(net.device)), k=net.max_objects,
+                                          score_threshold=AP_SCORE_THRESHOLD)[0]
+        scored = Centres.from_mapping(decoded)
+        detection.add(np.stack(profile.xy(scored.range_bin, scored.angle_bin), axis=1), scored.doppler_bin,
+                      scored.score, table[:, [COL["x"], COL["y"]]], table[:, COL["doppler_bin"]])
+
+        # the whole chain at the operating threshold
+        result = net.segment(log_power, is_log_power=True)
+        confusion["RA"] += confusion_matrix(truth_ra, result.ra_mask, num_classes)
+        confusion["RD"] += confusion_matrix(truth_rd, result.rd_mask, num_classes)
+        predicted_seeds.add(result.regions, instances)
+        for name, value in result.compute["macs"].items():
+            macs.setdefault(name, []).append(value)
+        for name, value in result.compute["seconds"].items():
+            seconds.setdefault(name, []).append(value)
+
+        truth_centres = Centres.from_bins(truth_bins)
+        truth_regions = grow_regions(log_power, truth_centres, profile, net.region_config)
+        truth_seeds.add(truth_regions, instances)
+        if cfg.oracle:
+            oracle = net.segment(log_power, is_log_power=True, centres=truth_centres)
+            oracle_confusion["RA"] += confusion_matrix(truth_ra, oracle.ra_mask, num_classes)
+            oracle_confusion["RD"] += confusion_matrix(truth_rd, oracle.rd_mask, num_classes)
+        if slot in sweep_frames:
+            for (seeds, distance), counter in sweep.items():
+                config = RegionGrowingConfig(**{**asdict(net.region_config), "distance_m": distance})
+                centres = result.centres if seeds == "predicted" else truth_centres
+                counter.add(grow_regions(log_power, centres, profile, config), instances)
+        if slot in picture_frames:
+            truth_notes = [(class_names[int(row[COL["class_id"]])], row[COL["x"]], row[COL["y"]],
+                            float(profile.velocity_mps(row[COL["doppler_bin"]]))) for row in table]
+            pred_notes = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in result.objects]
+            path = plot_truth_vs_prediction(
+                log_power, profile, (truth_ra, truth_rd), (result.ra_mask, result.rd_mask),
+                out / f"frame_{slot:05d}.png", truth_objects=truth_notes, predicted_objects=pred_notes,
+                title=f"{cfg.split} frame {slot}: ground truth (top) / prediction (bottom)")
+            pictures.append(path.name)
+
+    curves = detection.curves()
+    summary_pictures = [plot_pr_curves({f"k = {k:g}": (c.recall, c.precision, c.ap) for k, c in curves.items()},
+                                       out / "pr_curves.png").name]
+    for view in ("RA", "RD"):
+        summary_pictures.append(plot_confusion(confusion[view], class_names, out / f"confusion_{view.lower()}.png",
+                                               title=f"{view} confusion ({cfg.split}, {len(frames)} frames)").name)
+    pictures = summary_pictures + pictures
+    summary = detection.summary()
+    metrics: dict[str, Any] = {
+        "store": str(cfg.store), "split": cfg.split, "frames": len(frames), "preset": profile.name,
+        "detector": str(cfg.detector), "segmenter": str(cfg.segmenter),
+        "models": {"detector": det_ckpt.model_name, "segmenter": seg_ckpt.model_name},
+        "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
+        "score_threshold": net.score_threshold, "classes": list(class_names),
+        "detection": {**summary, "n_truth": detection.n_truth,
+                      "n_predictions": int(len(next(iter(curves.values())).score)) if curves else 0,
+                      "ap_score_threshold": AP_SCORE_THRESHOLD},
+        "region_growing": {
+            "config": asdict(net.region_config),
+            "predicted_seeds": predicted_seeds.summary(), "truth_seeds": truth_seeds.summary(),
+            "sweep": [{"seeds": seeds, "distance_m": d, **counter.summary()} for (seeds, d), counter in sweep.items()],
+        },
+        "segmentation": {view: _view_summary(confusion[view], class_names) for view in ("RA", "RD")},
+        "cost": {"params": net.params | {"total": sum(net.params.values())},
+                 "macs_mean": {k: float(np.mean(v)) for k, v in macs.items()},
+                 "seconds_mean": {k: float(np.mean(v)) for k, v in seconds.items()}},
+        "seconds": time.perf_counter() - started,
+        "pictures": pictures,
+    }
+    if cfg.oracle:
+        metrics["segmentation_truth_seeds"] = {view: _view_summary(oracle_confusion[view], class_names)
+                                               for view in ("RA", "RD")}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_report(metrics, out / "report.md")
+    return metrics
+
+
+def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint says about its training (profile, epochs, steps, time, validation figures)."""
+    metrics = extra.get("metrics", {})
+    return {"stage": extra.get("stage"), "profile": extra.get("profile"), "epoch": extra.get("epoch"),
+            "step": extra.get("step"), "elapsed_s": metrics.get("elapsed_s"),
+            **{k: v for k, v in metrics.items() if k.startswith("val_")}}
+
+
+def build_parser(prog: str = "python -m pipelines.evaluate") -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description="evaluate ERASE-Net on a split of a store")
+    parser.add_argument("--detector", required=True, help="detector checkpoint")
+    parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
+    parser.add_argument("--store", required=True)
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
+    parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread")
+    parser.add_argument("--pictures", type=int, default=4)
+    parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
+    parser.add_argument("--sweep-frames", type=int, default=48)
+    parser.add_argument("--score-threshold", type=float)
+    parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--no-progress", action="store_true")
+    return parser
+
+
+def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
+    return EvaluateConfig(detector=args.detector, segmenter=args.segmenter, store=args.store, out=args.out,
+                          split=args.split, max_frames=args.max_frames, pictures=args.pictures,
+                          sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
+                          score_threshold=args.score_threshold, oracle=not args.no_oracle, device=args.device,
+                          progress=not args.no_progress)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    metrics = evaluate(config_from_args(build_parser().parse_args(argv)))
+    print(format_summary(metrics))
+    return 0
+
+
+def format_summary(metrics: dict[str, Any]) -> str:
+    """A few lines with the headline figures of :func:`evaluate`'s metrics."""
+    det, rg, seg = metrics["detection"], metrics["region_growing"], metrics["segmentation"]
+    return "\n".join([
+        f"{metrics['split']}: {metrics['frames']} frames of {metrics['store']}",
+        f"  detection AP@1 {det['AP@1']:.3f}  AP@3 {det['AP@3']:.3f}  AP@5 {det['AP@5']:.3f}  mAP {det['mAP']:.3f}",
+        f"  region growing recall {rg['predicted_seeds']['recall']:.3f} (predicted seeds), "
+        f"{rg['truth_seeds']['recall']:.3f} (true centres); visited {rg['predicted_seeds']['visited_mean']:.0f}",
+        f"  mIoU RA {100 * seg['RA']['mIoU']:.2f}  RD {100 * seg['RD']['mIoU']:.2f}",
+    ])
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
