@@ -1,0 +1,77 @@
+"""The service's error type and the handlers that turn every failure into a JSON error body.
+
+A client mistake is answered with its 4xx code and a message saying what was expected; nothing a
+client sends can produce a 500. Every error body has the shape of :class:`service.schemas.ErrorBody`.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+log = logging.getLogger(__name__)
+
+ERROR_TYPES = {
+    400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
+    413: "content_too_large", 415: "unsupported_media_type", 422: "unprocessable", 429: "quota_exceeded",
+    500: "internal_error", 503: "unavailable",
+}
+
+
+class ApiError(Exception):
+    """An error answered with ``status``; ``extra`` fields are added to the body, ``headers`` to the response."""
+
+    def __init__(self, status: int, message: str, *, error: str | None = None, headers: dict[str, str] | None = None,
+                 **extra: Any) -> None:
+        super().__init__(message)
+        self.status = status
+        self.message = message
+        self.error = error or ERROR_TYPES.get(status, "error")
+        self.headers = headers or {}
+        self.extra = extra
+
+
+def error_response(status: int, message: str, *, error: str | None = None, headers: dict[str, str] | None = None,
+                   **extra: Any) -> JSONResponse:
+    """The JSON error body every handler answers with."""
+    body = {"error": error or ERROR_TYPES.get(status, "error"), "detail": message, **extra}
+    return JSONResponse(body, status_code=status, headers=headers)
+
+
+async def _api_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, ApiError)
+    return error_response(exc.status, exc.message, error=exc.error, headers=exc.headers, **exc.extra)
+
+
+async def _http_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, StarletteHTTPException)
+    message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    if exc.status_code == 413:
+        limit = request.scope.get("starlette.max_body_size")
+        message = f"request body is larger than the limit of {limit} bytes" if limit else message
+    return error_response(exc.status_code, message, headers=dict(exc.headers or {}))
+
+
+async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
+    assert isinstance(exc, RequestValidationError)
+    problems = [{"loc": list(e.get("loc", ())), "msg": e.get("msg", "")} for e in exc.errors()]
+    message = "; ".join(f"{'.'.join(str(p) for p in item['loc'])}: {item['msg']}" for item in problems)
+    return error_response(422, message or "invalid request", error="invalid_parameters", problems=problems)
+
+
+async def _unexpected_error(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error on %s %s", request.method, request.url.path)
+    return error_response(500, "internal error (logged on the server)")
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    """Route ApiError, HTTP errors (404, 405, 413 from the body limit) and parameter validation to JSON bodies."""
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(Exception, _unexpected_error)

@@ -1,0 +1,189 @@
+"""The model pool: each served model is loaded once and runs off the event loop, one request at a time
+per replica, behind a bounded queue.
+
+``EraseNet.segment`` is not safe to run concurrently on one instance (per-call MAC counters), so each
+replica is used by one worker thread at a time. A request holds a slot of its model from admission
+(before its body is read) until its inference has finished; when ``replicas + max_queue`` slots are
+taken the request is refused at once (503 with Retry-After) instead of piling up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import queue
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from models.checkpoint import CheckpointError
+from models.erasenet import EraseNet, SegmentationResult
+from service.settings import ModelSpec, Settings, resolve_path
+
+log = logging.getLogger(__name__)
+
+
+class Saturated(Exception):
+    """Every slot of a model is taken (running or queued)."""
+
+
+class NotReady(Exception):
+    """The model did not load (missing or bad checkpoint); the message says why."""
+
+
+@dataclass
+class ServedModel:
+    """One served model: its replicas, worker threads and admission counter."""
+
+    spec: ModelSpec
+    capacity: int
+    nets: list[EraseNet] = field(default_factory=list)
+    error: str | None = "not loaded yet"
+    segment_macs_high: int = 0  # largest segment MACs seen: the quota reservation's estimate
+    _free: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)
+    _executor: ThreadPoolExecutor | None = None
+    _held: int = 0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    @property
+    def ready(self) -> bool:
+        return self.error is None and bool(self.nets)
+
+    @property
+    def net(self) -> EraseNet:
+        """A replica for read-only facts (profile, params, detector MACs)."""
+        if not self.ready:
+            raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
+        return self.nets[0]
+
+    @property
+    def held(self) -> int:
+        """Slots taken: requests running or waiting."""
+        return self._held
+
+    def load(self, replicas: int, warmup: bool) -> None:
+        """Build the replicas from the checkpoints; on failure record why (the service stays up, not ready)."""
+        detector, segmenter = resolve_path(self.spec.detector), resolve_path(self.spec.segmenter)
+        try:
+            nets = [EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
+                                              max_objects=self.spec.max_objects) for _ in range(replicas)]
+        except (CheckpointError, ValueError, KeyError, RuntimeError) as exc:
+            self.error = str(exc)
+            log.error("model %s not loaded: %s", self.spec.name, exc)
+            return
+        if warmup:
+            for net in nets:
+                self._warm(net)
+        for net in nets:
+            self._free.put(net)
+        self.nets = nets
+        self._executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}")
+        self.error = None
+        log.info("model %s ready: preset %s, %d replica(s)", self.spec.name, nets[0].profile.name, replicas)
+
+    def _warm(self, net: EraseNet) -> None:
+        """One inference on a simulated point target: the first torch call of a process is slow."""
+        from radar.simulate import point_target_cube
+
+        profile = net.profile
+        cube = point_target_cube(profile.name, profile.max_range / 3, 0.0, 1.0, rcs_dbsm=20.0, noise=True, seed=0)
+        result = net.segment(cube)
+        self.segment_macs_high = max(self.segment_macs_high, result.compute["macs"]["segment"])
+
+    def acquire(self) -> None:
+        """Take a slot or raise Saturated."""
+        with self._lock:
+            if self._held >= self.capacity:
+                raise Saturated(f"model {self.spec.name!r} has {self._held} requests running or queued")
+            self._held += 1
+
+    def release(self) -> None:
+        with self._lock:
+            self._held -= 1
+
+    def reservation_macs(self) -> int:
+        """MACs to reserve against a quota before running: exact for the detector, the largest segmenter
+        figure seen so far for the rest."""
+        return self.net.detector_macs() + self.segment_macs_high
+
+    async def run(self, cube: np.ndarray, *, is_log_power: bool) -> SegmentationResult:
+        """Segment on a worker thread; the slot (taken by :meth:`acquire`) is released when inference ends,
+        even if the awaiting request was cancelled."""
+        if self._executor is None:
+            raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
+        future = self._executor.submit(self._segment, cube, is_log_power)
+        future.add_done_callback(lambda _: self.release())
+        return await asyncio.wrap_future(future)
+
+    def _segment(self, cube: np.ndarray, is_log_power: bool) -> SegmentationResult:
+        net = self._free.get()
+        try:
+            result = net.segment(cube, is_log_power=is_log_power)
+        finally:
+            self._free.put(net)
+        segment_macs = result.compute["macs"]["segment"]
+        if segment_macs > self.segment_macs_high:
+            self.segment_macs_high = segment_macs
+        return result
+
+    def close(self) -> None:
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
+
+
+class ModelPool:
+    """Every model of the settings, by name."""
+
+    def __init__(self, settings: Settings) -> None:
+        capacity = settings.replicas + settings.max_queue
+        self.settings = settings
+        self.models = {spec.name: ServedModel(spec, capacity) for spec in settings.models}
+        self.default = settings.default_model_name
+
+    def load(self) -> None:
+        """Load every model (blocking: call from a thread or at start-up)."""
+        if self.settings.torch_threads:
+            import torch
+
+            torch.set_num_threads(self.settings.torch_threads)
+        for model in self.models.values():
+            model.load(self.settings.replicas, self.settings.warmup)
+
+    def get(self, name: str | None) -> ServedModel:
+        """The model called ``name`` (the default when None); KeyError names the served ones."""
+        name = name or self.default
+        if name not in self.models:
+            raise KeyError(f"unknown model {name!r}; served models: {sorted(self.models)}")
+        return self.models[name]
+
+    @property
+    def ready(self) -> bool:
+        return all(m.ready for m in self.models.values())
+
+    def errors(self) -> dict[str, str | None]:
+        return {name: m.error for name, m in self.models.items()}
+
+    def close(self) -> None:
+        for model in self.models.values():
+            model.close()
+
+    def describe(self) -> list[dict[str, Any]]:
+        """Facts about each model for GET /v1/models."""
+        out = []
+        for name, model in self.models.items():
+            info: dict[str, Any] = {
+                "name": name, "ready": model.ready, "error": model.error,
+                "score_threshold": model.spec.score_threshold, "max_objects": model.spec.max_objects,
+                "detector_checkpoint": str(model.spec.detector), "segmenter_checkpoint": str(model.spec.segmenter),
+            }
+            if model.ready:
+                net = model.net
+                info.update(preset=net.profile.name, shape=list(net.profile.shape), class_names=list(net.class_names),
+                            params={**net.params, "total": sum(net.params.values())},
+                            detector_macs=net.detector_macs())
+            out.append(info)
+        return out

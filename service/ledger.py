@@ -1,0 +1,262 @@
+"""The usage ledger: requests, MACs and compute time per tenant and UTC day, behind one database URL.
+
+SQLite (a file, WAL mode, ``BEGIN IMMEDIATE`` write transactions) for one API process, PostgreSQL when
+several processes or replicas share it. Every change is one short transaction whose counters are
+incremented in the database (``SET macs = macs + :n``), never read-modified-written in Python, so
+concurrent requests from any number of processes add up exactly.
+
+Daily MAC quotas are enforced in two atomic steps, so that concurrent requests cannot overrun them:
+
+1. ``reserve``: before inference, a conditional update adds an estimate of the request's MACs to
+   ``reserved_macs`` only if ``macs + reserved_macs + estimate <= limit``; otherwise 429 at once.
+2. ``settle``: after inference, a conditional update moves the request from ``reserved_macs`` to the
+   counters only if ``macs + actual <= limit``, and writes the request's row in the same transaction.
+   If the actual MACs (which depend on the ROI) no longer fit, the reservation is released, nothing is
+   billed and the request is answered 429: the billed total never exceeds the limit.
+
+A process that dies between the two steps leaves its reservation for the rest of that UTC day (the
+quota errs on the strict side); the billed counters stay exact.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import uuid
+from dataclasses import dataclass
+
+from sqlalchemy import (
+    BigInteger,
+    Column,
+    Date,
+    DateTime,
+    Engine,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    create_engine,
+    event,
+    func,
+    select,
+    update,
+)
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.engine import make_url
+from sqlalchemy.pool import NullPool
+
+
+@dataclass(frozen=True)
+class DayTotals:
+    """One tenant's counters for one UTC day (compute time in integer microseconds, so sums are exact)."""
+
+    tenant: str
+    day: dt.date
+    requests: int
+    macs: int
+    compute_us: int
+    reserved_macs: int = 0
+
+    @property
+    def compute_seconds(self) -> float:
+        return self.compute_us / 1e6
+
+
+@dataclass(frozen=True)
+class QuotaExceeded:
+    """Why a reservation or a settlement was refused."""
+
+    tenant: str
+    day: dt.date
+    used_macs: int
+    reserved_macs: int
+    requested_macs: int
+    limit_macs: int
+
+
+def utc_today() -> dt.date:
+    return dt.datetime.now(dt.UTC).date()
+
+
+def _sqlite_engine(url: str) -> Engine:
+    parsed = make_url(url)
+    if parsed.database and parsed.database != ":memory:":
+        from pathlib import Path
+
+        Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+    engine = create_engine(url, connect_args={"timeout": 60, "check_same_thread": False})
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection, connection_record):  # noqa: ANN001 (DBAPI hook)
+        # Let SQLAlchemy, not the sqlite3 module, decide when a transaction begins (the documented recipe).
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        cursor.execute("PRAGMA journal_mode=WAL")
+        cursor.execute("PRAGMA synchronous=NORMAL")
+        cursor.execute("PRAGMA busy_timeout=60000")
+        cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(conn):  # noqa: ANN001
+        # Take the write lock up front: no deferred read-then-write upgrade can fail with SQLITE_BUSY.
+        conn.exec_driver_sql("BEGIN IMMEDIATE")
+
+    return engine
+
+
+class Ledger:
+    """Per-tenant, per-day usage counters and a row per billed request, in tables named ``{prefix}usage``
+    and ``{prefix}requests``."""
+
+    def __init__(self, url: str, *, table_prefix: str = "radarseg_", pool_size: int = 8) -> None:
+        self.url = url
+        self.dialect = make_url(url).get_backend_name()
+        if self.dialect == "sqlite":
+            self.engine = _sqlite_engine(url)
+            self._insert = sqlite.insert
+        elif self.dialect == "postgresql":
+            pool = {"pool_size": pool_size, "max_overflow": pool_size, "pool_pre_ping": True}
+            self.engine = create_engine(url, **pool) if pool_size else create_engine(url, poolclass=NullPool)
+            self._insert = postgresql.insert
+        else:
+            raise ValueError(f"ledger URL must be sqlite or postgresql, got {self.dialect!r}")
+        self.metadata = MetaData()
+        self.usage = Table(
+            f"{table_prefix}usage", self.metadata,
+            Column("tenant", String(64), primary_key=True),
+            Column("day", Date, primary_key=True),
+            Column("requests", BigInteger, nullable=False, default=0),
+            Column("macs", BigInteger, nullable=False, default=0),
+            Column("compute_us", BigInteger, nullable=False, default=0),
+            Column("reserved_macs", BigInteger, nullable=False, default=0),
+        )
+        self.requests = Table(
+            f"{table_prefix}requests", self.metadata,
+            Column("id", String(32), primary_key=True),
+            Column("tenant", String(64), nullable=False, index=True),
+            Column("day", Date, nullable=False),
+            Column("model", String(64), nullable=False),
+            Column("macs", BigInteger, nullable=False),
+            Column("compute_us", BigInteger, nullable=False),
+            Column("roi_voxels", Integer, nullable=False),
+            Column("created_at", DateTime(timezone=True), nullable=False),
+        )
+
+    def create(self) -> None:
+        """Create the tables when missing (idempotent; safe from several processes at once)."""
+        self.metadata.create_all(self.engine, checkfirst=True)
+
+    def drop(self) -> None:
+        """Drop this ledger's tables (tests clean up their own)."""
+        self.metadata.drop_all(self.engine, checkfirst=True)
+
+    def dispose(self) -> None:
+        self.engine.dispose()
+
+    def ping(self) -> None:
+        """Raise when the database cannot be reached."""
+        with self.engine.connect() as conn:
+            conn.execute(select(func.count()).select_from(self.usage).limit(1))
+
+    def _ensure_day(self, conn, tenant: str, day: dt.date) -> None:  # noqa: ANN001
+        insert = self._insert(self.usage).values(tenant=tenant, day=day, requests=0, macs=0, compute_us=0,
+                                                 reserved_macs=0)
+        conn.execute(insert.on_conflict_do_nothing(index_elements=["tenant", "day"]))
+
+    def _totals(self, row) -> DayTotals:  # noqa: ANN001
+        return DayTotals(row.tenant, row.day, row.requests, row.macs, row.compute_us, row.reserved_macs)
+
+    def reserve(self, tenant: str, macs: int, limit: int, *, day: dt.date | None = None) -> QuotaExceeded | None:
+        """Hold ``macs`` of ``tenant``'s daily ``limit`` for a request about to run; None when held."""
+        day = day or utc_today()
+        u = self.usage.c
+        with self.engine.begin() as conn:
+            self._ensure_day(conn, tenant, day)
+            held = conn.execute(
+                update(self.usage)
+                .where(u.tenant == tenant, u.day == day, u.macs + u.reserved_macs + macs <= limit)
+                .values(reserved_macs=u.reserved_macs + macs)
+                .returning(u.tenant)
+            ).first()
+            if held is not None:
+                return None
+            row = conn.execute(select(self.usage).where(u.tenant == tenant, u.day == day)).one()
+        return QuotaExceeded(tenant, day, row.macs, row.reserved_macs, macs, limit)
+
+    def release(self, tenant: str, macs: int, *, day: dt.date) -> None:
+        """Give back a reservation of a request that did not run (bad input, saturation)."""
+        u = self.usage.c
+        with self.engine.begin() as conn:
+            conn.execute(update(self.usage).where(u.tenant == tenant, u.day == day)
+                         .values(reserved_macs=u.reserved_macs - macs))
+
+    def settle(self, tenant: str, *, model: str, macs: int, compute_us: int, roi_voxels: int = 0,
+               reserved: int = 0, limit: int | None = None, day: dt.date | None = None,
+               request_id: str | None = None) -> DayTotals | QuotaExceeded:
+        """Bill one request (and release its reservation) in one transaction; the day's totals after it.
+
+        With a ``limit``, the request is billed only if the day's billed MACs stay within it; otherwise
+        the reservation is released, nothing is billed and QuotaExceeded is returned.
+        """
+        day = day or utc_today()
+        u = self.usage.c
+        with self.engine.begin() as conn:
+            self._ensure_day(conn, tenant, day)
+            condition = [u.tenant == tenant, u.day == day]
+            if limit is not None:
+                condition.append(u.macs + macs <= limit)
+            row = conn.execute(
+                update(self.usage).where(*condition)
+                .values(requests=u.requests + 1, macs=u.macs + macs, compute_us=u.compute_us + compute_us,
+                        reserved_macs=u.reserved_macs - reserved)
+                .returning(*self.usage.c)
+            ).first()
+            if row is None:
+                conn.execute(update(self.usage).where(u.tenant == tenant, u.day == day)
+                             .values(reserved_macs=u.reserved_macs - reserved))
+                now = conn.execute(select(self.usage).where(u.tenant == tenant, u.day == day)).one()
+                assert limit is not None
+                return QuotaExceeded(tenant, day, now.macs, now.reserved_macs, macs, limit)
+            conn.execute(self.requests.insert().values(
+                id=request_id or uuid.uuid4().hex, tenant=tenant, day=day, model=model, macs=macs,
+                compute_us=compute_us, roi_voxels=roi_voxels, created_at=dt.datetime.now(dt.UTC)))
+        return self._totals(row)
+
+    def day_totals(self, tenant: str, day: dt.date | None = None) -> DayTotals:
+        """``tenant``'s counters for ``day`` (zeros when it made no request)."""
+        day = day or utc_today()
+        u = self.usage.c
+        with self.engine.connect() as conn:
+            row = conn.execute(select(self.usage).where(u.tenant == tenant, u.day == day)).first()
+        return self._totals(row) if row is not None else DayTotals(tenant, day, 0, 0, 0)
+
+    def days(self, tenants: list[str] | None = None, *, limit_days: int = 31) -> dict[str, list[DayTotals]]:
+        """Each tenant's days, newest first (at most ``limit_days`` each); all tenants when None."""
+        query = select(self.usage).order_by(self.usage.c.tenant, self.usage.c.day.desc())
+        if tenants is not None:
+            query = query.where(self.usage.c.tenant.in_(tenants))
+        out: dict[str, list[DayTotals]] = {}
+        with self.engine.connect() as conn:
+            for row in conn.execute(query):
+                days = out.setdefault(row.tenant, [])
+                if len(days) < limit_days:
+                    days.append(self._totals(row))
+        return out
+
+    def all_time(self, tenants: list[str] | None = None) -> dict[str, DayTotals]:
+        """Each tenant's totals over every day (``day`` is the latest)."""
+        u = self.usage.c
+        query = select(u.tenant, func.max(u.day).label("day"), func.sum(u.requests).label("requests"),
+                       func.sum(u.macs).label("macs"), func.sum(u.compute_us).label("compute_us")).group_by(u.tenant)
+        if tenants is not None:
+            query = query.where(u.tenant.in_(tenants))
+        with self.engine.connect() as conn:
+            return {row.tenant: DayTotals(row.tenant, row.day, int(row.requests), int(row.macs), int(row.compute_us))
+                    for row in conn.execute(query)}
+
+    def request_sums(self, tenant: str) -> tuple[int, int, int]:
+        """(rows, MACs, compute µs) of the tenant's request rows: equal to its counters' sums by construction."""
+        r = self.requests.c
+        with self.engine.connect() as conn:
+            row = conn.execute(select(func.count(), func.coalesce(func.sum(r.macs), 0),
+                                      func.coalesce(func.sum(r.compute_us), 0)).where(r.tenant == tenant)).one()
+        return int(row[0]), int(row[1]), int(row[2])

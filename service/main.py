@@ -1,0 +1,72 @@
+"""The app factory: ``create_app(settings)`` builds a FastAPI app that owns its model pool, usage
+ledger and metrics registry. ``uvicorn --factory service.main:create_app`` (or ``radarseg serve``) runs it.
+
+Models load and the ledger opens in the lifespan, so importing this module does no work; when a
+checkpoint is missing or the database is unreachable the app still starts: ``/healthz`` answers 200,
+``/readyz`` and ``/v1/segment`` answer 503 with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+from sqlalchemy.exc import SQLAlchemyError
+from starlette.concurrency import run_in_threadpool
+
+from service.deps import ServiceState
+from service.errors import install_error_handlers
+from service.inference import ModelPool
+from service.ledger import Ledger
+from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.routes import health, metrics, models, segment, usage
+from service.settings import Settings
+from service.tenants import Authenticator
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """ERASE-Net radar semantic segmentation. `POST /v1/segment` takes a `.npy` RAD cube and returns
+objects, RA/RD masks and optionally the labelled RAD voxels, with per-request compute accounting (MACs per
+stage, parameters, latency per stage, ROI voxels) and the tenant's usage. Keys: `Authorization: Bearer KEY`
+or `X-API-Key: KEY` when configured."""
+
+
+def _open_ledger(state: ServiceState) -> None:
+    try:
+        state.ledger.create()
+        state.ledger.ping()
+        state.ledger_error = None
+    except SQLAlchemyError as exc:
+        state.ledger_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
+        log.error("usage ledger %s unavailable: %s", state.ledger.dialect, state.ledger_error)
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """Build the app (nothing loads until it starts: the lifespan loads models and opens the ledger)."""
+    settings = settings or Settings()
+    state = ServiceState(settings=settings, pool=ModelPool(settings),
+                         ledger=Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix),
+                         metrics=ServiceMetrics(), auth=Authenticator(settings))
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        await run_in_threadpool(_open_ledger, state)
+        await run_in_threadpool(state.pool.load)
+        for name, model in state.pool.models.items():
+            state.metrics.ready.labels(name).set(1 if model.ready else 0)
+        try:
+            yield
+        finally:
+            state.pool.close()
+            state.ledger.dispose()
+
+    app = FastAPI(title="radarseg", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
+                  max_body_size=settings.max_body_bytes)
+    app.state.service = state
+    install_error_handlers(app)
+    for router in (segment.router, models.router, usage.router, health.router, metrics.router):
+        app.include_router(router)
+    app.add_middleware(MetricsMiddleware, metrics=state.metrics)
+    return app

@@ -1,0 +1,28 @@
+"""OpenAPI descriptions of the error answers, shared by the routers."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from service.schemas import ErrorBody, QuotaErrorBody
+
+ERROR_DESCRIPTIONS: dict[int, tuple[type, str]] = {
+    400: (ErrorBody, "Malformed body: not a .npy file, a pickled/object array, or a byte count that does not "
+                     "match its header"),
+    401: (ErrorBody, "Missing or unknown API key (when keys are configured)"),
+    403: (ErrorBody, "The key is valid but not allowed to do this (another tenant's usage needs an admin key)"),
+    413: (ErrorBody, "Body larger than the configured limit (max_body_bytes)"),
+    415: (ErrorBody, "Content type is not application/x-npy or application/octet-stream"),
+    422: (ErrorBody, "Valid .npy but not what the model takes (shape, dtype, NaN/Inf; the message says what it "
+                     "expects), an unknown model, or invalid query parameters"),
+    429: (QuotaErrorBody, "The tenant's daily MAC quota does not cover the request (Retry-After: seconds until "
+                          "the next UTC day)"),
+    503: (ErrorBody, "Not ready (model or ledger unavailable) or saturated (every slot of the model is taken); "
+                     "Retry-After says when to try again"),
+}
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """The ``responses=`` entry of a route for these error codes."""
+    return {code: {"model": ERROR_DESCRIPTIONS[code][0], "description": ERROR_DESCRIPTIONS[code][1]}
+            for code in codes}

@@ -1,0 +1,247 @@
+"""POST /v1/segment: a .npy RAD cube in, objects, masks, voxels and the request's compute figures out."""
+
+from __future__ import annotations
+
+import datetime as dt
+import time
+import uuid
+from typing import Annotated
+
+import numpy as np
+from fastapi import APIRouter, Query, Request, Response
+from sqlalchemy.exc import SQLAlchemyError
+from starlette.concurrency import run_in_threadpool
+from starlette.requests import ClientDisconnect
+
+from models.erasenet import STAGES, SegmentationResult
+from service.deps import Caller, ServiceState, State
+from service.encoding import encode_array
+from service.errors import ApiError
+from service.inference import NotReady, Saturated, ServedModel
+from service.ledger import DayTotals, QuotaExceeded, utc_today
+from service.routes.errors_doc import error_responses
+from service.schemas import (
+    Compute,
+    InputKind,
+    MaskEncoding,
+    ObjectOut,
+    RequestUsage,
+    SegmentResponse,
+    VoxelsOut,
+)
+from service.upload import ExpectedCube, read_cube
+
+router = APIRouter(tags=["segmentation"])
+
+CONTENT_TYPES = ("application/x-npy", "application/octet-stream")
+OUTPUTS = ("objects", "masks", "voxels")
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+REQUEST_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "A .npy file: the complex RAD cube (R, A, D) of the model's preset (complex64/complex128), "
+                       "or its log power in dB (float16/32/64) with ?input=log_power. Pickled arrays are refused.",
+        "content": {content_type: _BINARY for content_type in CONTENT_TYPES},
+    }
+}
+
+
+def _seconds_to_utc_midnight() -> int:
+    now = dt.datetime.now(dt.UTC)
+    tomorrow = dt.datetime.combine(now.date() + dt.timedelta(days=1), dt.time(), tzinfo=dt.UTC)
+    return max(1, int((tomorrow - now).total_seconds()) + 1)
+
+
+def _quota_error(exc: QuotaExceeded) -> ApiError:
+    return ApiError(
+        429, f"daily MAC quota of tenant {exc.tenant!r} exhausted: {exc.used_macs} of {exc.limit_macs} MACs used on "
+             f"{exc.day.isoformat()} ({exc.reserved_macs} held by requests in flight), this request needs about "
+             f"{exc.requested_macs}",
+        headers={"Retry-After": str(_seconds_to_utc_midnight())}, tenant=exc.tenant, day=exc.day.isoformat(),
+        used_macs=exc.used_macs, limit_macs=exc.limit_macs, reserved_macs=exc.reserved_macs,
+        requested_macs=exc.requested_macs)
+
+
+async def _ledger_call(state: ServiceState, fn, *args, **kwargs):  # noqa: ANN001, ANN202 (a Ledger method)
+    """Run a ledger method on a worker thread; a database failure is a 503, never a 500."""
+    try:
+        return await run_in_threadpool(fn, *args, **kwargs)
+    except SQLAlchemyError as exc:
+        raise ApiError(503, f"usage ledger unavailable ({type(exc).__name__}); the request was not billed",
+                       error="ledger_unavailable",
+                       headers={"Retry-After": str(state.settings.retry_after_s)}) from None
+
+
+def _parse_outputs(outputs: str) -> set[str]:
+    chosen = {part.strip() for part in outputs.split(",") if part.strip()}
+    if unknown := sorted(chosen - set(OUTPUTS)):
+        raise ApiError(422, f"unknown outputs {unknown}; choose among {list(OUTPUTS)} (comma-separated)",
+                       error="invalid_parameters")
+    return chosen
+
+
+def _check_content_type(request: Request) -> None:
+    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if media_type not in CONTENT_TYPES:
+        raise ApiError(415, f"content type {media_type or '(none)'!r} is not accepted: send the .npy bytes as "
+                            f"{' or '.join(CONTENT_TYPES)}")
+
+
+def _served_model(state: ServiceState, name: str | None) -> ServedModel:
+    try:
+        served = state.pool.get(name)
+    except KeyError as exc:
+        raise ApiError(422, exc.args[0], error="unknown_model") from None
+    retry = {"Retry-After": str(state.settings.retry_after_s)}
+    if not served.ready:
+        raise ApiError(503, f"model {served.spec.name!r} is not ready: {served.error}", error="not_ready",
+                       headers=retry)
+    if state.ledger_error is not None:
+        raise ApiError(503, f"usage ledger unavailable: {state.ledger_error}", error="not_ready", headers=retry)
+    return served
+
+
+def _content_length(request: Request) -> int | None:
+    value = request.headers.get("content-length")
+    try:
+        return int(value) if value is not None else None
+    except ValueError:
+        raise ApiError(400, f"invalid Content-Length {value!r}") from None
+
+
+def _compute(result: SegmentationResult, decode_s: float) -> tuple[Compute, int]:
+    """The response's compute block and the billed compute time in integer microseconds."""
+    stage_s = {name: float(result.compute["seconds"][name]) for name in STAGES}
+    compute_us = round((decode_s + sum(stage_s.values())) * 1e6)
+    seconds = {"decode": round(decode_s, 6), **{k: round(v, 6) for k, v in stage_s.items()},
+               "total": compute_us / 1e6}
+    c = result.compute
+    return Compute(macs=c["macs"], params=c["params"], seconds=seconds, roi_voxels=c["roi_voxels"],
+                   visited_points=c["visited_points"], detections=c["detections"]), compute_us
+
+
+def _usage(totals: DayTotals, quota: int | None) -> RequestUsage:
+    return RequestUsage(tenant=totals.tenant, day=totals.day.isoformat(), requests=totals.requests, macs=totals.macs,
+                        compute_seconds=totals.compute_seconds, quota_macs=quota,
+                        remaining_macs=None if quota is None else max(0, quota - totals.macs))
+
+
+def _encode(body: SegmentResponse, result: SegmentationResult, outputs: set[str], encoding: MaskEncoding) -> bytes:
+    """Fill the chosen outputs and serialise (runs on a worker thread: masks and voxels can be large)."""
+    if "objects" in outputs:
+        body.objects = [ObjectOut(**obj.to_dict()) for obj in result.objects]
+    if "masks" in outputs:
+        body.ra_mask = encode_array(result.ra_mask, encoding)
+        body.rd_mask = encode_array(result.rd_mask, encoding)
+    if "voxels" in outputs:
+        voxels = result.regions.voxels
+        classes = result.labels[tuple(voxels.T)] if len(voxels) else np.zeros(0, np.uint8)
+        keep = classes > 0
+        table = np.column_stack([voxels[keep], classes[keep]]).astype(np.uint16).reshape(-1, 4)
+        body.voxels = VoxelsOut(count=len(table), array=encode_array(table, encoding))
+    return body.model_dump_json(exclude_none=True).encode()
+
+
+def _headers(request_id: str, model: str, tenant: str, compute: Compute, encode_s: float) -> dict[str, str]:
+    timings = compute.seconds.model_dump()
+    timings.pop("total")
+    server_timing = ", ".join(f"{name};dur={seconds * 1e3:.3f}" for name, seconds in
+                              [*timings.items(), ("encode", encode_s)])
+    return {
+        "X-Request-ID": request_id, "X-Model": model, "X-Tenant": tenant,
+        "X-Compute-MACs": str(compute.macs.total), "X-Compute-MACs-Detect": str(compute.macs.detect),
+        "X-Compute-MACs-Segment": str(compute.macs.segment), "X-Compute-Params": str(compute.params.total),
+        "X-Compute-Seconds": f"{compute.seconds.total:.6f}", "X-ROI-Voxels": str(compute.roi_voxels),
+        "X-Visited-Points": str(compute.visited_points), "Server-Timing": server_timing,
+    }
+
+
+@router.post(
+    "/v1/segment",
+    summary="Segment one RAD cube",
+    response_model=SegmentResponse,
+    responses=error_responses(400, 401, 413, 415, 422, 429, 503),
+    openapi_extra=REQUEST_BODY,
+)
+async def segment(
+    request: Request,
+    state: State,
+    caller: Caller,
+    model: Annotated[str | None, Query(description="served model name (GET /v1/models); default model if omitted",
+                                       max_length=64)] = None,
+    input_kind: Annotated[InputKind, Query(alias="input", description="what the cube holds")] = InputKind.complex,
+    outputs: Annotated[str, Query(description="comma-separated among objects, masks, voxels",
+                                  max_length=64)] = "objects,masks",
+    encoding: Annotated[MaskEncoding, Query(description="encoding of masks and voxels")] = MaskEncoding.rle,
+) -> Response:
+    """Objects, RA/RD masks and optionally the labelled RAD voxels of one cube, with the request's MACs per
+    stage, parameters, latency per stage, ROI voxels and visited points (also in ``X-Compute-*`` and
+    ``Server-Timing`` headers), and the tenant's running totals for the day."""
+    chosen = _parse_outputs(outputs)
+    _check_content_type(request)
+    content_length = _content_length(request)
+    served = _served_model(state, model)
+    name, metrics, settings = served.spec.name, state.metrics, state.settings
+    quota = settings.quota_for(caller.tenant)
+    try:
+        served.acquire()
+    except Saturated as exc:
+        metrics.rejected.labels(name, "saturated").inc()
+        raise ApiError(503, f"{exc}; try again later", error="saturated",
+                       headers={"Retry-After": str(settings.retry_after_s)}) from None
+    submitted, reserved, day = False, 0, utc_today()
+    metrics.queue.labels(name).set(served.held)
+    try:
+        if quota is not None:
+            reserved = served.reservation_macs()
+            refused = await _ledger_call(state, state.ledger.reserve, caller.tenant, reserved, quota, day=day)
+            if refused is not None:
+                reserved = 0
+                metrics.rejected.labels(name, "quota").inc()
+                raise _quota_error(refused)
+        start = time.perf_counter()
+        expected = ExpectedCube(name, served.net.profile.shape, input_kind)
+        try:
+            cube = await read_cube(request.stream(), expected, content_length=content_length)
+        except ClientDisconnect:
+            raise ApiError(400, "client disconnected before sending the whole body") from None
+        decode_s = time.perf_counter() - start
+        submitted = True
+        try:
+            result = await served.run(cube, is_log_power=input_kind is InputKind.log_power)
+        except NotReady as exc:
+            raise ApiError(503, str(exc), error="not_ready",
+                           headers={"Retry-After": str(settings.retry_after_s)}) from None
+        del cube
+        compute, compute_us = _compute(result, decode_s)
+        request_id = uuid.uuid4().hex
+        billed = await _ledger_call(
+            state, state.ledger.settle, caller.tenant, model=name, macs=compute.macs.total, compute_us=compute_us,
+            roi_voxels=compute.roi_voxels, reserved=reserved, limit=quota, day=day, request_id=request_id)
+        reserved = 0  # settled (or released by settle)
+        if isinstance(billed, QuotaExceeded):
+            metrics.rejected.labels(name, "quota").inc()
+            raise _quota_error(billed)
+    finally:
+        if not submitted:
+            served.release()
+        if reserved:
+            await _ledger_call(state, state.ledger.release, caller.tenant, reserved, day=day)
+        metrics.queue.labels(name).set(served.held)
+
+    metrics.segmentations.labels(name, caller.tenant).inc()
+    metrics.macs.labels(name, caller.tenant).inc(compute.macs.total)
+    metrics.roi_voxels.labels(name).inc(compute.roi_voxels)
+    for stage, seconds in compute.seconds.model_dump().items():
+        if stage != "total":
+            metrics.stage_seconds.labels(name, stage).observe(seconds)
+
+    net = served.net
+    body = SegmentResponse(request_id=request_id, model=name, preset=net.profile.name, shape=list(net.profile.shape),
+                           class_names=list(net.class_names), compute=compute, usage=_usage(billed, quota))
+    start = time.perf_counter()
+    payload = await run_in_threadpool(_encode, body, result, chosen, encoding)
+    encode_s = time.perf_counter() - start
+    metrics.stage_seconds.labels(name, "encode").observe(encode_s)
+    return Response(payload, media_type="application/json",
+                    headers=_headers(request_id, name, caller.tenant, compute, encode_s))

@@ -1,0 +1,55 @@
+"""GET /v1/usage: the caller's tenant usage (every tenant's, or a chosen one, for an admin key)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Query
+from starlette.concurrency import run_in_threadpool
+
+from service.deps import Caller, State
+from service.errors import ApiError
+from service.ledger import DayTotals, utc_today
+from service.routes.errors_doc import error_responses
+from service.schemas import DayUsage, TenantUsage, UsageResponse, UsageTotals
+
+router = APIRouter(tags=["usage"])
+
+
+def _day(totals: DayTotals) -> DayUsage:
+    return DayUsage(day=totals.day.isoformat(), requests=totals.requests, macs=totals.macs,
+                    compute_seconds=totals.compute_seconds)
+
+
+@router.get("/v1/usage", response_model=UsageResponse, responses=error_responses(401, 403, 503))
+async def usage(
+    state: State,
+    caller: Caller,
+    tenant: Annotated[str | None, Query(description="admin keys only: one tenant; 'all' for every tenant",
+                                       max_length=64)] = None,
+    days: Annotated[int, Query(ge=1, le=366, description="days listed per tenant, newest first")] = 31,
+) -> UsageResponse:
+    """Requests, MACs and compute seconds per UTC day and in total, with the daily MAC quota."""
+    if tenant is None or tenant == caller.tenant:
+        tenants: list[str] | None = [caller.tenant]
+    elif not caller.admin:
+        raise ApiError(403, f"tenant {caller.tenant!r} may read its own usage only (other tenants need an admin key)")
+    else:
+        tenants = None if tenant == "all" else [tenant]
+    if state.ledger_error is not None:
+        raise ApiError(503, f"usage ledger unavailable: {state.ledger_error}", error="not_ready",
+                       headers={"Retry-After": str(state.settings.retry_after_s)})
+    by_tenant = await run_in_threadpool(state.ledger.days, tenants, limit_days=days)
+    all_time = await run_in_threadpool(state.ledger.all_time, tenants)
+    names = sorted(set(by_tenant) | set(tenants or state.settings.tenants))
+    today = utc_today()
+    out = []
+    for name in names:
+        listed = by_tenant.get(name, [])
+        today_totals = next((d for d in listed if d.day == today), DayTotals(name, today, 0, 0, 0))
+        total = all_time.get(name, DayTotals(name, today, 0, 0, 0))
+        out.append(TenantUsage(
+            tenant=name, quota_macs=state.settings.quota_for(name), today=_day(today_totals),
+            total=UsageTotals(requests=total.requests, macs=total.macs, compute_seconds=total.compute_seconds),
+            days=[_day(d) for d in listed]))
+    return UsageResponse(tenants=out)

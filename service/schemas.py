@@ -1,0 +1,183 @@
+"""Request and response schemas of the HTTP API (separate from the internal result types)."""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class InputKind(StrEnum):
+    """What the uploaded cube holds."""
+
+    complex = "complex"  # complex RAD cube (complex64 or complex128)
+    log_power = "log_power"  # 10 log10(|I|^2 + 1) in dB (float16/32/64)
+
+
+class MaskEncoding(StrEnum):
+    """How masks and voxels are encoded in the JSON response."""
+
+    rle = "rle"  # run-length (value, length) pairs over the C-order flattened array
+    zlib = "zlib"  # zlib-compressed C-order bytes, base64
+
+
+class ErrorBody(BaseModel):
+    """Every error answer: a machine-readable ``error`` and a ``detail`` saying what was expected."""
+
+    model_config = ConfigDict(extra="allow")
+
+    error: str = Field(examples=["unprocessable"])
+    detail: str = Field(examples=["cube has shape (64, 128, 32), model 'small' expects (128, 128, 32)"])
+
+
+class QuotaErrorBody(ErrorBody):
+    """429: the tenant's daily MAC quota does not cover the request."""
+
+    tenant: str
+    day: str
+    used_macs: int
+    limit_macs: int
+
+
+class ObjectOut(BaseModel):
+    """One segmented object: majority class of its voxels, centre in metres and radial velocity."""
+
+    class_id: int
+    class_name: str
+    score: float = Field(description="detector score of the seed the object grew from")
+    range_m: float
+    angle_deg: float = Field(description="positive to the right")
+    velocity_mps: float = Field(description="radial velocity, positive receding")
+    x: float = Field(description="lateral position (m)")
+    y: float = Field(description="forward position (m)")
+    n_voxels: int
+
+
+class EncodedArray(BaseModel):
+    """An integer array: ``runs`` of (value, length) for ``rle``, ``data`` (base64 of zlib) for ``zlib``."""
+
+    encoding: MaskEncoding
+    dtype: str
+    shape: list[int]
+    data: str | None = None
+    runs: list[tuple[int, int]] | None = None
+
+
+class VoxelsOut(BaseModel):
+    """Foreground RAD voxels, one row per voxel: range bin, angle bin, Doppler bin, class id."""
+
+    columns: list[str] = ["range_bin", "angle_bin", "doppler_bin", "class_id"]
+    count: int
+    array: EncodedArray
+
+
+class Macs(BaseModel):
+    detect: int
+    grow: int
+    segment: int
+    total: int
+
+
+class Params(BaseModel):
+    detector: int
+    segmenter: int
+    total: int
+
+
+class StageSeconds(BaseModel):
+    """Latency per stage (s); ``total`` is their sum (request decoding included, response encoding not)."""
+
+    decode: float
+    transform: float
+    detect: float
+    grow: float
+    segment: float
+    project: float
+    total: float
+
+
+class Compute(BaseModel):
+    """What one request cost."""
+
+    macs: Macs
+    params: Params
+    seconds: StageSeconds
+    roi_voxels: int
+    visited_points: int
+    detections: int
+
+
+class UsageTotals(BaseModel):
+    """A tenant's totals over a period."""
+
+    requests: int
+    macs: int
+    compute_seconds: float
+
+
+class DayUsage(UsageTotals):
+    day: str
+
+
+class RequestUsage(DayUsage):
+    """The tenant's running totals for the UTC day, after this request, and its quota."""
+
+    tenant: str
+    quota_macs: int | None
+    remaining_macs: int | None
+
+
+class SegmentResponse(BaseModel):
+    request_id: str
+    model: str
+    preset: str
+    shape: list[int]
+    class_names: list[str]
+    objects: list[ObjectOut] | None = None
+    ra_mask: EncodedArray | None = None
+    rd_mask: EncodedArray | None = None
+    voxels: VoxelsOut | None = None
+    compute: Compute
+    usage: RequestUsage
+
+
+class ModelInfo(BaseModel):
+    name: str
+    ready: bool
+    error: str | None = None
+    preset: str | None = None
+    shape: list[int] | None = None
+    class_names: list[str] | None = None
+    params: Params | None = None
+    detector_macs: int | None = Field(None, description="detector MACs per frame (the segmenter's depend on the ROI)")
+    score_threshold: float
+    max_objects: int
+    detector_checkpoint: str
+    segmenter_checkpoint: str
+
+
+class ModelsResponse(BaseModel):
+    default: str
+    models: list[ModelInfo]
+
+
+class Health(BaseModel):
+    status: str
+
+
+class Readiness(BaseModel):
+    ready: bool
+    models: dict[str, str | None] = Field(description="model name -> null when loaded, else why not")
+    ledger: str | None = Field(description="null when the ledger is reachable, else why not")
+
+
+class TenantUsage(BaseModel):
+    tenant: str
+    quota_macs: int | None
+    today: DayUsage
+    total: UsageTotals
+    days: list[DayUsage]
+
+
+class UsageResponse(BaseModel):
+    tenants: list[TenantUsage]

@@ -1,0 +1,159 @@
+"""Service settings (pydantic-settings, environment prefix ``RADARSEG_``).
+
+Every field can be set from the environment: scalars as text (``RADARSEG_PORT=8080``), lists and
+mappings as JSON (``RADARSEG_API_KEYS='{"a-long-random-key-1234": "acme"}'``). Validators refuse values
+that would make the service unsafe or unusable: a non-loopback bind without API keys, short keys,
+tenant names that could not be metric labels, unbounded bodies or queues, unknown database schemes.
+
+Relative checkpoint paths are resolved against the repository root (the directory holding
+``service/``), so the defaults serve the shipped model from any working directory.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+from pathlib import Path
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+TABLE_PREFIX_PATTERN = re.compile(r"^[a-z][a-z0-9_]{0,30}$")
+MIN_KEY_LENGTH = 16
+MAX_BODY_LIMIT = 1 << 30  # never accept more than 1 GiB in one request
+ANONYMOUS_TENANT = "anonymous"
+
+# The shipped checkpoints of the `small` preset (committed under checkpoints/ by the training issue).
+DEFAULT_DETECTOR = "checkpoints/small_detector.pt"
+DEFAULT_SEGMENTER = "checkpoints/small_segmenter.pt"
+
+
+def resolve_path(path: str | Path) -> Path:
+    """``path`` as given when absolute, else relative to the repository root."""
+    path = Path(path).expanduser()
+    return path if path.is_absolute() else REPO_ROOT / path
+
+
+class ModelSpec(BaseModel):
+    """One served model: a name clients pick with ``?model=``, and its two checkpoints."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")]
+    detector: Path
+    segmenter: Path
+    score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = 0.3
+    max_objects: Annotated[int, Field(ge=1, le=256)] = 32
+
+
+class Settings(BaseSettings):
+    """Configuration of one API process."""
+
+    model_config = SettingsConfigDict(env_prefix="RADARSEG_", extra="forbid", frozen=True)
+
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=1, le=65535)] = 8000
+    models: Annotated[list[ModelSpec], Field(min_length=1)] = [
+        ModelSpec(name="small", detector=Path(DEFAULT_DETECTOR), segmenter=Path(DEFAULT_SEGMENTER))
+    ]
+    default_model: str | None = None  # None: the first of `models`
+    replicas: Annotated[int, Field(ge=1, le=16)] = 1  # model instances per model (each runs one request at a time)
+    max_queue: Annotated[int, Field(ge=0, le=1024)] = 8  # requests waiting per model beyond the running ones
+    retry_after_s: Annotated[int, Field(ge=1, le=3600)] = 1
+    warmup: bool = True  # run each model once at start-up (the first torch call of a process is slow)
+    torch_threads: Annotated[int | None, Field(ge=1, le=256)] = None
+    # a complex128 carrada cube (256 x 256 x 64) and its header; the header check refuses other shapes early
+    max_body_bytes: Annotated[int, Field(ge=1024, le=MAX_BODY_LIMIT)] = 64 * 2**20 + 65536
+
+    api_keys: dict[SecretStr, str] = {}  # key -> tenant; none configured = one anonymous tenant
+    admin_tenants: list[str] = []  # tenants whose keys may read every tenant's usage
+    allow_anonymous_remote: bool = False  # serve without keys on a non-loopback address
+
+    daily_mac_quota: Annotated[int | None, Field(ge=0)] = None  # per tenant and UTC day; None: unlimited
+    tenant_quotas: dict[str, Annotated[int, Field(ge=0)]] = {}  # per-tenant overrides of daily_mac_quota
+
+    data_dir: Path = Path("data/service")  # relative to the working directory
+    ledger_url: str | None = None  # None: SQLite (WAL) file ledger.sqlite3 under data_dir
+    ledger_table_prefix: str = "radarseg_"
+
+    @field_validator("api_keys")
+    @classmethod
+    def _check_keys(cls, keys: dict[SecretStr, str]) -> dict[SecretStr, str]:
+        for key, tenant in keys.items():
+            secret = key.get_secret_value()
+            if len(secret) < MIN_KEY_LENGTH or secret != secret.strip():
+                raise ValueError(f"API key of tenant {tenant!r} must be at least {MIN_KEY_LENGTH} characters "
+                                 "without surrounding spaces")
+            if not TENANT_PATTERN.match(tenant):
+                raise ValueError(f"tenant name {tenant!r} must match {TENANT_PATTERN.pattern}")
+        return keys
+
+    @field_validator("ledger_table_prefix")
+    @classmethod
+    def _check_prefix(cls, prefix: str) -> str:
+        if not TABLE_PREFIX_PATTERN.match(prefix):
+            raise ValueError(f"ledger_table_prefix {prefix!r} must match {TABLE_PREFIX_PATTERN.pattern}")
+        return prefix
+
+    @field_validator("ledger_url")
+    @classmethod
+    def _check_url(cls, url: str | None) -> str | None:
+        if url is not None and not url.startswith(("sqlite://", "postgresql://", "postgresql+psycopg://")):
+            raise ValueError(f"ledger_url must be a sqlite:// or postgresql+psycopg:// URL, got {url.split(':')[0]}://")
+        return url
+
+    @model_validator(mode="after")
+    def _check_consistency(self) -> Settings:
+        names = [m.name for m in self.models]
+        if len(set(names)) != len(names):
+            raise ValueError(f"model names must be unique, got {names}")
+        if self.default_model is not None and self.default_model not in names:
+            raise ValueError(f"default_model {self.default_model!r} is not one of the models {names}")
+        tenants = set(self.api_keys.values())
+        if unknown := sorted(set(self.admin_tenants) - tenants):
+            raise ValueError(f"admin_tenants {unknown} have no API key")
+        if unknown := sorted(set(self.tenant_quotas) - (tenants or {ANONYMOUS_TENANT})):
+            raise ValueError(f"tenant_quotas name unknown tenants {unknown}")
+        if not self.api_keys and not self.allow_anonymous_remote and not _is_loopback(self.host):
+            raise ValueError(f"refusing to serve on {self.host!r} without API keys: configure api_keys, bind "
+                             "127.0.0.1, or set allow_anonymous_remote explicitly")
+        return self
+
+    @property
+    def model_names(self) -> list[str]:
+        return [m.name for m in self.models]
+
+    @property
+    def default_model_name(self) -> str:
+        return self.default_model or self.models[0].name
+
+    def tenant_for_key(self) -> dict[str, str]:
+        """Plain key -> tenant (used once, to build the authenticator)."""
+        return {key.get_secret_value(): tenant for key, tenant in self.api_keys.items()}
+
+    @property
+    def tenants(self) -> list[str]:
+        """Every tenant the service can bill: the key owners, or the anonymous tenant."""
+        return sorted(set(self.api_keys.values())) or [ANONYMOUS_TENANT]
+
+    def quota_for(self, tenant: str) -> int | None:
+        """Daily MAC quota of ``tenant`` (None: unlimited)."""
+        return self.tenant_quotas.get(tenant, self.daily_mac_quota)
+
+    def resolved_ledger_url(self) -> str:
+        """The database URL of the usage ledger (the SQLite default under ``data_dir``)."""
+        if self.ledger_url is not None:
+            return self.ledger_url
+        return f"sqlite:///{(Path(self.data_dir).expanduser().absolute() / 'ledger.sqlite3').as_posix()}"
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False

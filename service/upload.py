@@ -1,0 +1,114 @@
+"""Reading an uploaded ``.npy`` cube from a request body stream.
+
+The header is parsed and checked (dtype kind, shape, byte count against ``Content-Length``) as soon
+as its bytes have arrived, before the array is allocated; the array is then filled chunk by chunk
+(no second copy of a 32 MiB body). Pickled/object arrays are refused by the header parser.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from radar.io.errors import DataError
+from radar.io.npy import MAGIC, NpyHeader, check_array, parse_npy_header
+from service.errors import ApiError
+from service.schemas import InputKind
+
+ACCEPTED_DTYPES = {
+    InputKind.complex: (np.complex64, np.complex128),
+    InputKind.log_power: (np.float16, np.float32, np.float64),
+}
+MAX_HEADER_BYTES = 65536 + 12
+
+
+@dataclass(frozen=True)
+class ExpectedCube:
+    """What a model accepts: its cube shape and the input kind the client announced."""
+
+    model: str
+    shape: tuple[int, int, int]
+    kind: InputKind
+
+    def describe(self) -> str:
+        names = "/".join(np.dtype(d).name for d in ACCEPTED_DTYPES[self.kind])
+        return f"a {self.shape} {names} .npy cube"
+
+
+def _header_length(head: bytes | bytearray) -> int | None:
+    """Bytes needed for the whole header, or None until the length field has arrived."""
+    if len(head) >= len(MAGIC) and not bytes(head[:len(MAGIC)]) == MAGIC:
+        raise ApiError(400, "body is not a .npy file (missing the \\x93NUMPY magic string)", error="malformed_npy")
+    if len(head) < 12:
+        return None
+    major = head[6]
+    if major == 1:
+        return 10 + int.from_bytes(head[8:10], "little")
+    if major in (2, 3):
+        return 12 + int.from_bytes(head[8:12], "little")
+    raise ApiError(400, f"unsupported .npy format version {major}", error="malformed_npy")
+
+
+def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int | None) -> None:
+    """Refuse a header whose dtype, shape or byte count is not what the model takes (before allocation)."""
+    if header.dtype.newbyteorder("=") not in [np.dtype(d) for d in ACCEPTED_DTYPES[expected.kind]]:
+        hint = " (send ?input=log_power for float log-power cubes)" if expected.kind is InputKind.complex else ""
+        raise ApiError(422, f"cube has dtype {header.dtype.name}, model {expected.model!r} expects "
+                            f"{expected.describe()}{hint}", error="invalid_cube")
+    if header.shape != expected.shape:
+        raise ApiError(422, f"cube has shape {header.shape}, model {expected.model!r} expects {expected.shape} "
+                            f"(range, angle, Doppler)", error="invalid_cube")
+    total = header.data_offset + header.nbytes
+    if content_length is not None and content_length != total:
+        raise ApiError(400, f"body is {content_length} bytes but its .npy header ({header.shape} "
+                            f"{header.dtype.name}) needs {total}", error="malformed_npy")
+
+
+async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, content_length: int | None) -> np.ndarray:
+    """The cube of a .npy body stream, checked: header first, then the bytes, then finiteness.
+
+    Raises ApiError 400 (not .npy, pickled, truncated or padded) or 422 (dtype, shape, NaN/Inf).
+    """
+    head = bytearray()
+    header: NpyHeader | None = None
+    data: np.ndarray | None = None
+    filled = 0
+    async for chunk in chunks:
+        if not chunk:
+            continue
+        if header is None:
+            head += chunk
+            needed = _header_length(head)
+            if needed is None or len(head) < needed:
+                if len(head) > MAX_HEADER_BYTES:
+                    raise ApiError(400, "oversized .npy header", error="malformed_npy")
+                continue
+            try:
+                header = parse_npy_header(bytes(head[:needed]))
+            except DataError as exc:
+                raise ApiError(400, str(exc), error="malformed_npy") from None
+            check_header(header, expected, content_length)
+            data = np.empty(header.nbytes, np.uint8)  # allocated only now that the header is known to fit
+            chunk = bytes(head[header.data_offset:])
+            head = bytearray()
+        assert data is not None
+        if filled + len(chunk) > data.size:
+            raise ApiError(400, f"body holds more than the {data.size} data bytes its .npy header announces",
+                           error="malformed_npy")
+        data[filled:filled + len(chunk)] = np.frombuffer(chunk, np.uint8)
+        filled += len(chunk)
+    if header is None or data is None:
+        raise ApiError(400, "body is empty or ends inside the .npy header", error="malformed_npy")
+    if filled != data.size:
+        raise ApiError(400, f"body ends after {filled} of the {data.size} data bytes its .npy header announces",
+                       error="malformed_npy")
+    cube = data.view(header.dtype).reshape(header.shape, order="F" if header.fortran_order else "C")
+    try:
+        check_array(cube, source=None, finite=True, what="cube")
+    except DataError as exc:
+        raise ApiError(422, f"{exc}: model {expected.model!r} expects finite values", error="invalid_cube") from None
+    if not cube.dtype.isnative:
+        cube = cube.astype(cube.dtype.newbyteorder("="))
+    return cube
