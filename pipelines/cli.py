@@ -86,6 +86,22 @@ def _cmd_models_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import os
+
+    import uvicorn
+
+    # The service reads its settings (RADARSEG_*) from the environment; the flags override host and port.
+    # By import string, so that pipelines never imports the service.
+    for name in ("host", "port"):
+        if getattr(args, name) is not None:
+            os.environ[f"RADARSEG_{name.upper()}"] = str(getattr(args, name))
+    host = os.environ.get("RADARSEG_HOST", "127.0.0.1")
+    port = int(os.environ.get("RADARSEG_PORT", "8000"))
+    uvicorn.run("service.main:create_app", factory=True, host=host, port=port, log_level=args.log_level)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="radarseg", description="ERASE-Net radar semantic segmentation")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
@@ -129,6 +145,12 @@ def build_parser() -> argparse.ArgumentParser:
     summary.add_argument("--preset", action="append", choices=sorted(PRESETS), help="repeat for several")
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(func=_cmd_models_summary)
+
+    serve = sub.add_parser("serve", help="run the HTTP segmentation service (uvicorn; settings from RADARSEG_*)")
+    serve.add_argument("--host", help="bind address (default 127.0.0.1, or RADARSEG_HOST)")
+    serve.add_argument("--port", type=int, help="port (default 8000, or RADARSEG_PORT)")
+    serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    serve.set_defaults(func=_cmd_serve)
 
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")
     demo.add_argument("--out", default="out/demo")
