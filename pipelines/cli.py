@@ -54,6 +54,24 @@ def _cmd_store_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from pipelines.train import main, parse_args
+
+    result = main(parse_args(args.job_args, prog="radarseg train"))
+    print(json.dumps(result, indent=2, default=str))
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from pipelines.evaluate import build_parser as evaluate_parser
+    from pipelines.evaluate import config_from_args, evaluate, format_summary
+
+    cfg = config_from_args(evaluate_parser("radarseg evaluate").parse_args(args.job_args))
+    print(format_summary(evaluate(cfg)))
+    print(f"report: {cfg.out}/report.md")
+    return 0
+
+
 def _cmd_segment(args: argparse.Namespace) -> int:
     import json
 
@@ -122,6 +140,14 @@ def build_parser() -> argparse.ArgumentParser:
     pre.set_defaults(job_args=[])
     pre.set_defaults(func=_cmd_preprocess)
 
+    # Like preprocess: the jobs' own parsers read the arguments (radarseg train --help, radarseg evaluate --help).
+    train = sub.add_parser("train", add_help=False, help="train the detector or the segmenter from a store "
+                                                         "(arguments: radarseg train --help)")
+    train.set_defaults(job_args=[], func=_cmd_train)
+    evaluate = sub.add_parser("evaluate", add_help=False, help="evaluate both stages on a split of a store: "
+                                                               "metrics.json, report.md, pictures")
+    evaluate.set_defaults(job_args=[], func=_cmd_evaluate)
+
     store = sub.add_parser("store", help="inspect a preprocessed store")
     store_sub = store.add_subparsers(dest="store_command", required=True)
     info = store_sub.add_parser("info", help="frames per split, class counts, statistics, quarantined frames")
@@ -161,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if args.command == "preprocess":
+    if args.command in ("preprocess", "train", "evaluate"):
         args.job_args = extra  # read by the job's own parser
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")

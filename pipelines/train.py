@@ -91,7 +91,7 @@ class Hyper:
     lr: float
     weight_decay: float = 0.0
     momentum: float = 0.9  # SGD only
-    milestones: tuple[int, ...] = ()  # epochs where a step schedule multiplies the lr by gamma
+    milestones: tuple[float, ...] = ()  # fractions of the epochs where a step schedule multiplies the lr by gamma
     step_every: int = 0  # or every this many epochs (0 = use milestones)
     gamma: float = 0.1
     flip_prob: float = 0.5
@@ -103,8 +103,8 @@ PROFILES: dict[str, dict[str, Hyper]] = {
     "detector": {
         # The paper: Adam, 1e-4, divided by 10 every 10 epochs, 300 epochs (read literally).
         "paper": Hyper("centre_detector", {}, epochs=300, batch_size=16, lr=1e-4, step_every=10),
-        "quick": Hyper("centre_detector", {}, epochs=24, batch_size=8, lr=2e-3, weight_decay=0.0,
-                       milestones=(16, 21), val_frames=96),
+        "quick": Hyper("centre_detector", {}, epochs=12, batch_size=8, lr=2e-3, weight_decay=0.0,
+                       milestones=(0.67, 0.88), val_frames=96),
     },
     "segmenter": {
         "paper": Hyper("minkunet", {"ratio": 0.37}, epochs=300, batch_size=8, lr=0.24, weight_decay=1e-4),
@@ -138,6 +138,7 @@ class TrainConfig:
     jitter_std: tuple[float, float, float] | None = None  # segmenter: Gaussian errors in bins instead
     ray_workers: int = 0  # 0 = single process without Ray
     address: str | None = None  # Ray address for --ray-workers (None = embedded local Ray)
+    threads: int = 0  # torch intra-op threads (0 = torch's default)
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -354,7 +355,8 @@ class DetectorTask(StageTask):
     def scheduler(self, optimizer, steps_per_epoch):
         if self.hyper.step_every:
             return torch.optim.lr_scheduler.StepLR(optimizer, self.hyper.step_every, gamma=self.hyper.gamma)
-        return torch.optim.lr_scheduler.MultiStepLR(optimizer, list(self.hyper.milestones), gamma=self.hyper.gamma)
+        milestones = sorted({max(1, round(f * self.hyper.epochs)) for f in self.hyper.milestones})
+        return torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, gamma=self.hyper.gamma)
 
     @torch.no_grad()
     def validate(self, model: nn.Module, device: torch.device) -> dict[str, float]:
@@ -650,6 +652,8 @@ def _mean(values: list[float]) -> float:
 def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
     """Train ``cfg`` in this process (rank ``world.rank`` of ``world.size``); returns the last epoch's metrics."""
     world = world or World()
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     hyper = cfg.hyper()
     run_dir = Path(cfg.out)
     store = StoreInfo.read(cfg.store)
@@ -832,6 +836,7 @@ def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentPa
                         help="segmenter: Gaussian seed errors in bins instead")
     parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
     parser.add_argument("--address", help="Ray address (default: embedded local Ray)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--no-progress", action="store_true")
     return parser
 
@@ -844,7 +849,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         val_split=None if args.val_split.lower() == "none" else args.val_split, max_steps=args.max_steps,
         resume=args.resume, workers=args.workers, jitter_from=args.jitter_from,
         jitter_std=tuple(args.jitter_std) if args.jitter_std else None, ray_workers=args.ray_workers,
-        address=args.address, progress=not args.no_progress)
+        address=args.address, threads=args.threads, progress=not args.no_progress)
 
 
 def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.train") -> TrainConfig:
