@@ -112,8 +112,13 @@ class EraseNet:
         return self._detector_counter.report((1, n_doppler, n_range, n_angle)).macs
 
     @torch.no_grad()
-    def segment(self, cube: np.ndarray, *, is_log_power: bool = False) -> SegmentationResult:
-        """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB."""
+    def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None
+                ) -> SegmentationResult:
+        """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
+
+        ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
+        evaluating stage 2 from ground-truth seeds, or a non-learned detector such as CFAR.
+        """
         if cube.shape != self.profile.shape:
             raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "
                              f"got {cube.shape}")
@@ -123,9 +128,13 @@ class EraseNet:
             net_input = (log_power - self.mean_db) / self.std_db
             x = torch.from_numpy(np.ascontiguousarray(net_input.transpose(2, 0, 1)))[None].to(self.device)
         with _stage(seconds, "detect"):
-            outputs = self.detector(x)
-            decoded = self.detector.decode(outputs, k=self.max_objects, score_threshold=self.score_threshold)[0]
-            centres = Centres.from_mapping(decoded)
+            if centres is None:
+                outputs = self.detector(x)
+                decoded = self.detector.decode(outputs, k=self.max_objects, score_threshold=self.score_threshold)[0]
+                centres = Centres.from_mapping(decoded)
+                detect_macs = self.detector_macs()
+            else:
+                detect_macs = 0
         with _stage(seconds, "grow"):
             regions = grow_regions(log_power, centres, self.profile, self.region_config)
         with _stage(seconds, "segment"):
@@ -136,7 +145,6 @@ class EraseNet:
             ra_mask = transforms.project_ra(labels, self.profile.num_classes)
             rd_mask = transforms.project_rd(labels, self.profile.num_classes)
             objects = self._objects(regions, voxel_classes, centres)
-        detect_macs = self.detector_macs()
         compute = {
             "macs": {"detect": detect_macs, "grow": 0, "segment": segment_macs, "total": detect_macs + segment_macs},
             "params": {**self.params, "total": sum(self.params.values())},

@@ -86,3 +86,13 @@ def test_bad_checkpoints_are_refused(tmp_path):
     torch.save({"format": "radarseg.checkpoint", "payload": Checkpoint}, tmp_path / "code.pt")  # needs unpickling code
     with pytest.raises(CheckpointError, match="not a loadable"):
         load_checkpoint(tmp_path / "code.pt")
+
+
+def test_given_centres_replace_the_detector(frame):
+    from radar.detections import Centres
+
+    seeds = Centres.from_bins(np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin]
+                                        for o in frame.objects if o.n_voxels]))
+    result = _net().segment(frame.cube, centres=seeds)
+    assert result.compute["macs"]["detect"] == 0 and len(result.centres) == len(seeds)
+    assert result.regions.recall(frame.instances) > 0.9
