@@ -17,7 +17,7 @@ from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
 from service.deps import ServiceState
-from service.errors import install_error_handlers
+from service.errors import DeclaredBodyLimit, install_error_handlers
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import MetricsMiddleware, ServiceMetrics
@@ -62,11 +62,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.pool.close()
             state.ledger.dispose()
 
-    app = FastAPI(title="radarseg", version="0.1.0", description=DESCRIPTION, lifespan=lifespan,
-                  max_body_size=settings.max_body_bytes)
+    app = FastAPI(title="radarseg", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
     app.state.service = state
     install_error_handlers(app)
-    for router in (segment.router, models.router, usage.router, health.router, metrics.router):
+    # FastAPI's body limit on the one route that reads a body (GET routes never read one).
+    app.include_router(segment.router, max_body_size=settings.max_body_bytes)
+    for router in (models.router, usage.router, health.router, metrics.router):
         app.include_router(router)
-    app.add_middleware(MetricsMiddleware, metrics=state.metrics)
+    app.add_middleware(DeclaredBodyLimit, max_body_size=settings.max_body_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=state.metrics)  # added last: outermost, it sees every answer
     return app

@@ -1,0 +1,189 @@
+"""Fixtures of the service tests: tiny random-weight checkpoints of the ``small`` preset, a simulated
+cube as .npy bytes, apps under the test client, a PostgreSQL ledger per test (own table prefix, dropped
+afterwards), and real uvicorn processes on loopback (started here, stopped by pid)."""
+
+from __future__ import annotations
+
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import torch
+
+from models.checkpoint import Checkpoint, save_checkpoint
+from models.registry import create_model
+from radar.simulate import simulate_sequence
+from service.settings import ModelSpec, Settings
+
+REPO = Path(__file__).resolve().parents[2]
+CLASSES = ("background", "pedestrian", "cyclist", "car")
+NPY = {"content-type": "application/x-npy"}
+KEYS = {"key-acme-0123456789abcdef": "acme", "key-globex-0123456789abcd": "globex",
+        "key-admin-0123456789abcdef": "ops"}
+
+
+def npy_bytes(array: np.ndarray, *, allow_pickle: bool = False) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=allow_pickle)
+    return buf.getvalue()
+
+
+@pytest.fixture(scope="session")
+def tiny_checkpoints(tmp_path_factory) -> tuple[Path, Path]:
+    """Random-weight tiny detector and MinkUNet for the small preset (fixed seed)."""
+    out = tmp_path_factory.mktemp("ckpt")
+    torch.manual_seed(0)
+    det = create_model("centre_detector_tiny", preset="small")
+    seg = create_model("minkunet_tiny", preset="small")
+    return (save_checkpoint(Checkpoint("centre_detector_tiny", {"preset": "small"}, det.state_dict(), "small", CLASSES,
+                                       {"mean": 60.0, "std": 8.0}), out / "det.pt"),
+            save_checkpoint(Checkpoint("minkunet_tiny", {"preset": "small"}, seg.state_dict(), "small", CLASSES),
+                            out / "seg.pt"))
+
+
+@pytest.fixture(scope="session")
+def frame():
+    """One simulated frame of the small preset."""
+    return next(simulate_sequence("small", 1, seed=2))
+
+
+@pytest.fixture(scope="session")
+def cube_body(frame) -> bytes:
+    return npy_bytes(frame.cube)
+
+
+@pytest.fixture
+def make_settings(tiny_checkpoints, tmp_path):
+    """Settings serving the tiny model as ``tiny`` (untrained: threshold 0, one object), SQLite under tmp_path."""
+    det, seg = tiny_checkpoints
+
+    def build(**overrides) -> Settings:
+        values = {"models": [ModelSpec(name="tiny", detector=det, segmenter=seg, score_threshold=0.0, max_objects=1)],
+                  "data_dir": tmp_path / "data", "max_queue": 16}
+        values.update(overrides)
+        return Settings(**values)
+
+    return build
+
+
+@pytest.fixture
+def client_for():
+    """``client_for(settings)``: a started app under the test client; every one is closed after the test."""
+    from fastapi.testclient import TestClient
+
+    from service.main import create_app
+
+    clients = []
+
+    def start(settings: Settings) -> TestClient:
+        client = TestClient(create_app(settings))
+        client.__enter__()
+        clients.append(client)
+        return client
+
+    yield start
+    for client in clients:
+        client.__exit__(None, None, None)
+
+
+@pytest.fixture
+def postgres_url() -> str:
+    url = os.environ.get("RADARSEG_TEST_POSTGRES_URL")
+    if not url:
+        pytest.skip("RADARSEG_TEST_POSTGRES_URL is not set (CI sets it)")
+    return url
+
+
+@pytest.fixture
+def pg_prefix(postgres_url) -> Iterator[str]:
+    """A table prefix of this test's own; its ledger tables are dropped afterwards."""
+    from service.ledger import Ledger
+
+    prefix = f"t{uuid.uuid4().hex[:10]}_"
+    yield prefix
+    ledger = Ledger(postgres_url, table_prefix=prefix, pool_size=0)
+    ledger.drop()
+    ledger.dispose()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Server:
+    """A ``radarseg serve`` process on loopback."""
+
+    def __init__(self, env: dict[str, str], log_path: Path) -> None:
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.log_path = log_path
+        full_env = {**os.environ, **env, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
+        self._log = log_path.open("w")
+        self.proc = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(self.port),
+                                      "--log-level", "warning"], cwd=REPO, env=full_env,
+                                     stdout=self._log, stderr=subprocess.STDOUT)
+
+    def wait_ready(self, timeout_s: float = 120.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.3)
+        raise RuntimeError(f"server not ready within {timeout_s} s:\n{self.log_path.read_text()[-3000:]}")
+
+    def stop(self) -> None:
+        """SIGTERM by pid (uvicorn shuts down gracefully), SIGKILL if it lingers."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        self._log.close()
+
+
+@pytest.fixture
+def serve(tmp_path):
+    """``with serve(env) as server``: start ``radarseg serve`` with RADARSEG_* ``env``; stopped on exit."""
+
+    @contextmanager
+    def run(*envs: dict[str, str]) -> Iterator[list[Server]]:
+        servers = [Server(env, tmp_path / f"server-{i}-{uuid.uuid4().hex[:6]}.log") for i, env in enumerate(envs)]
+        try:
+            for server in servers:  # started together: their start-ups overlap
+                server.wait_ready()
+            yield servers
+        finally:
+            for server in servers:
+                server.stop()
+            assert all(s.proc.poll() is not None for s in servers)
+
+    return run
+
+
+def server_env(tiny_checkpoints, **extra: str) -> dict[str, str]:
+    """Environment serving the tiny model as ``tiny``."""
+    import json
+
+    det, seg = tiny_checkpoints
+    models = [{"name": "tiny", "detector": str(det), "segmenter": str(seg), "score_threshold": 0.0, "max_objects": 1}]
+    return {"RADARSEG_MODELS": json.dumps(models), "RADARSEG_MAX_QUEUE": "16", **extra}

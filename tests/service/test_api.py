@@ -1,0 +1,193 @@
+"""The HTTP API under the test client: responses, every error code, readiness, saturation, OpenAPI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from radar import transforms
+from service.encoding import decode_array
+from tests.service.conftest import NPY, npy_bytes
+
+
+@pytest.fixture
+def client(make_settings, client_for):
+    return client_for(make_settings())
+
+
+def test_segment_returns_objects_masks_voxels_and_compute(client, cube_body, frame):
+    r = client.post("/v1/segment?outputs=objects,masks,voxels&encoding=zlib", content=cube_body, headers=NPY)
+    assert r.status_code == 200, r.text
+    body = r.json()
+    assert body["model"] == "tiny" and body["preset"] == "small" and body["shape"] == [128, 128, 32]
+    compute = body["compute"]
+    macs, seconds = compute["macs"], compute["seconds"]
+    assert macs["total"] == macs["detect"] + macs["grow"] + macs["segment"] and macs["segment"] > 0
+    assert compute["params"]["total"] == compute["params"]["detector"] + compute["params"]["segmenter"]
+    stages = ("decode", "transform", "detect", "grow", "segment", "project")
+    assert seconds["total"] == pytest.approx(sum(seconds[s] for s in stages), abs=1e-5)
+    assert compute["visited_points"] >= compute["roi_voxels"] > 0
+    # the same figures in the headers
+    assert int(r.headers["x-compute-macs"]) == macs["total"]
+    assert int(r.headers["x-compute-macs-segment"]) == macs["segment"]
+    assert float(r.headers["x-compute-seconds"]) == pytest.approx(seconds["total"], abs=1e-6)
+    assert int(r.headers["x-roi-voxels"]) == compute["roi_voxels"]
+    assert "segment;dur=" in r.headers["server-timing"] and "encode;dur=" in r.headers["server-timing"]
+    # masks are the projections of the returned voxels
+    ra, rd = decode_array(body["ra_mask"]), decode_array(body["rd_mask"])
+    voxels = decode_array(body["voxels"]["array"]).astype(np.int64)
+    labels = np.zeros(frame.cube.shape, np.uint8)
+    labels[tuple(voxels[:, :3].T)] = voxels[:, 3]
+    assert np.array_equal(ra, transforms.project_ra(labels, 4)) and np.array_equal(rd, transforms.project_rd(labels, 4))
+    assert body["voxels"]["count"] == len(voxels) == sum(o["n_voxels"] for o in body["objects"])
+    assert body["usage"] == {**body["usage"], "tenant": "anonymous", "requests": 1, "macs": macs["total"]}
+
+    # run-length masks decode to the same arrays; log-power input gives the same labels
+    rle = client.post("/v1/segment?input=log_power", content=npy_bytes(transforms.log_power(frame.cube)),
+                      headers={"content-type": "application/octet-stream"}).json()
+    assert rle["ra_mask"]["encoding"] == "rle" and "voxels" not in rle
+    assert np.array_equal(decode_array(rle["ra_mask"]), ra) and np.array_equal(decode_array(rle["rd_mask"]), rd)
+    assert rle["usage"]["requests"] == 2 and rle["usage"]["macs"] == macs["total"] + rle["compute"]["macs"]["total"]
+
+
+def _pickled() -> bytes:
+    return npy_bytes(np.array([{"a": 1}], dtype=object), allow_pickle=True)
+
+
+@pytest.mark.parametrize(("case", "status", "message"), [
+    ("not_npy", 400, "not a .npy"),
+    ("pickled", 400, "refusing .npy with dtype"),
+    ("truncated", 400, "needs"),
+    ("padded", 400, "needs"),
+    ("bad_header", 400, "malformed .npy header"),
+    ("wrong_shape", 422, "expects (128, 128, 32)"),
+    ("wrong_dtype", 422, "expects a (128, 128, 32) complex64/complex128"),
+    ("int_log_power", 422, "float16/float32/float64"),
+    ("nan", 422, "NaN or Inf"),
+    ("content_type", 415, "application/x-npy"),
+    ("unknown_model", 422, "served models: ['tiny']"),
+    ("bad_outputs", 422, "unknown outputs"),
+    ("bad_input_kind", 422, "input"),
+])
+def test_bad_input_gives_its_4xx_and_the_server_stays_up(client, cube_body, frame, case, status, message):
+    cube = frame.cube
+    url, headers, body = "/v1/segment", NPY, cube_body
+    if case == "not_npy":
+        body = b"hello world, this is not a cube" * 10
+    elif case == "pickled":
+        body = _pickled()
+    elif case == "truncated":
+        body = cube_body[:-100]
+    elif case == "padded":
+        body = cube_body + b"\0" * 16
+    elif case == "bad_header":
+        body = cube_body[:10] + b"{'descr': <c8, 'fortran_order'" + cube_body[40:]
+    elif case == "wrong_shape":
+        body = npy_bytes(cube[:64])
+    elif case == "wrong_dtype":
+        body = npy_bytes(np.abs(cube).astype(np.float32))
+    elif case == "int_log_power":
+        url, body = "/v1/segment?input=log_power", npy_bytes(np.zeros(cube.shape, np.int16))
+    elif case == "nan":
+        bad = cube.copy()
+        bad[3, 4, 5] = np.nan
+        body = npy_bytes(bad)
+    elif case == "content_type":
+        headers = {"content-type": "application/json"}
+    elif case == "unknown_model":
+        url = "/v1/segment?model=huge"
+    elif case == "bad_outputs":
+        url = "/v1/segment?outputs=objects,everything"
+    elif case == "bad_input_kind":
+        url = "/v1/segment?input=magnitude"
+    r = client.post(url, content=body, headers=headers)
+    assert r.status_code == status, r.text
+    assert message in r.json()["detail"]
+    assert r.json()["error"]
+    assert client.get("/healthz").status_code == 200
+    usage = client.get("/v1/usage").json()["tenants"][0]
+    assert usage["today"]["requests"] == 0  # a refused request is not billed
+
+
+def test_body_over_the_limit_is_413(make_settings, client_for, cube_body):
+    client = client_for(make_settings(max_body_bytes=1 << 20))
+    r = client.post("/v1/segment", content=cube_body, headers=NPY)
+    assert r.status_code == 413
+    assert "1048576 bytes" in r.json()["detail"]
+
+    def chunks():  # no Content-Length: the limit applies to the bytes read
+        for start in range(0, len(cube_body), 1 << 16):
+            yield cube_body[start:start + (1 << 16)]
+
+    assert client.post("/v1/segment", content=chunks(), headers=NPY).status_code == 413
+    assert client.get("/healthz").status_code == 200
+
+
+def test_missing_checkpoints_mean_not_ready_but_alive(make_settings, client_for, tmp_path, cube_body):
+    from service.settings import ModelSpec
+
+    spec = ModelSpec(name="tiny", detector=tmp_path / "none-det.pt", segmenter=tmp_path / "none-seg.pt")
+    client = client_for(make_settings(models=[spec]))
+    assert client.get("/healthz").status_code == 200
+    ready = client.get("/readyz")
+    assert ready.status_code == 503 and "no such checkpoint" in ready.json()["models"]["tiny"]
+    r = client.post("/v1/segment", content=cube_body, headers=NPY)
+    assert r.status_code == 503 and r.headers["retry-after"] and r.json()["error"] == "not_ready"
+    models = client.get("/v1/models").json()["models"]
+    assert models[0]["ready"] is False and models[0]["params"] is None
+
+
+def test_default_settings_point_at_the_shipped_checkpoints():
+    from service.settings import REPO_ROOT, Settings, resolve_path
+
+    spec = Settings().models[0]
+    assert not spec.detector.is_absolute() and not spec.segmenter.is_absolute()
+    assert str(spec.detector).startswith("checkpoints/")
+    assert resolve_path(spec.detector).parent == REPO_ROOT / "checkpoints"
+
+
+def test_saturated_model_answers_503_with_retry_after(make_settings, client_for, cube_body):
+    client = client_for(make_settings(max_queue=0, retry_after_s=7))
+    served = client.app.state.service.pool.get("tiny")
+    served.acquire()  # the one replica is busy
+    try:
+        r = client.post("/v1/segment", content=cube_body, headers=NPY)
+        assert r.status_code == 503 and r.headers["retry-after"] == "7" and r.json()["error"] == "saturated"
+    finally:
+        served.release()
+    assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 200
+    assert served.held == 0
+
+
+def test_models_lists_presets_classes_params_and_macs(client):
+    body = client.get("/v1/models").json()
+    assert body["default"] == "tiny"
+    (model,) = body["models"]
+    assert model["ready"] and model["preset"] == "small" and model["shape"] == [128, 128, 32]
+    assert model["class_names"] == ["background", "pedestrian", "cyclist", "car"]
+    assert model["params"]["total"] > 0 and model["detector_macs"] > 0
+
+
+def test_openapi_describes_every_error(client):
+    spec = client.get("/openapi.json").json()
+    segment = spec["paths"]["/v1/segment"]["post"]
+    assert {"200", "400", "401", "413", "415", "422", "429", "503"} <= set(segment["responses"])
+    assert set(segment["requestBody"]["content"]) == {"application/x-npy", "application/octet-stream"}
+    assert "403" in spec["paths"]["/v1/usage"]["get"]["responses"]
+    assert "503" in spec["paths"]["/readyz"]["get"]["responses"]
+
+
+def test_metrics_are_exposed_with_bounded_labels(client, cube_body):
+    r = client.post("/v1/segment", content=cube_body, headers=NPY)
+    macs = r.json()["compute"]["macs"]["total"]
+    client.post("/v1/segment", content=b"junk", headers=NPY)
+    client.get("/no/such/path/12345")
+    text = client.get("/metrics").text
+    assert 'radarseg_http_requests_total{method="POST",route="/v1/segment",status="200"} 1.0' in text
+    assert 'radarseg_http_errors_total{status="400"} 1.0' in text
+    assert f'radarseg_macs_total{{model="tiny",tenant="anonymous"}} {float(macs)}' in text
+    assert 'radarseg_segment_requests_total{model="tiny",tenant="anonymous"} 1.0' in text
+    assert 'radarseg_stage_duration_seconds_count{model="tiny",stage="segment"} 1.0' in text
+    assert 'radarseg_http_request_duration_seconds_bucket' in text
+    assert 'route="unmatched"' in text and "12345" not in text
+    assert 'radarseg_model_ready{model="tiny"} 1.0' in text

@@ -1,0 +1,164 @@
+"""Keys and tenant isolation, the daily quota under concurrency, ledger exactness under concurrent
+requests and across a restart (SQLite through the app; SQLite and PostgreSQL through the Ledger)."""
+
+from __future__ import annotations
+
+import datetime as dt
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+from pydantic import ValidationError
+
+from service.ledger import Ledger, QuotaExceeded
+from service.settings import Settings
+from tests.service.conftest import KEYS, NPY
+
+ACME, GLOBEX, ADMIN = (f"Bearer {key}" for key in KEYS)
+
+
+def _auth(value: str) -> dict[str, str]:
+    return {**NPY, "authorization": value}
+
+
+def test_keys_tenants_and_admin(make_settings, client_for, cube_body):
+    client = client_for(make_settings(api_keys=KEYS, admin_tenants=["ops"]))
+    assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 401
+    r = client.post("/v1/segment", content=cube_body, headers=_auth("Bearer key-nobody-0123456789abcdef"))
+    assert r.status_code == 401 and r.headers["www-authenticate"] == "Bearer"
+    assert client.get("/v1/models").status_code == 401
+    acme = client.post("/v1/segment", content=cube_body, headers=_auth(ACME))
+    assert acme.status_code == 200 and acme.json()["usage"]["tenant"] == "acme"
+    # X-API-Key works too
+    x_key = client.post("/v1/segment", content=cube_body, headers={**NPY, "x-api-key": next(iter(KEYS))})
+    assert x_key.json()["usage"]["requests"] == 2
+
+    mine = client.get("/v1/usage", headers={"authorization": ACME}).json()["tenants"]
+    assert [t["tenant"] for t in mine] == ["acme"] and mine[0]["today"]["requests"] == 2
+    theirs = client.get("/v1/usage", headers={"authorization": GLOBEX}).json()["tenants"]
+    assert [t["tenant"] for t in theirs] == ["globex"] and theirs[0]["total"]["requests"] == 0
+    assert client.get("/v1/usage?tenant=acme", headers={"authorization": GLOBEX}).status_code == 403
+    assert client.get("/v1/usage?tenant=all", headers={"authorization": GLOBEX}).status_code == 403
+    every = client.get("/v1/usage?tenant=all", headers={"authorization": ADMIN}).json()["tenants"]
+    assert {t["tenant"]: t["total"]["requests"] for t in every} == {"acme": 2, "globex": 0, "ops": 0}
+    one = client.get("/v1/usage?tenant=acme", headers={"authorization": ADMIN}).json()["tenants"]
+    assert one[0]["total"]["macs"] == acme.json()["compute"]["macs"]["total"] + x_key.json()["compute"]["macs"]["total"]
+
+
+@pytest.mark.parametrize(("overrides", "message"), [
+    ({"api_keys": {"short": "acme"}}, "at least 16 characters"),
+    ({"api_keys": {"key-acme-0123456789abcdef": "Acme Corp"}}, "tenant name"),
+    ({"host": "0.0.0.0"}, "without API keys"),
+    ({"admin_tenants": ["ops"]}, "have no API key"),
+    ({"ledger_url": "mysql://x/y"}, "sqlite:// or postgresql"),
+    ({"max_body_bytes": 1 << 40}, "less than or equal"),
+    ({"max_queue": -1}, "greater than or equal"),
+    ({"ledger_table_prefix": "x; drop table"}, "must match"),
+    ({"default_model": "other"}, "not one of the models"),
+])
+def test_unsafe_settings_are_refused(overrides, message):
+    with pytest.raises(ValidationError, match=message):
+        Settings(**overrides)
+
+
+def test_quota_holds_under_concurrent_requests(make_settings, client_for, cube_body):
+    client = client_for(make_settings(api_keys=KEYS, tenant_quotas={"acme": 0}, daily_mac_quota=None))
+    first = client.post("/v1/segment", content=cube_body, headers=_auth(GLOBEX))  # unlimited: learn the cost
+    per_request = first.json()["compute"]["macs"]["total"]
+    refused = client.post("/v1/segment", content=cube_body, headers=_auth(ACME))
+    assert refused.status_code == 429 and refused.json()["limit_macs"] == 0 and int(refused.headers["retry-after"]) > 0
+
+    client = client_for(make_settings(api_keys=KEYS, tenant_quotas={"acme": 3 * per_request + per_request // 2},
+                                      data_dir=client.app.state.service.settings.data_dir.parent / "quota"))
+    with ThreadPoolExecutor(8) as pool:
+        answers = list(pool.map(lambda _: client.post("/v1/segment", content=cube_body, headers=_auth(ACME)),
+                                range(8)))
+    codes = sorted(r.status_code for r in answers)
+    assert codes == [200] * 3 + [429] * 5, codes
+    for r in answers:
+        if r.status_code == 429:
+            body = r.json()
+            assert body["tenant"] == "acme" and body["limit_macs"] == 3 * per_request + per_request // 2
+            assert body["used_macs"] <= body["limit_macs"]
+    usage = client.get("/v1/usage", headers={"authorization": ACME}).json()["tenants"][0]
+    assert usage["today"]["macs"] == 3 * per_request <= usage["quota_macs"] and usage["today"]["requests"] == 3
+    ledger = client.app.state.service.ledger
+    assert ledger.day_totals("acme").reserved_macs == 0  # every reservation settled or released
+
+
+def test_ledger_equals_the_responses_after_concurrency_and_restart(make_settings, client_for, cube_body):
+    settings = make_settings(api_keys=KEYS)
+    client = client_for(settings)
+    keys = [ACME, GLOBEX] * 5
+    with ThreadPoolExecutor(6) as pool:
+        answers = list(pool.map(lambda key: client.post("/v1/segment", content=cube_body, headers=_auth(key)), keys))
+    assert all(r.status_code == 200 for r in answers)
+    expected = {}
+    for r in answers:
+        c = r.json()["compute"]
+        tenant = r.json()["usage"]["tenant"]
+        req, macs, us = expected.get(tenant, (0, 0, 0))
+        expected[tenant] = (req + 1, macs + c["macs"]["total"], us + round(c["seconds"]["total"] * 1e6))
+
+    def ledger_view(c) -> dict:
+        tenants = c.get("/v1/usage?tenant=all", headers={"authorization": ADMIN}).json()["tenants"]
+        return {t["tenant"]: (t["total"]["requests"], t["total"]["macs"], round(t["total"]["compute_seconds"] * 1e6))
+                for t in tenants if t["total"]["requests"]}
+
+    settings = settings.model_copy(update={"admin_tenants": ["ops"]})
+    client.__exit__(None, None, None)  # stop the app: the ledger is a file
+    restarted = client_for(settings)
+    assert ledger_view(restarted) == expected
+    ledger = restarted.app.state.service.ledger
+    for tenant, (requests, macs, us) in expected.items():
+        assert ledger.request_sums(tenant) == (requests, macs, us)
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def ledger_url_and_prefix(request, tmp_path):
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'ledger.sqlite3'}", "radarseg_"
+    return request.getfixturevalue("postgres_url"), request.getfixturevalue("pg_prefix")
+
+
+def test_ledger_counts_exactly_from_many_threads_and_survives_reopening(ledger_url_and_prefix):
+    url, prefix = ledger_url_and_prefix
+    ledger = Ledger(url, table_prefix=prefix)
+    ledger.create()
+    day = dt.date(2030, 1, 2)
+
+    def bill(i: int):
+        return ledger.settle("acme" if i % 3 else "globex", model="m", macs=1000 + i, compute_us=7 * i, day=day)
+
+    with ThreadPoolExecutor(8) as pool:
+        list(pool.map(bill, range(120)))
+    ledger.dispose()
+    reopened = Ledger(url, table_prefix=prefix)
+    acme = [i for i in range(120) if i % 3]
+    totals = reopened.day_totals("acme", day)
+    assert (totals.requests, totals.macs, totals.compute_us) == (len(acme), sum(1000 + i for i in acme),
+                                                                  sum(7 * i for i in acme))
+    assert reopened.request_sums("acme") == (totals.requests, totals.macs, totals.compute_us)
+    assert reopened.all_time(["globex"])["globex"].requests == 40
+    reopened.dispose()
+
+
+def test_reservations_never_let_the_billed_total_pass_the_limit(ledger_url_and_prefix):
+    url, prefix = ledger_url_and_prefix
+    ledger = Ledger(url, table_prefix=prefix)
+    ledger.create()
+    day, limit = dt.date(2030, 1, 3), 10_000
+
+    def attempt(i: int) -> bool:
+        estimate, actual = 900, 800 + 30 * (i % 7)  # some requests cost more than their reservation
+        if ledger.reserve("acme", estimate, limit, day=day) is not None:
+            return False
+        return not isinstance(ledger.settle("acme", model="m", macs=actual, compute_us=1, reserved=estimate,
+                                            limit=limit, day=day), QuotaExceeded)
+
+    with ThreadPoolExecutor(8) as pool:
+        billed = sum(pool.map(attempt, range(60)))
+    totals = ledger.day_totals("acme", day)
+    assert billed == totals.requests > 0
+    assert totals.macs <= limit and totals.reserved_macs == 0
+    assert ledger.request_sums("acme")[1] == totals.macs
+    ledger.dispose()
