@@ -8,7 +8,7 @@ import logging
 import sys
 
 from radar.io.errors import DataError
-from radar.profiles import PRESETS
+from radar.profiles import PRESETS, UnknownPresetError
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -120,13 +120,40 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_radar_show(args: argparse.Namespace) -> int:
+    from radar.profile_files import describe
+    from radar.profiles import get_profile
+
+    rows = describe(get_profile(args.profile))
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"{key:<{width}}  {value}")
+    return 0
+
+
+def _cmd_process_adc(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from radar.adc import adc_shape, process_adc
+    from radar.io.npy import load_npy
+    from radar.profiles import get_profile
+
+    profile = get_profile(args.profile)
+    adc = load_npy(args.adc, shape=adc_shape(profile, args.layout), dtypes=(np.complexfloating,),
+                   what=f"ADC samples ({args.layout} layout)")
+    cube = process_adc(adc, profile, layout=args.layout, tdm_compensation=not args.no_tdm_compensation)
+    np.save(args.out, cube, allow_pickle=False)
+    print(f"RAD cube {cube.shape} {cube.dtype} written to {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="radarseg", description="ERASE-Net radar semantic segmentation")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("simulate", help="simulate a labelled recording with the FMCW scene simulator")
-    sim.add_argument("--preset", choices=sorted(PRESETS), default="small")
+    sim.add_argument("--preset", default="small", help="carrada, nxp, small, or a .toml/.json profile file")
     sim.add_argument("--sequences", type=int, default=2)
     sim.add_argument("--frames", type=int, default=8, help="frames per sequence")
     sim.add_argument("--seed", type=int, default=0)
@@ -165,6 +192,21 @@ def build_parser() -> argparse.ArgumentParser:
     seg.add_argument("--json", action="store_true")
     seg.set_defaults(func=_cmd_segment)
 
+    radar_cmd = sub.add_parser("radar", help="radar profiles")
+    radar_sub = radar_cmd.add_subparsers(dest="radar_command", required=True)
+    show = radar_sub.add_parser("show", help="print what a profile derives (bins, resolutions, limits)")
+    show.add_argument("profile", help="carrada, nxp, small, or a .toml/.json profile file")
+    show.set_defaults(func=_cmd_radar_show)
+
+    adc = sub.add_parser("process-adc", help="raw complex ADC samples of one frame -> RAD cube (.npy)")
+    adc.add_argument("adc", help=".npy of complex ADC samples")
+    adc.add_argument("--profile", required=True, help="carrada, nxp, small, or a .toml/.json profile file")
+    adc.add_argument("--layout", choices=["sck", "ti"], default="sck",
+                     help="sck: (sample, chirp, virtual element); ti: TX-interleaved (chirp, rx, sample)")
+    adc.add_argument("--no-tdm-compensation", action="store_true", help="skip the TDM Doppler-angle compensation")
+    adc.add_argument("--out", required=True, help="output .npy (complex64 (R, A, D))")
+    adc.set_defaults(func=_cmd_process_adc)
+
     models = sub.add_parser("models", help="describe the models")
     models_sub = models.add_subparsers(dest="models_command", required=True)
     summary = models_sub.add_parser("summary", help="params and MACs per model and preset")
@@ -195,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)
-    except (DataError, ValueError, FileExistsError) as exc:
+    except (DataError, ValueError, FileExistsError, UnknownPresetError) as exc:
         print(f"radarseg {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -66,7 +66,7 @@ from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
 from radar.io.errors import DataError
 from radar.io.recording import Recording
-from radar.profiles import PRESETS, get_profile
+from radar.profiles import get_profile
 from radar.simulate import sequence_name, simulate_sequence
 
 log = logging.getLogger(__name__)
@@ -164,7 +164,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True,
                         help="'sim' (the FMCW simulator, run inside the Ray tasks), 'recording:DIR' or 'carrada:ROOT'")
     parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
-    parser.add_argument("--preset", choices=sorted(PRESETS), help="sim: radar preset (default small)")
+    parser.add_argument("--preset", help="sim: radar preset (carrada, nxp, small; default small) or a profile file")
     parser.add_argument("--sequences", type=int, help="sim: number of sequences (default 2)")
     parser.add_argument("--frames", type=int, help="sim: frames per sequence (default 8)")
     parser.add_argument("--seed", type=int, default=0, help="sim: scene seed")

@@ -14,8 +14,13 @@ virtual array to ``n_angle`` bins.
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import json
 from dataclasses import dataclass, field
 from functools import cached_property
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -50,6 +55,8 @@ class RadarProfile:
     # mean where CARRADA's is (SPEC section 3.1).
     noise_floor_db: float = 58.0
     objects_per_frame: tuple[int, int] = (1, 4)
+    window: str = "hann"  # on range, Doppler and the array
+    chirp: Any = None  # radar.profile_files.ChirpParameters when the profile came from a file
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -72,6 +79,8 @@ class RadarProfile:
         lo, hi = self.objects_per_frame
         if not 0 <= lo <= hi:
             raise ValueError(f"profile {self.name!r}: objects_per_frame must be (lo, hi) with 0 <= lo <= hi")
+        if self.window not in ("hann", "rect"):
+            raise ValueError(f"profile {self.name!r}: window must be 'hann' or 'rect', got {self.window!r}")
 
     # ----------------------------------------------------------------- derived radar parameters
     @property
@@ -194,9 +203,23 @@ class RadarProfile:
         x, y = self.xy(np.arange(self.n_range)[:, None], np.arange(self.n_angle)[None, :])
         return x.astype(np.float32), y.astype(np.float32)
 
+    @cached_property
+    def fingerprint(self) -> str:
+        """Short hash of everything that gives a bin its meaning (cube shape, spacings, array, window,
+        chirp): two profiles with the same fingerprint produce interchangeable cubes."""
+        key = {k: v for k, v in self.to_dict().items() if k not in ("noise_floor_db", "snr_0dbsm_10m_db")}
+        return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+
     def to_dict(self) -> dict:
         """Plain-JSON description (radar parameters and derived values) for recordings and stores."""
+        chirp = None if self.chirp is None else {
+            "carrier_hz": self.chirp.carrier_hz, "sweep_bandwidth_hz": self.chirp.sweep_bandwidth_hz,
+            "sample_rate_hz": self.chirp.sample_rate_hz, "samples_per_chirp": self.chirp.samples_per_chirp,
+            "chirps_per_frame": self.chirp.chirps_per_frame, "chirp_cycle_s": self.chirp.chirp_cycle_s,
+            "tdm_order": list(self.chirp.tdm_order)}
         return {
+            "window": self.window,
+            "chirp": chirp,
             "name": self.name,
             "shape": list(self.shape),
             "range_res_m": self.range_res,
@@ -217,56 +240,23 @@ class RadarProfile:
         }
 
 
-CARRADA = RadarProfile(
-    name="carrada",
-    n_range=256,
-    n_angle=256,
-    n_doppler=64,
-    range_res=50.0 / 256,
-    velocity_res=0.41968030701528203,
-    n_tx=2,
-    n_rx=4,
-    class_names=("pedestrian", "cyclist", "car"),
-    objects_per_frame=(1, 4),
-)
+BUILTIN_PRESETS = ("carrada", "nxp", "small")  # data files in radar/presets/
 
-# NXP set of the paper: 0.943 m / 0.769 m/s resolution, both axes zero-padded x2. The array is not
-# published; SPEC assumed 12 virtual elements, but a 12-element array smears an object over +-13 m
-# laterally at 100 m (Hann main lobe at -20 dB), so no 6 m region-growing disc could reach the
-# paper's 0.96 recall. A 4-chip cascaded imaging radar (12 TX x 16 RX = 192 virtual, about 0.6 deg
-# at broadside) matches the 512 angle bins and the paper's compact ROIs.
-NXP = RadarProfile(
-    name="nxp",
-    n_range=424,
-    n_angle=512,
-    n_doppler=104,
-    range_res=200.0 / 424,
-    velocity_res=20.0 / 52,
-    n_tx=12,
-    n_rx=16,
-    range_pad=2,
-    doppler_pad=2,
-    class_names=("person", "motorcycle", "car", "truck"),
-    snr_0dbsm_10m_db=60.0,
-    max_angle_deg=50.0,
-    objects_per_frame=(12, 16),
-)
 
-# Half of CARRADA on every axis: whole experiments run on a 2-core CPU.
-SMALL = RadarProfile(
-    name="small",
-    n_range=128,
-    n_angle=128,
-    n_doppler=32,
-    range_res=50.0 / 128,
-    velocity_res=2 * 0.41968030701528203,
-    n_tx=2,
-    n_rx=4,
-    class_names=("pedestrian", "cyclist", "car"),
-    objects_per_frame=(1, 4),
-)
+@functools.cache
+def _builtin(name: str) -> RadarProfile:
+    from radar.profile_files import load_profile_file  # the file format lives in its own module
 
-PRESETS: dict[str, RadarProfile] = {p.name: p for p in (CARRADA, NXP, SMALL)}
+    return load_profile_file(Path(__file__).with_name("presets") / f"{name}.toml")
+
+
+def __getattr__(attr: str):
+    """``CARRADA``, ``NXP``, ``SMALL`` and ``PRESETS`` load from their files on first use."""
+    if attr in ("CARRADA", "NXP", "SMALL"):
+        return _builtin(attr.lower())
+    if attr == "PRESETS":
+        return {name: _builtin(name) for name in BUILTIN_PRESETS}
+    raise AttributeError(f"module {__name__!r} has no attribute {attr!r}")
 
 
 class UnknownPresetError(KeyError):
@@ -274,13 +264,17 @@ class UnknownPresetError(KeyError):
         return str(self.args[0])
 
 
-def get_profile(name: str | RadarProfile) -> RadarProfile:
-    """The built-in profile called ``name`` (``carrada``, ``nxp``, ``small``); profiles pass through."""
+def get_profile(name: str | Path | RadarProfile) -> RadarProfile:
+    """A built-in profile by name (``carrada``, ``nxp``, ``small``), or a profile file (``.toml`` or
+    ``.json`` path: a radar is a file, not a code change); profiles pass through."""
     if isinstance(name, RadarProfile):
         return name
-    try:
-        return PRESETS[name]
-    except KeyError:
-        raise UnknownPresetError(
-            f"unknown radar preset {name!r}: expected one of {sorted(PRESETS)}"
-        ) from None
+    if isinstance(name, str) and name in BUILTIN_PRESETS:
+        return _builtin(name)
+    if isinstance(name, Path) or (isinstance(name, str) and name.endswith((".toml", ".json"))):
+        from radar.profile_files import load_profile_file
+
+        return load_profile_file(name)
+    raise UnknownPresetError(
+        f"unknown radar preset {name!r}: expected one of {sorted(BUILTIN_PRESETS)} or a .toml/.json profile file"
+    )

@@ -90,9 +90,14 @@ class ChainConstants:
     radar_constant: float  # G in |alpha| = G sqrt(rcs) / R^2 from the profile's SNR calibration
 
 
+def window(profile: RadarProfile, n: int) -> np.ndarray:
+    """The profile's window over ``n`` points (Hann, or rectangular)."""
+    return hann(n) if profile.window == "hann" else np.ones(n)
+
+
 @lru_cache(maxsize=16)
 def chain_constants(profile: RadarProfile) -> ChainConstants:
-    w_r, w_d, w_a = hann(profile.n_samples), hann(profile.n_chirps), hann(profile.n_virtual)
+    w_r, w_d, w_a = (window(profile, n) for n in (profile.n_samples, profile.n_chirps, profile.n_virtual))
     a = np.arange(profile.n_angle)[:, None] - profile.n_angle // 2
     k = np.arange(profile.n_virtual)[None, :]
     angle_dft = (np.exp(-2j * np.pi * a * k / profile.n_angle) * w_a[None, :]).astype(np.complex64)
@@ -119,13 +124,19 @@ def _phasor_frequencies(profile: RadarProfile, scat: Scatterers) -> tuple[np.nda
     return f_range, f_doppler, scat.sin_theta
 
 
+def tdm_slots(profile: RadarProfile) -> np.ndarray:
+    """(K,) firing slot within a chirp cycle of each virtual element's TX (element k = tx * n_rx + rx)."""
+    order = tuple(range(profile.n_tx)) if profile.chirp is None else profile.chirp.tdm_order
+    slot_of_tx = np.argsort(np.asarray(order))
+    return slot_of_tx[np.arange(profile.n_virtual) // profile.n_rx]
+
+
 def _element_phasors(profile: RadarProfile, f_doppler, sin_theta, tdm_coupling: bool) -> np.ndarray:
-    """(P, K) phasors over the virtual array; TX t's elements see the extra TDM Doppler phase."""
+    """(P, K) phasors over the virtual array; a TX firing later in the cycle sees extra Doppler phase."""
     k = np.arange(profile.n_virtual)
     e = np.exp(1j * np.pi * sin_theta[:, None] * k[None, :])
     if tdm_coupling:
-        tx = k // profile.n_rx
-        e = e * np.exp(2j * np.pi * f_doppler[:, None] * tx[None, :] / profile.n_tx)
+        e = e * np.exp(2j * np.pi * f_doppler[:, None] * tdm_slots(profile)[None, :] / profile.n_tx)
     return e
 
 
@@ -149,12 +160,14 @@ def synthesize_adc(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: boo
     return adc
 
 
-def adc_to_rad(profile: RadarProfile, adc: np.ndarray) -> np.ndarray:
+def adc_to_rad(profile: RadarProfile, adc: np.ndarray, *, tdm_compensation: bool = False) -> np.ndarray:
     """FFT chain: (Ns, Nc, K) ADC samples -> (R, A, D) complex64 RAD cube in the project's frame.
 
-    Hann windows on every axis; range FFT zero-padded to R; Doppler FFT zero-padded to D and
-    fftshifted (zero velocity at D/2); angle DFT zero-padded to A and fftshifted (broadside at A/2),
-    done as one batched matrix product that writes the (R, A, D) layout directly.
+    The profile's window on every axis; range FFT zero-padded to R; Doppler FFT zero-padded to D and
+    fftshifted (zero velocity at D/2); ``tdm_compensation`` removes, per Doppler bin, the phase a TX
+    firing later in the chirp cycle adds (exact for unaliased velocities); angle DFT zero-padded to A
+    and fftshifted (broadside at A/2), as one batched matrix product writing the (R, A, D) layout
+    directly for small arrays, an FFT for large ones.
     """
     expected = (profile.n_samples, profile.n_chirps, profile.n_virtual)
     if adc.shape != expected:
@@ -165,6 +178,10 @@ def adc_to_rad(profile: RadarProfile, adc: np.ndarray) -> np.ndarray:
     x = scipy.fft.fft(x, n=profile.n_range, axis=0)  # (R, Nc, K)
     x = x * cc.window_doppler[None, :, None].astype(np.float32)
     x = scipy.fft.fftshift(scipy.fft.fft(x, n=profile.n_doppler, axis=1), axes=1)  # (R, D, K)
+    if tdm_compensation and profile.n_tx > 1:
+        f_doppler = (np.arange(profile.n_doppler) - profile.n_doppler // 2) / profile.n_doppler  # cycles/chirp
+        x = x * np.exp(-2j * np.pi * f_doppler[:, None] * tdm_slots(profile)[None, :] / profile.n_tx
+                       ).astype(np.complex64)[None]
     if profile.n_virtual <= SMALL_ARRAY:
         # (A, K) @ (R, K, D) -> (R, A, D): window, zero-padding and fftshift are in the DFT matrix.
         return np.matmul(cc.angle_dft, x.transpose(0, 2, 1))

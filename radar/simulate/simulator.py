@@ -24,7 +24,8 @@ class SimulatorConfig:
 
     label_snr_db: float = 6.0  # a labelled voxel is at least this far above the noise floor
     label_peak_db: float = 20.0  # ... and within this of its object's own peak
-    tdm_coupling: bool = False  # TDM Doppler-angle coupling, left uncompensated
+    tdm_coupling: bool = False  # TDM Doppler-angle coupling in the signal
+    tdm_compensation: bool = True  # ... removed by the processing chain (only applies with coupling)
     clutter: bool = True
     noise: bool = True
     rcs_fluctuation_db: float = 2.0  # per-scatterer RCS std from frame to frame
@@ -87,12 +88,15 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
             parts.append(_clutter_scatterers(profile, clutter, rng))
         adc = synthesize_adc(profile, Scatterers.concat(parts), tdm_coupling=config.tdm_coupling,
                              noise_rng=rng if config.noise else None)
+    compensated = config.tdm_coupling and config.tdm_compensation
     with _timed(timings, "fft"):
-        cube = adc_to_rad(profile, adc)
+        cube = adc_to_rad(profile, adc, tdm_compensation=compensated)
     with _timed(timings, "labels"):
         labels, instances = exact_labels(
             profile, per_object, [s.class_id for s in states], snr_db=config.label_snr_db,
-            peak_db=config.label_peak_db, tdm_coupling=config.tdm_coupling,
+            # Compensation evaluated at each scatterer's own Doppler undoes its coupling exactly at its
+            # Doppler peak (and to within a bin's phase elsewhere): labels then use uncoupled kernels.
+            peak_db=config.label_peak_db, tdm_coupling=config.tdm_coupling and not compensated,
         )
         stats = instance_stats(instances, profile, n_instances=len(states))
         objects = tuple(
