@@ -668,7 +668,9 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
             raise FileExistsError(f"{run_dir} already holds a run (last.pt); pass --resume to continue it "
                                   "or choose another --out")
         if cfg.resume and config_path.is_file():
-            before = TrainConfig.from_dict(json.loads(config_path.read_text())).identity()
+            saved = json.loads(config_path.read_text())
+            saved.pop("resolved", None)
+            before = TrainConfig.from_dict(saved).identity()
             if before != cfg.identity():
                 changed = sorted(k for k in before if before[k] != cfg.identity()[k])
                 raise ValueError(f"--resume: {run_dir} was trained with other settings ({', '.join(changed)})")

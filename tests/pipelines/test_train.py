@@ -1,0 +1,150 @@
+"""The trainer: a few steps of each stage on a tiny store, checkpoints that resume and rebuild alone,
+the segmenter's seed jitter, the CLI, and Ray Train with 2 CPU workers."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from models.checkpoint import load_checkpoint
+from pipelines.train import (
+    PROFILES,
+    RoiDataset,
+    SeedJitter,
+    StoreInfo,
+    TrainConfig,
+    collate_roi,
+    main,
+    parse_args,
+    train_loop,
+)
+
+
+def _detector_cfg(store, out, **kw) -> TrainConfig:
+    return TrainConfig(stage="detector", store=str(store), out=str(out), model="centre_detector_tiny",
+                       model_config={}, batch_size=2, epochs=1, max_steps=2, progress=False, **kw)
+
+
+def _lines(path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def test_detector_trains_resumes_and_rebuilds(small_store, tmp_path):
+    run = tmp_path / "det"
+    result = train_loop(_detector_cfg(small_store, run))
+    assert result["step"] == 1 and np.isfinite(result["train_total"])  # 3 train frames, batch 2: 1 step/epoch
+    assert {"val_mAP", "val_AP@1", "val_loss", "frames_per_second"} <= set(result)
+    for name in ("config.json", "metrics.jsonl", "last.pt", "model.pt"):
+        assert (run / name).is_file(), name
+    assert len(_lines(run / "metrics.jsonl")) == 1
+
+    # the checkpoint alone rebuilds the model: architecture, preset, classes, normalisation
+    checkpoint = load_checkpoint(run / "model.pt")
+    assert checkpoint.model_name == "centre_detector_tiny" and checkpoint.preset == "small"
+    assert checkpoint.class_names[0] == "background" and len(checkpoint.class_names) == 4
+    assert {"mean", "std", "mean_per_doppler", "std_per_doppler"} <= set(checkpoint.normalisation)
+    assert "optimizer" not in checkpoint.extra  # weights only: what ships
+    model = checkpoint.build()
+    with torch.no_grad():
+        out = model(torch.zeros(1, 32, 128, 128))
+    assert out["heatmap"].shape == (1, 1, 32, 32)
+
+    # a second run into the same directory needs --resume; resuming continues the epochs and steps
+    with pytest.raises(FileExistsError, match="--resume"):
+        train_loop(_detector_cfg(small_store, run))
+    resumed = train_loop(TrainConfig(**{**_detector_cfg(small_store, run).to_dict(), "resume": True, "epochs": 2,
+                                        "max_steps": 4}))
+    assert resumed["epoch"] == 2 and resumed["step"] == 2
+    lines = _lines(run / "metrics.jsonl")
+    assert [line["epoch"] for line in lines] == [1, 2]
+    last = load_checkpoint(run / "last.pt")
+    assert last.extra["epoch"] == 2 and "optimizer" in last.extra and last.extra["elapsed_s"] > 0
+    # resuming with other settings is refused
+    other = TrainConfig(**{**_detector_cfg(small_store, run).to_dict(), "resume": True, "lr": 0.5, "epochs": 3})
+    with pytest.raises(ValueError, match="lr"):
+        train_loop(other)
+
+
+def test_same_seed_same_weights(small_store, tmp_path):
+    a = train_loop(_detector_cfg(small_store, tmp_path / "a", seed=3))
+    b = train_loop(_detector_cfg(small_store, tmp_path / "b", seed=3))
+    assert a["train_total"] == pytest.approx(b["train_total"], rel=1e-5)
+    wa, wb = (load_checkpoint(tmp_path / name / "model.pt").state_dict for name in ("a", "b"))
+    assert all(torch.allclose(wa[k].float(), wb[k].float(), atol=1e-5) for k in wa)
+
+
+@pytest.mark.parametrize("model", ["minkunet_tiny", "spvcnn_tiny"])
+def test_segmenter_trains_with_the_same_command(small_store, tmp_path, model):
+    run = tmp_path / model
+    cfg = TrainConfig(stage="segmenter", store=str(small_store), out=str(run), model=model, model_config={},
+                      batch_size=2, epochs=1, max_steps=1, jitter_std=(1.0, 1.0, 0.5), progress=False)
+    result = train_loop(cfg)
+    assert result["step"] == 1 and np.isfinite(result["train_ce"])
+    assert 0.0 <= result["val_mIoU"] <= 1.0 and 0.0 < result["val_roi_recall"] <= 1.0
+    weights = json.loads((run / "class_weights.json").read_text())["weights"]
+    assert len(weights) == 4 and np.mean(weights) == pytest.approx(1.0, rel=0.2)
+    assert weights[0] < max(weights[1:])  # background is the most frequent class in the ROI
+    jitter = json.loads((run / "jitter.json").read_text())
+    assert jitter["std"] == [1.0, 1.0, 0.5] and jitter["source"].startswith("gaussian")
+    checkpoint = load_checkpoint(run / "model.pt")
+    assert checkpoint.model_name == model and checkpoint.extra["stage"] == "segmenter"
+    checkpoint.build()
+
+
+def test_roi_samples_and_measured_jitter(small_store):
+    store = StoreInfo.read(small_store)
+    residuals = np.array([[2.0, -1.0, 0.5], [-2.0, 1.0, -0.5]])
+    jitter = SeedJitter(residuals, (0.0, 0.0, 0.0), "measured: test")
+    drawn = jitter.sample(50, np.random.default_rng(0))
+    assert {tuple(row) for row in drawn} <= {tuple(row) for row in residuals}  # resampled, never invented
+    dataset = RoiDataset(store, "train", jitter, seed=1)
+    sample = dataset[0]
+    n = len(sample["coords"])
+    assert n > 0 and sample["features"].shape == (n, 4) and sample["labels"].shape == (n,)
+    assert int(sample["labels"].max()) > 0  # the ROI holds object voxels
+    again = dataset[0]
+    assert torch.equal(sample["coords"], again["coords"])  # reproducible for one epoch
+    batch = collate_roi([sample, again])
+    assert batch["coords"].shape == (2 * n, 4) and batch["coords"][:, 0].tolist() == [0] * n + [1] * n
+
+
+def test_profiles_and_arguments(small_store, tmp_path):
+    assert PROFILES["detector"]["paper"].lr == 1e-4 and PROFILES["detector"]["paper"].epochs == 300
+    assert PROFILES["segmenter"]["paper"].lr == 0.24
+    cfg = parse_args(["segmenter", "--store", str(small_store), "--out", str(tmp_path), "--model", "spvcnn",
+                      "--model-config", '{"ratio": 0.2}', "--jitter-std", "1", "2", "0.5", "--epochs", "3"])
+    hyper = cfg.hyper()
+    assert hyper.model == "spvcnn" and hyper.model_config == {"ratio": 0.2} and hyper.epochs == 3
+    assert hyper.jitter_std == (1.0, 2.0, 0.5) and hyper.lr == PROFILES["segmenter"]["quick"].lr
+    with pytest.raises(ValueError, match="stage"):
+        TrainConfig(stage="baseline", store="s", out="o")
+    with pytest.raises(ValueError, match="either jitter_from"):
+        TrainConfig(stage="segmenter", store="s", out="o", jitter_from="d.pt", jitter_std=(1, 1, 1))
+
+
+def test_cli_train(small_store, tmp_path, capsys):
+    from pipelines.cli import main as cli
+
+    run = tmp_path / "cli"
+    code = cli(["train", "detector", "--store", str(small_store), "--out", str(run), "--model",
+                "centre_detector_tiny", "--model-config", "{}", "--batch-size", "2", "--epochs", "1",
+                "--max-steps", "1", "--val-split", "none", "--no-progress"])
+    assert code == 0 and (run / "model.pt").is_file()
+    assert "model.pt" in capsys.readouterr().out
+
+
+@pytest.mark.ray
+@pytest.mark.slow
+def test_ray_train_two_workers(small_store, tmp_path):
+    run = tmp_path / "ray"
+    cfg = TrainConfig(stage="segmenter", store=str(small_store), out=str(run), model="minkunet_tiny",
+                      model_config={}, batch_size=1, epochs=2, max_steps=2, jitter_std=(1.0, 1.0, 0.5),
+                      val_split=None, ray_workers=2, progress=False)
+    result = main(cfg)
+    lines = _lines(run / "metrics.jsonl")
+    assert [line["epoch"] for line in lines] == [1, 2] and lines[-1]["step"] == 2
+    assert lines[-1]["frames_per_second"] > 0 and result["metrics"]["step"] == 2
+    load_checkpoint(run / "model.pt").build()
