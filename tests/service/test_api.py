@@ -191,3 +191,14 @@ def test_metrics_are_exposed_with_bounded_labels(client, cube_body):
     assert 'radarseg_http_request_duration_seconds_bucket' in text
     assert 'route="unmatched"' in text and "12345" not in text
     assert 'radarseg_model_ready{model="tiny"} 1.0' in text
+
+
+def test_fortran_order_and_big_endian_cubes_give_the_same_answer(client, cube_body, frame):
+    reference = client.post("/v1/segment", content=cube_body, headers=NPY).json()
+    for variant in (np.asfortranarray(frame.cube), frame.cube.astype(">c8")):
+        r = client.post("/v1/segment?outputs=objects,masks", content=npy_bytes(variant), headers=NPY)
+        assert r.status_code == 200, r.text
+        assert r.json()["ra_mask"] == reference["ra_mask"] and r.json()["objects"] == reference["objects"]
+    bad = np.asfortranarray(frame.cube.copy())
+    bad[0, 0, 0] = np.inf
+    assert client.post("/v1/segment", content=npy_bytes(bad), headers=NPY).status_code == 422
