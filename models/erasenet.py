@@ -24,9 +24,11 @@ from models.segmenter.spvcnn import SPVCNN, PointTensor
 from models.sparse import SparseTensor
 from radar import transforms
 from radar.detections import Centres
+from radar.profile_files import resolve_profile
 from radar.profiles import RadarProfile, get_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
+from radar.schema import check_schema, cube_schema
 
 STAGES = ("transform", "detect", "grow", "segment", "project")
 
@@ -102,9 +104,18 @@ class EraseNet:
         seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
         if det.preset != seg.preset:
             raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
-        return cls(det.build(), seg.build(), det.preset, class_names=det.class_names,
+        # A radar described by a file travels in the checkpoint (extra["profile"], file form).
+        profile = resolve_profile(det.preset, det.extra.get("profile"), source="detector checkpoint")
+        for ckpt, what in ((det, "detector"), (seg, "segmenter")):
+            if "schema" in ckpt.extra:
+                check_schema(cube_schema(profile), ckpt.extra["schema"], what=f"{what} checkpoint")
+        return cls(det.build(), seg.build(), profile, class_names=det.class_names,
                    mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
                    device=device, **kwargs)
+
+    def schema(self, content: str = "complex") -> dict[str, Any]:
+        """The cube schema this model accepts (radar.schema)."""
+        return cube_schema(self.profile, content)
 
     def detector_macs(self) -> int:
         """Detector MACs per frame (analytic, cached per input shape)."""
@@ -112,13 +123,18 @@ class EraseNet:
         return self._detector_counter.report((1, n_doppler, n_range, n_angle)).macs
 
     @torch.no_grad()
-    def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None
-                ) -> SegmentationResult:
+    def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None,
+                schema: dict[str, Any] | None = None) -> SegmentationResult:
         """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
 
         ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
         evaluating stage 2 from ground-truth seeds, or a non-learned detector such as CFAR.
+        ``schema`` (optional) is the cube's own description; a mismatch with the model's raises
+        :class:`radar.schema.SchemaMismatch` naming every difference.
         """
+        if schema is not None:
+            content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
+            check_schema(self.schema(content), schema)
         if cube.shape != self.profile.shape:
             raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "
                              f"got {cube.shape}")

@@ -66,7 +66,9 @@ from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
 from radar.io.errors import DataError
 from radar.io.recording import Recording
+from radar.profile_files import profile_to_dict
 from radar.profiles import get_profile
+from radar.schema import cube_schema
 from radar.simulate import sequence_name, simulate_sequence
 
 log = logging.getLogger(__name__)
@@ -467,6 +469,8 @@ def store_attributes(plan: JobPlan, stats: dict[str, Any]) -> dict[str, Any]:
     profile = plan.layout.profile
     return {
         "preset": profile.name,
+        "profile": profile_to_dict(profile) if profile.chirp is not None else None,
+        "schema": cube_schema(profile, "log_power_db"),  # what `input` holds
         "radar": profile.to_dict(),
         "class_names": list(profile.all_class_names),
         "splits": list(SPLITS),

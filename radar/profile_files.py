@@ -226,3 +226,34 @@ def describe(profile: RadarProfile) -> list[tuple[str, str]]:
                  ("slope", f"{c.slope_hz_per_s / 1e12:.3f} MHz/us"), ("TDM order", str(list(c.tdm_order))),
                  ("window", c.window)]
     return rows
+
+
+def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
+    """The file form of a profile (what :func:`profile_from_dict` reads back), so recordings, stores
+    and checkpoints of a radar described by a file carry their radar with them."""
+    if profile.chirp is None:
+        raise ProfileError(f"profile {profile.name!r} has no chirp description (it was not loaded from a file)")
+    c = profile.chirp
+    lo, hi = profile.objects_per_frame
+    return {
+        "name": profile.name, "class_names": list(profile.class_names), "frame_rate_hz": profile.frame_rate_hz,
+        "chirp": {"carrier_hz": c.carrier_hz, "sweep_bandwidth_hz": c.sweep_bandwidth_hz,
+                  "sample_rate_hz": c.sample_rate_hz, "samples_per_chirp": c.samples_per_chirp,
+                  "chirps_per_frame": c.chirps_per_frame, "chirp_cycle_s": c.chirp_cycle_s},
+        "array": {"n_tx": profile.n_tx, "n_rx": profile.n_rx, "tdm_order": list(c.tdm_order)},
+        "processing": {"range_pad": profile.range_pad, "doppler_pad": profile.doppler_pad,
+                       "angle_bins": profile.n_angle, "window": profile.window},
+        "simulation": {"noise_floor_db": profile.noise_floor_db, "snr_0dbsm_10m_db": profile.snr_0dbsm_10m_db,
+                       "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg},
+    }
+
+
+def resolve_profile(name: str, description: dict[str, Any] | None = None, *, source: str = "profile") -> RadarProfile:
+    """A built-in preset by name, or the radar a stored file-form ``description`` defines."""
+    from radar.profiles import BUILTIN_PRESETS, get_profile
+
+    if description is not None:
+        return profile_from_dict(description, source=source)
+    if name in BUILTIN_PRESETS:
+        return get_profile(name)
+    raise ProfileError(f"{source}: radar {name!r} is not a built-in preset and no profile description is stored")

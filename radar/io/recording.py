@@ -27,7 +27,9 @@ import numpy as np
 from radar.frame import ObjectRecord, RadarFrame
 from radar.io.errors import DataError
 from radar.io.npy import check_array, load_npy
-from radar.profiles import RadarProfile, UnknownPresetError, get_profile
+from radar.profile_files import ProfileError, profile_to_dict, resolve_profile
+from radar.profiles import RadarProfile, UnknownPresetError
+from radar.schema import SchemaMismatch, check_schema, cube_schema
 
 FORMAT = "radarseg.recording"
 VERSION = 1
@@ -83,6 +85,8 @@ class RecordingWriter:
             "format": FORMAT,
             "version": VERSION,
             "preset": self.profile.name,
+            "profile": profile_to_dict(self.profile) if self.profile.chirp is not None else None,
+            "schema": cube_schema(self.profile),
             "radar": self.profile.to_dict(),
             "classes": list(self.profile.all_class_names),
             "sequences": dict(sorted(self.sequences.items())),
@@ -128,9 +132,14 @@ class Recording:
         if meta.get("version") != VERSION:
             raise DataError(meta_path, f"unsupported recording version {meta.get('version')!r}, expected {VERSION}")
         try:
-            self.profile = get_profile(meta.get("preset"))
-        except UnknownPresetError as exc:
+            self.profile = resolve_profile(meta.get("preset"), meta.get("profile"), source=str(meta_path))
+        except (ProfileError, UnknownPresetError) as exc:
             raise DataError(meta_path, str(exc)) from None
+        if "schema" in meta:  # cubes written for another radar (or an older profile) are refused here
+            try:
+                check_schema(cube_schema(self.profile), meta["schema"], what="recording")
+            except SchemaMismatch as exc:
+                raise DataError(meta_path, str(exc)) from None
         sequences = meta.get("sequences")
         if not isinstance(sequences, dict) or not all(isinstance(n, int) and n >= 0 for n in sequences.values()):
             raise DataError(meta_path, "expected 'sequences' to map sequence names to frame counts")

@@ -96,3 +96,13 @@ def test_given_centres_replace_the_detector(frame):
     result = _net().segment(frame.cube, centres=seeds)
     assert result.compute["macs"]["detect"] == 0 and len(result.centres) == len(seeds)
     assert result.regions.recall(frame.instances) > 0.9
+
+
+def test_a_cube_described_for_another_radar_is_refused_by_name(frame):
+    from radar.profiles import CARRADA
+    from radar.schema import SchemaMismatch, cube_schema
+
+    net = _net()
+    with pytest.raises(SchemaMismatch, match=r"range.step: expected 0.390625 m, got 0.1953125"):
+        net.segment(frame.cube, schema=cube_schema(CARRADA))
+    assert net.segment(frame.cube, schema=net.schema()).labels.shape == frame.profile.shape

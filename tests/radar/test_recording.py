@@ -92,8 +92,12 @@ def test_pickled_payload_is_refused(tmp_path):
 def test_unknown_preset_and_bad_metadata(recording_copy):
     meta_path = recording_copy / "recording.json"
     meta = json.loads(meta_path.read_text())
-    meta_path.write_text(json.dumps({**meta, "preset": "radarx"}))
-    with pytest.raises(DataError, match="unknown radar preset 'radarx'"):
+    meta_path.write_text(json.dumps({**meta, "preset": "radarx", "profile": None}))
+    with pytest.raises(DataError, match="'radarx' is not a built-in preset"):
+        Recording(recording_copy)
+    schema = {**meta["schema"], "doppler": {**meta["schema"]["doppler"], "orientation": "positive approaching"}}
+    meta_path.write_text(json.dumps({**meta, "schema": schema}))
+    with pytest.raises(DataError, match="doppler.orientation: expected 'positive receding'"):
         Recording(recording_copy)
     meta_path.write_text("{not json")
     with pytest.raises(DataError, match="not valid JSON"):
@@ -109,3 +113,17 @@ def test_corrupt_labels_and_objects_name_the_file(recording_copy):
         Recording(recording_copy).read_frame("seq_001", 1)
     with pytest.raises(DataError, match="unknown sequence"):
         Recording(recording_copy).read_frame("seq_999", 0)
+
+
+def test_a_recording_of_a_radar_described_by_a_file_reads_back(tmp_path):
+    from radar.profile_files import profile_from_dict
+    from tests.radar.test_profile_files import CUSTOM
+
+    profile = profile_from_dict(CUSTOM)
+    frames = list(simulate_sequence(profile, 2, seed=1))
+    with RecordingWriter(tmp_path / "lab", profile) as writer:
+        for frame in frames:
+            writer.write(frame)
+    rec = Recording(tmp_path / "lab")
+    assert rec.profile == profile
+    assert np.array_equal(rec.read_frame("seq_000", 1).cube, frames[1].cube)
