@@ -1,0 +1,625 @@
+"""Ray job: segment a whole store split or recording with ERASE-Net checkpoints into a predictions store.
+
+::
+
+    python -m pipelines.segment_batch --source store:STORE.zarr --split test \\
+        --detector checkpoints/small_detector.pt --segmenter checkpoints/small_segmenter.pt --out PRED.zarr
+    python -m pipelines.segment_batch --source recording:DIR --detector DET.pt --segmenter SEG.pt --out PRED.zarr
+    ray job submit --address http://127.0.0.1:8265 --working-dir . -- \\
+        python -m pipelines.segment_batch ... --out /abs/PRED.zarr --workers 4
+
+The job is ``parse_args() -> main(cfg) -> dict`` like :mod:`pipelines.preprocess` (embedded local Ray
+without ``--address``; ``RAY_ADDRESS`` under ``ray job submit``). The work is cut the same way: the
+selected frames take ``N`` slots of the predictions store, every array is cut along the frame axis
+every ``--shard-frames`` slots, and a shard is the unit of work, of writing and of resumption.
+
+Stages are callable classes (Ray's batch-inference pattern): ``--workers`` :class:`ShardSegmenter`
+actors each load both checkpoints once (``__init__``), then each call reads its shard's frames from
+the source, segments them and writes the whole shard of every array, then the shard's progress marker
+(last). Actors are spread over the cluster's nodes; the driver keeps every actor busy (``ray.wait``).
+A rerun with the same arguments skips shards whose marker exists; a store written with other
+arguments is refused. Frames that cannot be read or segmented are quarantined (``valid = 0``, reason
+in the ``report`` attribute); the job fails when every frame is bad.
+
+Predictions store (zarr v3, sharding codec and zstd level 1 like the preprocessed store)::
+
+    labels       uint8   (N, R, A, D)  predicted class per RAD voxel (background outside the ROI)
+    ra_mask      uint8   (N, R, A)     RA projection of ``labels``
+    rd_mask      uint8   (N, R, D)     RD projection of ``labels``
+    objects      float32 (N, K, 8)     NaN-padded object table, columns PREDICTION_OBJECT_FIELDS
+    n_objects    int32   (N,)          rows of ``objects`` in use
+    compute      float64 (N, 13)       MACs, seconds per stage, ROI voxels, ... (columns COMPUTE_FIELDS)
+    source_slot  int32   (N,)          slot in the source store (recording: running frame number)
+    sequence_id  int32   (N,)          index into the ``sequences`` attribute
+    frame_index  int32   (N,)          frame index within its sequence
+    valid        uint8   (N,)          1 segmented, 0 quarantined
+    progress/shard_NNNNN               one marker group per finished shard (attributes: its summary)
+
+The figure the job returns (and prints) is ``frames_per_second``: frames segmented over the wall time
+from the first shard submitted to the last shard written, with every actor's model already loaded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import logging
+import os
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import ray
+import zarr
+from tqdm import tqdm
+from zarr.codecs import ZstdCodec
+
+from pipelines.preprocess import code_version, init_ray
+from pipelines.store import ZSTD_LEVEL, done_shards, finish_store, frames_of_split, mark_shard_done, open_store
+from radar.io.errors import DataError
+from radar.io.recording import Recording
+from radar.profiles import RadarProfile, get_profile
+
+log = logging.getLogger(__name__)
+
+FORMAT = "radarseg.predictions"
+VERSION = 1
+DEFAULT_SHARD_FRAMES = 8
+DEFAULT_MAX_OBJECTS = 32
+SOURCE_KINDS = ("store", "recording")
+PREDICTION_OBJECT_FIELDS = ("class_id", "score", "range_m", "angle_deg", "velocity_mps", "x", "y", "n_voxels")
+COMPUTE_FIELDS = ("macs_detect", "macs_grow", "macs_segment", "macs_total",
+                  "seconds_transform", "seconds_detect", "seconds_grow", "seconds_segment", "seconds_project",
+                  "seconds_total", "roi_voxels", "visited_points", "detections")
+VOLUME_ARRAYS = ("labels", "ra_mask", "rd_mask")  # sharded, one inner chunk per frame
+
+
+@dataclass(frozen=True)
+class SegmentBatchConfig:
+    """Arguments of the job, as given."""
+
+    source: str  # "store:STORE.zarr" or "recording:DIR"
+    detector: str
+    segmenter: str
+    out: str
+    split: str | None = None  # store only: train, val, test; None = every valid frame
+    limit: int | None = None  # the first LIMIT selected frames only (smoke tests)
+    score_threshold: float = 0.3
+    max_objects: int = DEFAULT_MAX_OBJECTS
+    address: str | None = None
+    workers: int | None = None  # segmenter actors; None = the cluster's CPUs
+    cpus_per_worker: float = 1.0
+    torch_threads: int = 1  # per actor: one core each, so actors scale instead of fighting over cores
+    shard_frames: int = DEFAULT_SHARD_FRAMES
+    progress: bool = True
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    """One frame to segment: where it is in the source and which slot it takes in the predictions."""
+
+    slot: int
+    source_slot: int  # store slot, or running number over the recording's frames
+    sequence_id: int
+    sequence: str
+    index: int  # frame index within its sequence
+
+
+@dataclass(frozen=True)
+class PredictionLayout:
+    """Shapes, dtypes and shard boundaries of a predictions store (duck-compatible with
+    :func:`pipelines.store.write_shard_arrays`)."""
+
+    preset: str
+    n_frames: int
+    shard_frames: int
+    max_objects: int = DEFAULT_MAX_OBJECTS
+
+    def __post_init__(self) -> None:
+        if self.n_frames < 1 or self.shard_frames < 1 or self.max_objects < 1:
+            raise ValueError(f"n_frames, shard_frames and max_objects must be >= 1, got {self.n_frames}, "
+                             f"{self.shard_frames}, {self.max_objects}")
+
+    @property
+    def profile(self) -> RadarProfile:
+        return get_profile(self.preset)
+
+    @property
+    def n_shards(self) -> int:
+        return -(-self.n_frames // self.shard_frames)
+
+    def shard_bounds(self, shard: int) -> tuple[int, int]:
+        """Frame slots ``[start, stop)`` of shard ``shard``."""
+        if not 0 <= shard < self.n_shards:
+            raise ValueError(f"shard {shard} out of range [0, {self.n_shards})")
+        start = shard * self.shard_frames
+        return start, min(start + self.shard_frames, self.n_frames)
+
+    def arrays(self) -> dict[str, tuple[tuple[int, ...], str, Any]]:
+        """``name -> (per-frame shape, dtype, fill value)``."""
+        R, A, D = self.profile.shape
+        return {
+            "labels": ((R, A, D), "uint8", 0),
+            "ra_mask": ((R, A), "uint8", 0),
+            "rd_mask": ((R, D), "uint8", 0),
+            "objects": ((self.max_objects, len(PREDICTION_OBJECT_FIELDS)), "float32", float("nan")),
+            "n_objects": ((), "int32", 0),
+            "compute": ((len(COMPUTE_FIELDS),), "float64", float("nan")),
+            "source_slot": ((), "int32", -1),
+            "sequence_id": ((), "int32", -1),
+            "frame_index": ((), "int32", -1),
+            "valid": ((), "uint8", 0),
+        }
+
+    def empty_shard(self, shard: int) -> dict[str, np.ndarray]:
+        start, stop = self.shard_bounds(shard)
+        return {name: np.full((stop - start, *shape), fill, dtype=dtype)
+                for name, (shape, dtype, fill) in self.arrays().items()}
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class SourceSpec:
+    """Enough to reopen the source inside an actor."""
+
+    kind: str  # one of SOURCE_KINDS
+    path: str  # absolute
+    preset: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class BatchPlan:
+    """Everything fixed before any work."""
+
+    cfg: SegmentBatchConfig
+    out: Path
+    source: SourceSpec
+    layout: PredictionLayout
+    sequences: tuple[str, ...]
+    frames: tuple[FrameRef, ...]
+    checkpoints: dict[str, Any]
+    class_names: tuple[str, ...]
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the run that created the store."""
+        return {"source": self.source.to_dict(), "split": self.cfg.split, "layout": self.layout.to_dict(),
+                "checkpoints": self.checkpoints, "score_threshold": self.cfg.score_threshold,
+                "source_slots": [f.source_slot for f in self.frames]}
+
+    def shard_frames(self, shard: int) -> tuple[FrameRef, ...]:
+        start, stop = self.layout.shard_bounds(shard)
+        return self.frames[start:stop]
+
+
+@dataclass(frozen=True)
+class ShardJob:
+    """The payload of one call of a segmenter actor."""
+
+    store: str
+    layout: PredictionLayout
+    source: SourceSpec
+    shard: int
+    frames: tuple[FrameRef, ...]
+
+
+# --------------------------------------------------------------------------- arguments
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The job's arguments (shared by ``python -m pipelines.segment_batch`` and ``radarseg segment-batch``)."""
+    parser.add_argument("--source", required=True, help="'store:STORE.zarr' (a preprocessed store) or 'recording:DIR'")
+    parser.add_argument("--detector", required=True, help="detector checkpoint")
+    parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
+    parser.add_argument("--out", required=True, help="predictions store path (shared by all Ray nodes)")
+    parser.add_argument("--split", choices=["train", "val", "test"],
+                        help="store source: the split to segment (default: every valid frame)")
+    parser.add_argument("--limit", type=int, help="segment only the first LIMIT selected frames (smoke runs)")
+    parser.add_argument("--score-threshold", type=float, default=0.3, help="detector score threshold")
+    parser.add_argument("--max-objects", type=int, default=DEFAULT_MAX_OBJECTS,
+                        help="detections per frame and width of the object table")
+    parser.add_argument("--address", help="Ray address (default: embedded local Ray, or the job's cluster)")
+    parser.add_argument("--workers", type=int, help="segmenter actors, each loading the model once "
+                                                    "(default: the cluster's CPUs / --cpus-per-worker)")
+    parser.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per actor")
+    parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
+    parser.add_argument("--shard-frames", type=int, default=DEFAULT_SHARD_FRAMES, help="frames per shard")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+
+
+def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
+    return SegmentBatchConfig(
+        source=args.source, detector=str(Path(args.detector).expanduser().absolute()),
+        segmenter=str(Path(args.segmenter).expanduser().absolute()), out=str(Path(args.out).expanduser().absolute()),
+        split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
+        address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
+        torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
+    )
+
+
+def parse_args(argv: Sequence[str] | None = None, *,
+               prog: str = "python -m pipelines.segment_batch") -> SegmentBatchConfig:
+    """Parse and check the command line; wrong arguments exit with status 2 before any work."""
+    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    cfg = config_from_args(parser.parse_args(argv))
+    try:
+        plan_job(cfg)
+    except (ValueError, DataError) as exc:
+        parser.error(str(exc))
+    return cfg
+
+
+# --------------------------------------------------------------------------- planning
+def _file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
+    """Check every argument, the checkpoints' metadata and the source, and lay out the predictions store.
+    Raises ValueError (CheckpointError is one) or DataError saying what is wrong; nothing is written."""
+    from models.checkpoint import load_checkpoint
+
+    kind, _, location = cfg.source.partition(":")
+    if kind not in SOURCE_KINDS or not location:
+        raise ValueError(f"--source must be 'store:STORE.zarr' or 'recording:DIR', got {cfg.source!r}")
+    for name in ("workers", "shard_frames", "max_objects", "limit", "torch_threads"):
+        value = getattr(cfg, name)
+        if value is not None and value < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    if cfg.cpus_per_worker <= 0:
+        raise ValueError(f"--cpus-per-worker must be > 0, got {cfg.cpus_per_worker}")
+    if not 0.0 <= cfg.score_threshold <= 1.0:
+        raise ValueError(f"--score-threshold must be in [0, 1], got {cfg.score_threshold}")
+    if kind == "recording" and cfg.split is not None:
+        raise ValueError("--split: only with a store source (a recording is segmented whole)")
+
+    det, seg = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
+    if det.preset != seg.preset:
+        raise ValueError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
+                         f"for {seg.preset!r}")
+    root_path = Path(location).expanduser().absolute()
+    frames: list[FrameRef] = []
+    if kind == "store":
+        root = open_store(root_path)
+        preset = root.attrs["preset"]
+        sequences = tuple(root.attrs["sequences"])
+        slots = frames_of_split(root, cfg.split)
+        sequence_ids, frame_indices = root["sequence_id"][:], root["frame_index"][:]
+        for slot in slots[: cfg.limit]:
+            seq_id = int(sequence_ids[slot])
+            frames.append(FrameRef(len(frames), int(slot), seq_id, sequences[seq_id], int(frame_indices[slot])))
+    else:
+        recording = Recording(root_path)
+        preset = recording.profile.name
+        sequences = tuple(sorted(recording.sequences()))
+        running = 0
+        for seq_id, seq in enumerate(sequences):
+            for index in range(recording.n_frames(seq)):
+                frames.append(FrameRef(len(frames), running, seq_id, seq, index))
+                running += 1
+        frames = frames[: cfg.limit]
+    if preset != det.preset:
+        raise ValueError(f"the source {root_path} holds {preset!r} frames but the checkpoints are for {det.preset!r}")
+    if not frames:
+        raise DataError(root_path, f"no valid frame to segment (split {cfg.split or 'all'})")
+    layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects)
+    checkpoints = {name: {"path": str(Path(path)), "sha256": _file_sha256(Path(path)), "model": ckpt.model_name}
+                   for name, path, ckpt in (("detector", cfg.detector, det), ("segmenter", cfg.segmenter, seg))}
+    plan = BatchPlan(cfg, Path(cfg.out), SourceSpec(kind, str(root_path), preset), layout, sequences, tuple(frames),
+                     checkpoints, tuple(det.class_names))
+    _check_out(plan)
+    return plan
+
+
+def _check_out(plan: BatchPlan) -> None:
+    """An existing ``--out`` must be empty, or a predictions store of the same job (which is then resumed)."""
+    out = plan.out
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a directory")
+    meta = out / "zarr.json"
+    if not meta.is_file():
+        if any(out.iterdir()):
+            raise ValueError(f"--out {out} exists and is not a predictions store; choose another path")
+        return
+    try:
+        attrs = json.loads(meta.read_text()).get("attributes", {})
+    except json.JSONDecodeError as exc:
+        raise DataError(meta, f"not valid JSON ({exc})") from None
+    if attrs.get("format") != FORMAT:
+        raise ValueError(f"--out {out} is a zarr store but not a radarseg predictions store; choose another path")
+    if attrs.get("plan") != plan.identity():
+        raise ValueError(f"--out {out} holds predictions made with other source, split, checkpoints or layout "
+                         "(it can only be resumed with the same ones); choose another path or remove it")
+
+
+def create_predictions(path: str | Path, layout: PredictionLayout, attributes: dict[str, Any]) -> zarr.Group:
+    """Create the group, every (empty) array and the progress group; ``complete`` starts False."""
+    root = zarr.open_group(str(path), mode="w", zarr_format=3)
+    for name, (shape, dtype, fill) in layout.arrays().items():
+        if name in VOLUME_ARRAYS:
+            chunks, shards = (1, *shape), (layout.shard_frames, *shape)
+        else:
+            chunks, shards = (layout.shard_frames, *shape), None
+        root.create_array(name, shape=(layout.n_frames, *shape), dtype=dtype, chunks=chunks, shards=shards,
+                          compressors=ZstdCodec(level=ZSTD_LEVEL), fill_value=fill)
+    root.create_group("progress")
+    root.attrs.update({**attributes, "format": FORMAT, "version": VERSION, "layout": layout.to_dict(),
+                       "complete": False})
+    return root
+
+
+def open_predictions(path: str | Path, *, require_complete: bool = True) -> zarr.Group:
+    """Open a predictions store read-only; DataError when it is not one (or not finished)."""
+    path = Path(path)
+    if not (path / "zarr.json").is_file():
+        raise DataError(path, "not a zarr store (missing zarr.json)")
+    root = zarr.open_group(str(path), mode="r")
+    if root.attrs.get("format") != FORMAT:
+        raise DataError(path, f"expected a store with format {FORMAT!r}, found {root.attrs.get('format')!r}")
+    if require_complete and not root.attrs.get("complete"):
+        raise DataError(path, "predictions store is incomplete (its job was interrupted; rerun it to resume)")
+    return root
+
+
+# --------------------------------------------------------------------------- the segmenter stage
+def _source_cubes(source: SourceSpec, frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError,
+                                                                                      bool]]:
+    """``(frame, cube or the DataError reading it raised, is_log_power)`` for each frame."""
+    if source.kind == "store":
+        inputs = open_store(source.path)["input"]
+        for ref in frames:  # float16 log power in dB, as preprocessing stored it
+            yield ref, inputs[ref.source_slot].astype(np.float32), True
+        return
+    recording = Recording(source.path)
+    for ref in frames:
+        try:
+            yield ref, recording.read_frame(ref.sequence, ref.index).cube, False
+        except DataError as exc:
+            yield ref, exc, False
+
+
+def _object_rows(result: Any, max_objects: int) -> np.ndarray:
+    table = np.full((max_objects, len(PREDICTION_OBJECT_FIELDS)), np.nan, np.float32)
+    for k, obj in enumerate(result.objects[:max_objects]):
+        table[k] = [getattr(obj, name) for name in PREDICTION_OBJECT_FIELDS]
+    return table
+
+
+def _compute_row(compute: dict[str, Any]) -> np.ndarray:
+    macs, seconds = compute["macs"], compute["seconds"]
+    values = {**{f"macs_{k}": v for k, v in macs.items()}, **{f"seconds_{k}": v for k, v in seconds.items()},
+              "roi_voxels": compute["roi_voxels"], "visited_points": compute["visited_points"],
+              "detections": compute["detections"]}
+    return np.array([values[name] for name in COMPUTE_FIELDS], np.float64)
+
+
+class ShardSegmenter:
+    """Callable stage: loads ERASE-Net once (in ``__init__``), then segments and writes one shard per call.
+
+    Used as a Ray actor (one per ``--workers``); plain instances run the same code in-process.
+    """
+
+    def __init__(self, detector: str, segmenter: str, *, score_threshold: float = 0.3,
+                 max_objects: int = DEFAULT_MAX_OBJECTS, torch_threads: int = 1) -> None:
+        import torch
+
+        from models.erasenet import EraseNet
+
+        torch.set_num_threads(torch_threads)
+        started = time.perf_counter()
+        self.net = EraseNet.from_checkpoints(detector, segmenter, score_threshold=score_threshold,
+                                             max_objects=max_objects)
+        self.model_loads = 1
+        self.load_seconds = time.perf_counter() - started
+        self.calls = 0
+
+    def identity(self) -> dict[str, Any]:
+        """Where this stage runs and how often it loaded the model (once)."""
+        return {"pid": os.getpid(), "node_id": _node_id(), "model_loads": self.model_loads,
+                "load_seconds": self.load_seconds}
+
+    def __call__(self, job: ShardJob) -> dict[str, Any]:
+        """Segment the frames of ``job``, write the whole shard of every array, then its marker; returns
+        (and stores in the marker) the shard's summary."""
+        self.calls += 1
+        layout = job.layout
+        buffers = layout.empty_shard(job.shard)
+        start, _ = layout.shard_bounds(job.shard)
+        quarantined = []
+        segment_seconds = 0.0
+        for ref, cube, is_log_power in _source_cubes(job.source, job.frames):
+            k = ref.slot - start
+            buffers["source_slot"][k], buffers["sequence_id"][k], buffers["frame_index"][k] = (
+                ref.source_slot, ref.sequence_id, ref.index)
+            try:
+                if isinstance(cube, DataError):
+                    raise cube
+                tick = time.perf_counter()
+                result = self.net.segment(cube, is_log_power=is_log_power)
+                segment_seconds += time.perf_counter() - tick
+            except ValueError as exc:  # DataError is a ValueError; so is a cube of the wrong shape
+                log.warning("quarantined %s/%d: %s", ref.sequence, ref.index, exc)
+                quarantined.append({"frame": ref.slot, "sequence": ref.sequence, "index": ref.index,
+                                    "reason": str(exc)})
+                continue
+            buffers["labels"][k], buffers["ra_mask"][k], buffers["rd_mask"][k] = (
+                result.labels, result.ra_mask, result.rd_mask)
+            buffers["objects"][k] = _object_rows(result, layout.max_objects)
+            buffers["n_objects"][k] = min(len(result.objects), layout.max_objects)
+            buffers["compute"][k] = _compute_row(result.compute)
+            buffers["valid"][k] = 1
+        with zarr.config.set({"threading.max_workers": 1}):  # one actor = one core
+            root = zarr.open_group(job.store, mode="r+")
+            stop = start + len(job.frames)
+            for name in layout.arrays():
+                root[name][start:stop] = buffers[name]
+        valid = buffers["valid"].astype(bool)
+        summary = {
+            "shard": job.shard,
+            "frames": len(job.frames),
+            "written": int(valid.sum()),
+            "quarantined": quarantined,
+            "objects": int(buffers["n_objects"][valid].sum()),
+            "macs": int(buffers["compute"][valid, COMPUTE_FIELDS.index("macs_total")].sum()),
+            "segment_seconds": segment_seconds,
+            "worker": {**self.identity(), "calls": self.calls},
+        }
+        mark_shard_done(job.store, job.shard, summary)
+        return summary
+
+
+def _node_id() -> str | None:
+    if not ray.is_initialized():
+        return None
+    return ray.get_runtime_context().get_node_id()
+
+
+# --------------------------------------------------------------------------- the job
+def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
+    """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
+    plan = plan_job(cfg)
+    started = time.perf_counter()
+    if (plan.out / "zarr.json").is_file():
+        done = done_shards(plan.out)
+    else:
+        done = {}
+        create_predictions(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
+    todo = [s for s in range(plan.layout.n_shards) if s not in done]
+    summaries: list[dict[str, Any]] = list(done.values())
+    connected = init_ray(cfg.address)
+    try:
+        cluster_cpus = float(ray.cluster_resources().get("CPU", 1))
+        workers = cfg.workers or max(1, int(cluster_cpus // cfg.cpus_per_worker))
+        workers = max(1, min(workers, len(todo))) if todo else 0
+        actor_class = ray.remote(num_cpus=cfg.cpus_per_worker, scheduling_strategy="SPREAD")(ShardSegmenter)
+        actors = [actor_class.remote(cfg.detector, cfg.segmenter, score_threshold=cfg.score_threshold,
+                                     max_objects=cfg.max_objects, torch_threads=cfg.torch_threads)
+                  for _ in range(workers)]
+        identities = ray.get([a.identity.remote() for a in actors])  # every model loaded before the clock starts
+        ready = time.perf_counter()
+        log.info("%s: %d shards (%d done before), %d segmenter actors on %d node(s)", plan.out,
+                 plan.layout.n_shards, len(done), workers, len({i["node_id"] for i in identities}))
+        queue = list(todo)
+        running: dict[ray.ObjectRef, Any] = {}
+        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
+                  desc="segment", disable=not cfg.progress) as bar:
+            for actor in actors:
+                if queue:
+                    shard = queue.pop(0)
+                    running[actor.__call__.remote(_shard_job(plan, shard))] = actor
+            while running:
+                finished, _ = ray.wait(list(running), num_returns=1)
+                for ref in finished:
+                    actor = running.pop(ref)
+                    summary = ray.get(ref)  # a failed shard raises here
+                    summaries.append(summary)
+                    bar.update(summary["frames"])
+                    if queue:
+                        running[actor.__call__.remote(_shard_job(plan, queue.pop(0)))] = actor
+        processed = time.perf_counter()
+        for actor in actors:
+            ray.kill(actor)
+    finally:
+        if connected:
+            ray.shutdown()
+    stats = _reduce(summaries)
+    where = plan.source.path
+    if stats["written"] == 0:
+        raise DataError(where, f"every one of the {stats['frames']} frames failed to segment "
+                               f"(first: {stats['quarantined'][0]['reason'] if stats['quarantined'] else '?'})")
+    finish_store(plan.out, _attributes(plan, stats))
+    finished = time.perf_counter()
+    new_frames = sum(len(plan.shard_frames(s)) for s in todo)
+    per_worker: dict[int, dict[str, Any]] = {}
+    for s in summaries:
+        if s["shard"] in done:
+            continue
+        entry = per_worker.setdefault(s["worker"]["pid"], {**s["worker"], "shards": 0, "frames": 0})
+        entry.update(calls=max(entry["calls"], s["worker"]["calls"]), shards=entry["shards"] + 1,
+                     frames=entry["frames"] + s["frames"])
+    return {
+        "store": str(plan.out),
+        "source": plan.source.to_dict(),
+        "frames": stats["frames"],
+        "written": stats["written"],
+        "quarantined": len(stats["quarantined"]),
+        "objects": stats["objects"],
+        "macs_total": stats["macs"],
+        "shards": plan.layout.n_shards,
+        "shards_run": len(todo),
+        "shards_skipped": len(done),
+        "workers": workers,
+        "nodes": len({w["node_id"] for w in per_worker.values()}),
+        "worker_stats": sorted(per_worker.values(), key=lambda w: w["pid"]),
+        "seconds_ray_and_models": ready - started,
+        "seconds_segmenting": processed - ready,
+        "seconds_total": finished - started,
+        "frames_per_second": new_frames / (processed - ready) if new_frames else None,
+    }
+
+
+def _shard_job(plan: BatchPlan, shard: int) -> ShardJob:
+    return ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_frames(shard))
+
+
+def _reduce(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    ordered = sorted(summaries, key=lambda s: s["shard"])
+    return {
+        "frames": sum(s["frames"] for s in ordered),
+        "written": sum(s["written"] for s in ordered),
+        "objects": sum(s["objects"] for s in ordered),
+        "macs": sum(s["macs"] for s in ordered),
+        "quarantined": sorted((q for s in ordered for q in s["quarantined"]), key=lambda q: q["frame"]),
+    }
+
+
+def _attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "preset": plan.layout.preset,
+        "class_names": list(plan.class_names),
+        "sequences": list(plan.sequences),
+        "object_fields": list(PREDICTION_OBJECT_FIELDS),
+        "compute_fields": list(COMPUTE_FIELDS),
+        "source": plan.source.to_dict(),
+        "split": plan.cfg.split,
+        "checkpoints": plan.checkpoints,
+        "report": {"frames": stats["frames"], "written": stats["written"], "objects": stats["objects"],
+                   "macs": stats["macs"], "quarantined": stats["quarantined"]},
+        "job": plan.cfg.to_dict(),
+        "code_version": code_version(),
+    }
+
+
+def _run(argv: Sequence[str] | None = None) -> int:
+    cfg = parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        result = main(cfg)
+    except (DataError, ValueError) as exc:
+        print(f"segment_batch: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"segmented {result['written']}/{result['frames']} frames at {result['frames_per_second'] or 0:.2f} "
+          f"frames/s with {result['workers']} worker(s) on {result['nodes']} node(s)", file=sys.stderr)
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(_run())
