@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from radar import transforms
 from service.encoding import decode_array
@@ -185,7 +186,9 @@ def test_metrics_are_exposed_with_bounded_labels(client, cube_body):
     text = client.get("/metrics").text
     assert 'radarseg_http_requests_total{method="POST",route="/v1/segment",status="200"} 1.0' in text
     assert 'radarseg_http_errors_total{status="400"} 1.0' in text
-    assert f'radarseg_macs_total{{model="tiny",tenant="anonymous"}} {float(macs)}' in text
+    samples = {(s.name, tuple(sorted(s.labels.items()))): s.value
+               for family in text_string_to_metric_families(text) for s in family.samples}
+    assert samples[("radarseg_macs_total", (("model", "tiny"), ("tenant", "anonymous")))] == macs
     assert 'radarseg_segment_requests_total{model="tiny",tenant="anonymous"} 1.0' in text
     assert 'radarseg_stage_duration_seconds_count{model="tiny",stage="segment"} 1.0' in text
     assert 'radarseg_http_request_duration_seconds_bucket' in text
