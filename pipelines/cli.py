@@ -15,7 +15,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.record import simulate_recording
 
     out = simulate_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
-                             seed=args.seed, out=args.out)
+                             seed=args.seed, out=args.out, adc=args.adc)
     print(f"recording written to {out}")
     return 0
 
@@ -158,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--frames", type=int, default=8, help="frames per sequence")
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--out", required=True, help="output directory (must not hold a recording yet)")
+    sim.add_argument("--adc", action="store_true", help="store raw ADC samples instead of RAD cubes")
     sim.set_defaults(func=_cmd_simulate)
 
     # The job's own parser (pipelines.preprocess.parse_args) reads the arguments, so they are exactly

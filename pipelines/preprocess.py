@@ -76,7 +76,7 @@ log = logging.getLogger(__name__)
 DEFAULT_SPLIT_FRACTIONS = (0.7, 0.15, 0.15)
 DEFAULT_SHARD_FRAMES = 8
 OBJECT_STORE_BYTES = 256 * 2**20  # embedded Ray: task results are small summaries, the data goes to disk
-SOURCE_KINDS = ("sim", "recording", "carrada")
+SOURCE_KINDS = ("sim", "recording", "adc-recording", "carrada")  # adc-recording: raw ADC, processed on read
 
 
 @dataclass(frozen=True)
@@ -164,7 +164,8 @@ class ShardJob:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The job's arguments (shared by ``python -m pipelines.preprocess`` and ``radarseg preprocess``)."""
     parser.add_argument("--source", required=True,
-                        help="'sim' (the FMCW simulator, run inside the Ray tasks), 'recording:DIR' or 'carrada:ROOT'")
+                        help="'sim' (the FMCW simulator, run inside the Ray tasks), 'recording:DIR', "
+                             "'adc-recording:DIR' (raw ADC samples, processed in the tasks) or 'carrada:ROOT'")
     parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
     parser.add_argument("--preset", help="sim: radar preset (carrada, nxp, small; default small) or a profile file")
     parser.add_argument("--sequences", type=int, help="sim: number of sequences (default 2)")
@@ -217,7 +218,8 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
     DataError saying what is wrong; nothing is written."""
     kind, _, location = cfg.source.partition(":")
     if kind not in SOURCE_KINDS or (kind == "sim") != (location == ""):
-        raise ValueError(f"--source must be 'sim', 'recording:DIR' or 'carrada:ROOT', got {cfg.source!r}")
+        raise ValueError(f"--source must be 'sim', 'recording:DIR', 'adc-recording:DIR' or 'carrada:ROOT', "
+                         f"got {cfg.source!r}")
     for name in ("tasks", "shard_frames", "max_objects"):
         value = getattr(cfg, name)
         if value is not None and value < 1:
@@ -246,7 +248,9 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
             raise ValueError(f"{', '.join(given + (['--seed'] if cfg.seed else []))}: only with --source sim "
                              f"(the {kind} source fixes them)")
         root = Path(location).expanduser().absolute()
-        reader = Recording(root) if kind == "recording" else CarradaReader(root)
+        reader = CarradaReader(root) if kind == "carrada" else Recording(root)
+        if kind == "adc-recording" and reader.content != "adc":
+            raise ValueError(f"--source {cfg.source!r}: {root} holds RAD cubes, not ADC samples (use recording:DIR)")
         source = SourceSpec(kind, str(root), reader.profile.name)
         frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
         if not any(frame_counts.values()):
@@ -315,7 +319,7 @@ def _source_frames(source: SourceSpec, slots: Sequence[Slot]) -> Iterator[tuple[
             frames = simulated_frames(source.preset, source.seed, sequence_id, [s.index for s in group])
             yield from zip(group, frames, strict=True)
         return
-    reader = Recording(source.path) if source.kind == "recording" else CarradaReader(source.path)
+    reader = CarradaReader(source.path) if source.kind == "carrada" else Recording(source.path)
     for slot in slots:
         try:
             yield slot, reader.read_frame(slot.sequence, slot.index)

@@ -15,14 +15,15 @@ log = logging.getLogger(__name__)
 
 
 def simulate_recording(*, preset: str, sequences: int, frames: int, seed: int, out: str | Path,
-                       config: SimulatorConfig | None = None, progress: bool = True) -> Path:
-    """Simulate ``sequences`` x ``frames`` labelled frames into the recording layout at ``out``."""
+                       config: SimulatorConfig | None = None, progress: bool = True, adc: bool = False) -> Path:
+    """Simulate ``sequences`` x ``frames`` labelled frames into the recording layout at ``out``
+    (``adc``: store the raw ADC samples instead of the RAD cubes)."""
     if sequences < 1 or frames < 1:
         raise ValueError(f"sequences and frames must be >= 1, got {sequences} and {frames}")
     profile = get_profile(preset)
     config = config or SimulatorConfig()
     source = {"kind": "sim", "seed": seed, "simulator": config.to_dict()}
-    with RecordingWriter(out, profile, source=source) as writer, \
+    with RecordingWriter(out, profile, source=source, content="adc" if adc else "cube") as writer, \
             tqdm(total=sequences * frames, desc=f"simulate {preset}", unit="frame", disable=not progress) as bar:
         for s in range(sequences):
             for frame in simulate_sequence(profile, frames, seed=seed, sequence_index=s, config=config):

@@ -6,6 +6,9 @@
       recording.json             format, version, preset, radar parameters, classes, sequences, source
       seq_000/
         cubes/000000.npy         complex64 (R, A, D) RAD cube in the project's frame (SPEC section 2)
+        adc/000000.npy           (ADC recordings, content "adc", instead of cubes) complex64 raw samples
+                                 (samples, chirps, virtual elements); processed into the cube on read
+                                 by radar.adc.process_adc: 10-30x smaller than the cubes
         labels/000000.npz        compressed: labels uint8 (R, A, D) classes, instances uint8 (R, A, D)
         objects.json             {"frames": [[object, ...], ...]}: one object table per frame
 
@@ -24,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from radar.adc import adc_shape, process_adc
 from radar.frame import ObjectRecord, RadarFrame
 from radar.io.errors import DataError
 from radar.io.npy import check_array, load_npy
@@ -49,7 +53,14 @@ def _frame_name(index: int) -> str:
 class RecordingWriter:
     """Writes frames sequence by sequence; ``close()`` (or the context manager) writes recording.json."""
 
-    def __init__(self, out_dir: str | Path, profile: RadarProfile, *, source: dict[str, Any] | None = None):
+    def __init__(self, out_dir: str | Path, profile: RadarProfile, *, source: dict[str, Any] | None = None,
+                 content: str = "cube"):
+        """``content``: ``"cube"`` writes RAD cubes; ``"adc"`` writes the raw ADC samples instead (frames
+        must carry ``extras["adc"]``, as simulated frames do)."""
+        if content not in ("cube", "adc"):
+            raise ValueError(f"content must be 'cube' or 'adc', got {content!r}")
+        self.content = content
+        self.tdm_compensation = False
         self.root = Path(out_dir)
         if (self.root / "recording.json").exists():
             raise FileExistsError(f"{self.root}: a recording already exists here; choose another --out")
@@ -63,10 +74,17 @@ class RecordingWriter:
         if frame.cube.shape != self.profile.shape:
             raise ValueError(f"frame cube {frame.cube.shape} does not match profile {self.profile.shape}")
         seq_dir = self.root / frame.sequence
-        (seq_dir / "cubes").mkdir(parents=True, exist_ok=True)
+        (seq_dir / ("adc" if self.content == "adc" else "cubes")).mkdir(parents=True, exist_ok=True)
         (seq_dir / "labels").mkdir(exist_ok=True)
         name = _frame_name(frame.index)
-        _atomic_write(seq_dir / "cubes" / f"{name}.npy", lambda fh: np.save(fh, frame.cube, allow_pickle=False))
+        if self.content == "adc":
+            if "adc" not in frame.extras:
+                raise ValueError(f"{frame.sequence}/{frame.index}: an ADC recording needs frames that carry their ADC")
+            self.tdm_compensation = bool(frame.extras.get("tdm_compensation", False))
+            _atomic_write(seq_dir / "adc" / f"{name}.npy",
+                          lambda fh: np.save(fh, frame.extras["adc"], allow_pickle=False))
+        else:
+            _atomic_write(seq_dir / "cubes" / f"{name}.npy", lambda fh: np.save(fh, frame.cube, allow_pickle=False))
         if frame.labels is not None:
             _atomic_write(seq_dir / "labels" / f"{name}.npz",
                           lambda fh: np.savez_compressed(fh, labels=frame.labels, instances=frame.instances))
@@ -87,6 +105,8 @@ class RecordingWriter:
             "preset": self.profile.name,
             "profile": profile_to_dict(self.profile) if self.profile.chirp is not None else None,
             "schema": cube_schema(self.profile),
+            "content": self.content,
+            "tdm_compensation": self.tdm_compensation,
             "radar": self.profile.to_dict(),
             "classes": list(self.profile.all_class_names),
             "sequences": dict(sorted(self.sequences.items())),
@@ -143,6 +163,9 @@ class Recording:
         sequences = meta.get("sequences")
         if not isinstance(sequences, dict) or not all(isinstance(n, int) and n >= 0 for n in sequences.values()):
             raise DataError(meta_path, "expected 'sequences' to map sequence names to frame counts")
+        self.content = meta.get("content", "cube")
+        if self.content not in ("cube", "adc"):
+            raise DataError(meta_path, f"content {self.content!r}, expected 'cube' or 'adc'")
         self.meta = meta
         self._sequences: dict[str, int] = sequences
         self._objects: dict[str, list[list[dict]]] = {}
@@ -185,8 +208,13 @@ class Recording:
             raise DataError(self.root / sequence, f"frame {index} out of range [0, {self._sequences[sequence]})")
         name = _frame_name(index)
         seq_dir = self.root / sequence
-        cube = load_npy(seq_dir / "cubes" / f"{name}.npy", shape=self.profile.shape,
-                        dtypes=(np.complexfloating, np.floating), what="RAD cube")
+        if self.content == "adc":
+            adc = load_npy(seq_dir / "adc" / f"{name}.npy", shape=adc_shape(self.profile),
+                           dtypes=(np.complexfloating,), what="ADC samples (samples, chirps, virtual elements)")
+            cube = process_adc(adc, self.profile, tdm_compensation=bool(self.meta.get("tdm_compensation", False)))
+        else:
+            cube = load_npy(seq_dir / "cubes" / f"{name}.npy", shape=self.profile.shape,
+                            dtypes=(np.complexfloating, np.floating), what="RAD cube")
         labels_path = seq_dir / "labels" / f"{name}.npz"
         if not labels_path.is_file():
             raise DataError(labels_path, "missing file (expected the frame's labels and instances)")

@@ -75,7 +75,8 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
 
     ``timings`` (optional) accumulates seconds spent in ``synthesis``, ``fft`` and ``labels``.
     The frame's ``extras["object_scatterers"]`` holds each object's scatterers (instance i+1 = list
-    index i) so a response can be recomputed independently.
+    index i) so a response can be recomputed independently; ``extras["adc"]`` the raw ADC samples
+    (Ns, Nc, K) the cube was processed from.
     """
     with _timed(timings, "synthesis"):
         per_object, rcs_totals = [], []
@@ -111,7 +112,8 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
             for i, s in enumerate(states)
         )
     return RadarFrame(cube=cube, profile=profile, sequence=sequence, index=index, labels=labels,
-                      instances=instances, objects=objects, extras={"object_scatterers": per_object})
+                      instances=instances, objects=objects,
+                      extras={"object_scatterers": per_object, "adc": adc, "tdm_compensation": compensated})
 
 
 def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, sequence_index: int = 0,

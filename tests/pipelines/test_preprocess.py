@@ -213,3 +213,25 @@ def test_bad_cubes_are_quarantined_and_the_job_carries_on(tmp_path, small_record
     with pytest.raises(DataError, match="every one of the 6 input frames is bad"):
         main(PreprocessConfig(source=f"recording:{all_bad}", out=str(tmp_path / "bad.zarr"), progress=False))
     assert not open_store(tmp_path / "bad.zarr", require_complete=False).attrs["complete"]
+
+
+@pytest.mark.ray
+def test_adc_recordings_preprocess_like_cube_recordings(tmp_path, embedded_ray, capsys):
+    from pipelines.record import simulate_recording
+
+    adc_rec = simulate_recording(preset="small", sequences=2, frames=2, seed=5, out=tmp_path / "adc", progress=False,
+                                 adc=True)
+    cube_rec = simulate_recording(preset="small", sequences=2, frames=2, seed=5, out=tmp_path / "cube",
+                                  progress=False)
+    common = ["--split-fractions", "0.5", "0.5", "0", "--no-progress"]
+    assert cli_main(["preprocess", "--source", f"adc-recording:{adc_rec}", "--out", str(tmp_path / "a.zarr"),
+                     *common]) == 0
+    assert cli_main(["preprocess", "--source", f"recording:{cube_rec}", "--out", str(tmp_path / "c.zarr"),
+                     *common]) == 0
+    a, c = open_store(tmp_path / "a.zarr"), open_store(tmp_path / "c.zarr")
+    np.testing.assert_allclose(a["input"][:].astype(np.float32), c["input"][:].astype(np.float32), atol=0.07)
+    np.testing.assert_array_equal(a["labels"][:], c["labels"][:])
+    assert a.attrs["schema"]["content"] == "log_power_db" and a.attrs["schema"]["profile"] == "small"
+    with pytest.raises(SystemExit):
+        parse_args(["--source", f"adc-recording:{cube_rec}", "--out", str(tmp_path / "x.zarr"), *common])
+    assert "holds RAD cubes, not ADC samples" in capsys.readouterr().err

@@ -127,3 +127,19 @@ def test_a_recording_of_a_radar_described_by_a_file_reads_back(tmp_path):
     rec = Recording(tmp_path / "lab")
     assert rec.profile == profile
     assert np.array_equal(rec.read_frame("seq_000", 1).cube, frames[1].cube)
+
+
+def test_adc_recordings_are_processed_on_read_into_the_same_cubes(tmp_path):
+    from pipelines.record import simulate_recording
+
+    out = simulate_recording(preset="small", sequences=1, frames=2, seed=11, out=tmp_path / "adc", progress=False,
+                             adc=True)
+    rec = Recording(out)
+    assert rec.content == "adc" and not (out / "seq_000" / "cubes").exists()
+    original = list(simulate_sequence("small", 2, seed=11))
+    for frame in original:
+        read = rec.read_frame("seq_000", frame.index)
+        np.testing.assert_allclose(read.cube, frame.cube, rtol=1e-5, atol=1e-2)
+        assert np.array_equal(read.labels, frame.labels)
+    adc_bytes = sum(p.stat().st_size for p in (out / "seq_000" / "adc").iterdir())
+    assert adc_bytes * 10 < 2 * original[0].cube.nbytes  # far smaller than the cubes
