@@ -55,9 +55,9 @@ def _cmd_store_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from pipelines.train import main, parse_args
+    from pipelines.train import run_cli
 
-    result = main(parse_args(args.job_args, prog="radarseg train"))
+    result = run_cli(args.job_args, prog="radarseg train")
     print(json.dumps(result, indent=2, default=str))
     return 0
 

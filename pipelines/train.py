@@ -5,6 +5,7 @@ The job is ``parse_args() -> main(cfg) -> dict``::
     python -m pipelines.train detector  --store STORE.zarr --out runs/det [--profile quick|paper] [--resume]
     python -m pipelines.train segmenter --store STORE.zarr --out runs/seg --jitter-from runs/det/model.pt
     radarseg train detector|segmenter ...                       # the same arguments
+    radarseg train export RUN/model.pt checkpoints/detector.pt  # shippable copy: float16 weights only
 
 Stages (a :class:`StageTask` each, picked once from :data:`TASKS`):
 
@@ -48,8 +49,9 @@ import json
 import logging
 import math
 import os
+import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -108,7 +110,7 @@ PROFILES: dict[str, dict[str, Hyper]] = {
     },
     "segmenter": {
         "paper": Hyper("minkunet", {"ratio": 0.37}, epochs=300, batch_size=8, lr=0.24, weight_decay=1e-4),
-        "quick": Hyper("minkunet", {"ratio": 0.37}, epochs=4, batch_size=2, lr=0.05, weight_decay=1e-4,
+        "quick": Hyper("minkunet", {"ratio": 0.25}, epochs=3, batch_size=2, lr=0.05, weight_decay=1e-4,
                        val_frames=48),
     },
 }
@@ -800,7 +802,9 @@ def run_ray_train(cfg: TrainConfig) -> dict[str, Any]:
         result = trainer.fit()
         if result.error is not None:
             raise result.error
-        return dict(result.metrics or {})
+        # rank 0 wrote every epoch's metrics; Ray's result keeps only what came with a Ray checkpoint
+        lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+        return json.loads(lines[-1]) if lines else {}
     finally:
         if started_here:
             ray.shutdown()
@@ -813,6 +817,17 @@ def main(cfg: TrainConfig) -> dict[str, Any]:
     metrics = run_ray_train(cfg) if cfg.ray_workers else train_loop(cfg)
     return {"run": str(cfg.out), "checkpoint": str(Path(cfg.out) / "model.pt"),
             "seconds": time.perf_counter() - started, "metrics": metrics}
+
+
+def export_checkpoint(source: str | Path, target: str | Path, *, float16: bool = True) -> Path:
+    """Write a shippable copy of a training checkpoint: weights only (no optimiser state), floating
+    tensors in float16 when ``float16`` (half the size; :meth:`Checkpoint.build` loads them back into the
+    float32 model). Returns ``target``."""
+    checkpoint = load_checkpoint(source)
+    state = {k: (v.half() if float16 and v.is_floating_point() else v) for k, v in checkpoint.state_dict.items()}
+    extra = {k: v for k, v in checkpoint.extra.items() if k not in ("optimizer", "scheduler")}
+    extra["stored_dtype"] = "float16" if float16 else "float32"
+    return save_checkpoint(dataclasses.replace(checkpoint, state_dict=state, extra=extra), target)
 
 
 def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentParser:
@@ -858,12 +873,21 @@ def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipe
     return config_from_args(build_parser(prog).parse_args(argv))
 
 
-def _run_cli(parse: Callable[[], TrainConfig]) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    result = main(parse())
-    print(json.dumps(result, indent=2, default=str))
-    return 0
+def run_cli(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.train") -> dict[str, Any]:
+    """``STAGE ...`` trains (see :func:`build_parser`); ``export SOURCE TARGET [--float32]`` writes a
+    shippable checkpoint (:func:`export_checkpoint`). Returns what the command produced."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["export"]:
+        parser = argparse.ArgumentParser(prog=f"{prog} export", description="a shippable copy of a checkpoint")
+        parser.add_argument("source")
+        parser.add_argument("target")
+        parser.add_argument("--float32", action="store_true", help="keep float32 weights (default float16)")
+        args = parser.parse_args(argv[1:])
+        target = export_checkpoint(args.source, args.target, float16=not args.float32)
+        return {"checkpoint": str(target), "bytes": target.stat().st_size}
+    return main(parse_args(argv, prog=prog))
 
 
 if __name__ == "__main__":
-    raise SystemExit(_run_cli(parse_args))
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    print(json.dumps(run_cli(), indent=2, default=str))

@@ -52,6 +52,16 @@ def test_detector_trains_resumes_and_rebuilds(small_store, tmp_path):
         out = model(torch.zeros(1, 32, 128, 128))
     assert out["heatmap"].shape == (1, 1, 32, 32)
 
+    # the shippable copy: float16 weights, no optimiser, same outputs to float16 precision
+    from pipelines.train import export_checkpoint
+
+    shipped = load_checkpoint(export_checkpoint(run / "last.pt", run / "shipped.pt"))
+    assert "optimizer" not in shipped.extra and shipped.extra["stored_dtype"] == "float16"
+    assert (run / "shipped.pt").stat().st_size < 0.6 * (run / "model.pt").stat().st_size
+    with torch.no_grad():
+        half = shipped.build()(torch.zeros(1, 32, 128, 128))
+    assert torch.allclose(half["heatmap"], out["heatmap"], atol=2e-2)
+
     # a second run into the same directory needs --resume; resuming continues the epochs and steps
     with pytest.raises(FileExistsError, match="--resume"):
         train_loop(_detector_cfg(small_store, run))
