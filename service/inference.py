@@ -13,6 +13,7 @@ import asyncio
 import logging
 import queue
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
@@ -21,6 +22,7 @@ import numpy as np
 
 from models.checkpoint import CheckpointError
 from models.erasenet import EraseNet, SegmentationResult
+from radar.adc import process_adc
 from service.settings import ModelSpec, Settings, resolve_path
 
 log = logging.getLogger(__name__)
@@ -109,19 +111,28 @@ class ServedModel:
         figure seen so far for the rest."""
         return self.net.detector_macs() + self.segment_macs_high
 
-    async def run(self, cube: np.ndarray, *, is_log_power: bool) -> SegmentationResult:
+    async def run(self, cube: np.ndarray, *, is_log_power: bool, adc_compensation: bool | None = None
+                  ) -> SegmentationResult:
         """Segment on a worker thread; the slot (taken by :meth:`acquire`) is released when inference ends,
-        even if the awaiting request was cancelled."""
+        even if the awaiting request was cancelled. ``adc_compensation`` not None: ``cube`` holds raw ADC
+        samples, processed into the RAD cube first (with or without TDM compensation; timed as transform)."""
         if self._executor is None:
             raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
-        future = self._executor.submit(self._segment, cube, is_log_power)
+        future = self._executor.submit(self._segment, cube, is_log_power, adc_compensation)
         future.add_done_callback(lambda _: self.release())
         return await asyncio.wrap_future(future)
 
-    def _segment(self, cube: np.ndarray, is_log_power: bool) -> SegmentationResult:
+    def _segment(self, cube: np.ndarray, is_log_power: bool, adc_compensation: bool | None) -> SegmentationResult:
         net = self._free.get()
         try:
+            adc_s = 0.0
+            if adc_compensation is not None:
+                start = time.perf_counter()
+                cube = process_adc(cube, net.profile, tdm_compensation=adc_compensation)
+                adc_s = time.perf_counter() - start
             result = net.segment(cube, is_log_power=is_log_power)
+            result.compute["seconds"]["transform"] += adc_s
+            result.compute["seconds"]["total"] += adc_s
         finally:
             self._free.put(net)
         segment_macs = result.compute["macs"]["segment"]

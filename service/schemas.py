@@ -12,6 +12,7 @@ class InputKind(StrEnum):
 
     complex = "complex"  # complex RAD cube (complex64 or complex128)
     log_power = "log_power"  # 10 log10(|I|^2 + 1) in dB (float16/32/64)
+    adc = "adc"  # raw complex ADC samples (samples, chirps, virtual elements), processed by radar.adc
 
 
 class MaskEncoding(StrEnum):

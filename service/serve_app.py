@@ -34,7 +34,7 @@ from service.settings import Settings
 DEPLOYMENT_NAME = "radarseg"
 
 
-@serve.deployment(name=DEPLOYMENT_NAME, max_ongoing_requests=4, ray_actor_options={"num_cpus": 1})
+@serve.deployment(name=DEPLOYMENT_NAME, max_ongoing_requests=2, ray_actor_options={"num_cpus": 1})
 @serve.ingress()
 class RadarsegService:
     """One replica: settings from its environment plus ``settings`` overrides; the app is built in the replica."""

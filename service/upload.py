@@ -20,6 +20,7 @@ from service.schemas import InputKind
 ACCEPTED_DTYPES = {
     InputKind.complex: (np.complex64, np.complex128),
     InputKind.log_power: (np.float16, np.float32, np.float64),
+    InputKind.adc: (np.complex64, np.complex128),
 }
 MAX_HEADER_BYTES = 65536 + 12
 
@@ -58,8 +59,9 @@ def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int 
         raise ApiError(422, f"cube has dtype {header.dtype.name}, model {expected.model!r} expects "
                             f"{expected.describe()}{hint}", error="invalid_cube")
     if header.shape != expected.shape:
+        axes = "(samples, chirps, virtual elements)" if expected.kind is InputKind.adc else "(range, angle, Doppler)"
         raise ApiError(422, f"cube has shape {header.shape}, model {expected.model!r} expects {expected.shape} "
-                            f"(range, angle, Doppler)", error="invalid_cube")
+                            f"{axes}", error="invalid_cube")
     total = header.data_offset + header.nbytes
     if content_length is not None and content_length != total:
         raise ApiError(400, f"body is {content_length} bytes but its .npy header ({header.shape} "

@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 import time
 import uuid
 from typing import Annotated
 
 import numpy as np
-from fastapi import APIRouter, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Request, Response
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
 from models.erasenet import STAGES, SegmentationResult
+from radar.adc import adc_shape
+from radar.schema import SchemaMismatch, check_schema
 from service.deps import Caller, ServiceState, State
 from service.encoding import encode_array
 from service.errors import ApiError
@@ -120,6 +123,19 @@ def _compute(result: SegmentationResult, decode_s: float) -> tuple[Compute, int]
                    visited_points=c["visited_points"], detections=c["detections"]), compute_us
 
 
+def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind) -> None:
+    """422 naming every difference between the client's cube schema and the model's (radar.schema)."""
+    try:
+        given = json.loads(header)
+    except json.JSONDecodeError as exc:
+        raise ApiError(400, f"X-Cube-Schema is not valid JSON ({exc})") from None
+    content = {InputKind.log_power: "log_power_db"}.get(input_kind, "complex")
+    try:
+        check_schema(served.net.schema(content), given, what="cube")
+    except SchemaMismatch as exc:
+        raise ApiError(422, str(exc), error="schema_mismatch") from None
+
+
 def _usage(totals: DayTotals, quota: int | None) -> RequestUsage:
     return RequestUsage(tenant=totals.tenant, day=totals.day.isoformat(), requests=totals.requests, macs=totals.macs,
                         compute_seconds=totals.compute_seconds, quota_macs=quota,
@@ -173,6 +189,10 @@ async def segment(
     outputs: Annotated[str, Query(description="comma-separated among objects, masks, voxels",
                                   max_length=64)] = "objects,masks",
     encoding: Annotated[MaskEncoding, Query(description="encoding of masks and voxels")] = MaskEncoding.rle,
+    tdm_compensation: Annotated[bool, Query(description="?input=adc: compensate TDM Doppler-angle coupling")] = True,
+    cube_schema: Annotated[str | None, Header(alias="X-Cube-Schema", max_length=8192,
+                                              description="the cube's radar.schema description (JSON); a "
+                                                          "mismatch with the model's is a 422 naming it")] = None,
 ) -> Response:
     """Objects, RA/RD masks and optionally the labelled RAD voxels of one cube, with the request's MACs per
     stage, parameters, latency per stage, ROI voxels and visited points (also in ``X-Compute-*`` and
@@ -181,6 +201,8 @@ async def segment(
     _check_content_type(request)
     content_length = _content_length(request)
     served = _served_model(state, model)
+    if cube_schema is not None:
+        _check_cube_schema(cube_schema, served, input_kind)
     name, metrics, settings = served.spec.name, state.metrics, state.settings
     quota = settings.quota_for(caller.tenant)
     try:
@@ -200,7 +222,8 @@ async def segment(
                 metrics.rejected.labels(name, "quota").inc()
                 raise _quota_error(refused)
         start = time.perf_counter()
-        expected = ExpectedCube(name, served.net.profile.shape, input_kind)
+        shape = adc_shape(served.net.profile) if input_kind is InputKind.adc else served.net.profile.shape
+        expected = ExpectedCube(name, shape, input_kind)
         try:
             cube = await read_cube(request.stream(), expected, content_length=content_length)
         except ClientDisconnect:
@@ -208,7 +231,8 @@ async def segment(
         decode_s = time.perf_counter() - start
         submitted = True
         try:
-            result = await served.run(cube, is_log_power=input_kind is InputKind.log_power)
+            result = await served.run(cube, is_log_power=input_kind is InputKind.log_power,
+                                      adc_compensation=tdm_compensation if input_kind is InputKind.adc else None)
         except NotReady as exc:
             raise ApiError(503, str(exc), error="not_ready",
                            headers={"Retry-After": str(settings.retry_after_s)}) from None

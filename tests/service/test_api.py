@@ -205,3 +205,31 @@ def test_fortran_order_and_big_endian_cubes_give_the_same_answer(client, cube_bo
     bad = np.asfortranarray(frame.cube.copy())
     bad[0, 0, 0] = np.inf
     assert client.post("/v1/segment", content=npy_bytes(bad), headers=NPY).status_code == 422
+
+
+def test_raw_adc_input_gives_the_same_answer_as_its_cube(client, frame):
+    """?input=adc: the service runs the ADC -> RAD chain (radar.adc) before the model."""
+    adc = frame.extras["adc"]
+    by_cube = client.post("/v1/segment", content=npy_bytes(frame.cube), headers=NPY)
+    by_adc = client.post("/v1/segment?input=adc&tdm_compensation=false", content=npy_bytes(adc), headers=NPY)
+    assert by_cube.status_code == by_adc.status_code == 200, by_adc.text
+    for mask in ("ra_mask", "rd_mask"):
+        assert np.array_equal(decode_array(by_adc.json()[mask]), decode_array(by_cube.json()[mask]))
+    wrong = client.post("/v1/segment?input=adc", content=npy_bytes(frame.cube), headers=NPY)
+    assert wrong.status_code == 422 and "(samples, chirps, virtual elements)" in wrong.json()["detail"]
+
+
+def test_a_cube_schema_mismatch_is_a_422_naming_the_difference(client, cube_body):
+    import json
+
+    from radar.profiles import CARRADA, SMALL
+    from radar.schema import cube_schema
+
+    other = client.post("/v1/segment", content=cube_body,
+                        headers={**NPY, "X-Cube-Schema": json.dumps(cube_schema(CARRADA))})
+    assert other.status_code == 422
+    assert "range.step: expected 0.390625 m, got 0.1953125" in other.json()["detail"]
+    same = client.post("/v1/segment", content=cube_body,
+                       headers={**NPY, "X-Cube-Schema": json.dumps(cube_schema(SMALL))})
+    assert same.status_code == 200
+    assert client.post("/v1/segment", content=cube_body, headers={**NPY, "X-Cube-Schema": "{"}).status_code == 400
