@@ -46,6 +46,17 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_segment_batch(args: argparse.Namespace) -> int:
+    from pipelines.segment_batch import main, parse_args
+
+    result = main(parse_args(args.job_args, prog="radarseg segment-batch"))
+    print(f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
+          f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
+          f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
+          f"{result['workers']} worker(s) on {result['nodes']} node(s)")
+    return 0
+
+
 def _cmd_store_info(args: argparse.Namespace) -> int:
     from pipelines.store import format_summary, summarise
 
@@ -167,6 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                             "targets (arguments: radarseg preprocess --help)")
     pre.set_defaults(job_args=[])
     pre.set_defaults(func=_cmd_preprocess)
+    batch = sub.add_parser("segment-batch", add_help=False, help="Ray job: segment a store split or a recording "
+                                                                 "into a predictions store (arguments: radarseg "
+                                                                 "segment-batch --help)")
+    batch.set_defaults(job_args=[], func=_cmd_segment_batch)
 
     # Like preprocess: the jobs' own parsers read the arguments (radarseg train --help, radarseg evaluate --help).
     train = sub.add_parser("train", add_help=False, help="train the detector or the segmenter from a store "
@@ -230,7 +245,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if args.command in ("preprocess", "train", "evaluate"):
+    if args.command in ("preprocess", "segment-batch", "train", "evaluate"):
         args.job_args = extra  # read by the job's own parser
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
