@@ -25,7 +25,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.pipelines.conftest import BIN, REPO, free_port, ray_env, stop_group
+from tests.pipelines.conftest import BIN, REPO, free_port, ray_env, small_store, stop_group  # noqa: F401
 from tests.service.conftest import pg_prefix, postgres_url, tiny_checkpoints  # noqa: F401  (re-exported fixtures)
 
 
