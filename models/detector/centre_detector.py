@@ -214,12 +214,14 @@ def build_centre_detector(
     separable_heads: bool | None = None,
     stages: Sequence[MBConvStage] | None = None,
     cartesian: tuple[np.ndarray, np.ndarray] | None = None,
+    channels: dict[str, list[int]] | None = None,
 ) -> CentreDetector:
     """Centre detector for a radar preset.
 
     ``variant`` picks the stage table and head conv type from :data:`VARIANTS`; ``stages`` and
     ``separable_heads`` override them. ``cartesian`` (x, y metres, each (R, A)) defaults to the
-    preset's RA grid.
+    preset's RA grid. ``channels``: the per-layer widths of a slimmed detector
+    (:func:`models.slimming.apply_channel_table`), None for the full widths.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {sorted(VARIANTS)}, got {variant!r}")
@@ -245,14 +247,22 @@ def build_centre_detector(
         head_channels=head_channels,
         separable=chosen.separable_heads if separable_heads is None else separable_heads,
     )
-    return CentreDetector(
+    detector = CentreDetector(
         doppler_bins=doppler_bins, cartesian=cartesian, backbone=backbone, neck=neck, head=head
     )
+    if channels:
+        from models.slimming import apply_channel_table  # imports this package: only when slimmed
+
+        apply_channel_table(detector, channels)
+    return detector
 
 
 @register_model("centre_detector_tiny")
 def build_centre_detector_tiny(
-    *, preset: str | RadarProfile = "small", variant: str = SMALLER_VARIANT
+    *,
+    preset: str | RadarProfile = "small",
+    variant: str = SMALLER_VARIANT,
+    channels: dict[str, list[int]] | None = None,
 ) -> CentreDetector:
     """A 67 k-parameter detector with the real structure (every stage, BiFPN, three heads), for tests."""
     return build_centre_detector(
@@ -263,4 +273,5 @@ def build_centre_detector_tiny(
         neck_channels=16,
         neck_layers=1,
         head_channels=16,
+        channels=channels,
     )
