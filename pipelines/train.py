@@ -35,6 +35,11 @@ segmenter. Checkpoints are :class:`models.checkpoint.Checkpoint`: a model rebuil
 with its preset, class names and the store's normalisation statistics (``mean``, ``std`` in dB and
 ``mean_per_doppler``/``std_per_doppler`` lists, D values).
 
+Network slimming (SPEC section 11, :mod:`models.slimming`): ``--slim-lambda [L]`` adds ``L * sum |gamma|``
+over every BatchNorm scale to the loss (``slim_l1`` in the metrics; ``L`` is 1e-4 when the flag is given
+alone); ``--init CKPT`` starts from a checkpoint's architecture and weights (a pruned one carries its
+narrower ``channels`` table), for fine-tuning after ``radarseg prune``.
+
 ``--ray-workers N`` runs the same loop data-parallel under Ray Train's ``TorchTrainer`` (gloo on CPU,
 NCCL on GPU), against an embedded local Ray or ``--address``; rank 0 writes the run directory (it
 must be on storage every worker sees). Without it nothing of Ray is imported. Epochs are shuffled
@@ -66,6 +71,7 @@ from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.detector.targets import build_centre_targets
 from models.registry import create_model
 from models.segmenter.spvcnn import SPVCNN, PointTensor
+from models.slimming import slimming_penalty
 from models.sparse import SparseTensor
 from pipelines.store import OBJECT_FIELDS, StoreDataset, open_store
 from radar.metrics import DetectionEvaluator, confusion_matrix, mean_iou
@@ -142,6 +148,8 @@ class TrainConfig:
     address: str | None = None  # Ray address for --ray-workers (None = embedded local Ray)
     threads: int = 0  # torch intra-op threads (0 = torch's default)
     progress: bool = True
+    slim_lambda: float = 0.0  # network slimming: weight of the L1 penalty on every BatchNorm scale
+    init: str | None = None  # start from this checkpoint's architecture and weights (fine-tuning)
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:
@@ -154,6 +162,8 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {value}")
         if self.lr is not None and not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+        if not self.slim_lambda >= 0:
+            raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
         if self.ray_workers < 0 or self.workers < 0:
             raise ValueError(f"ray_workers and workers must be >= 0, got {self.ray_workers}, {self.workers}")
         if self.jitter_from and self.jitter_std:
@@ -188,7 +198,7 @@ class TrainConfig:
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run it continues."""
         keep = ("stage", "store", "profile", "model", "model_config", "batch_size", "lr", "seed", "train_split",
-                "jitter_from", "jitter_std")
+                "jitter_from", "jitter_std", "slim_lambda", "init")
         return {k: v for k, v in self.to_dict().items() if k in keep}
 
 
@@ -659,6 +669,12 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
     hyper = cfg.hyper()
     run_dir = Path(cfg.out)
     store = StoreInfo.read(cfg.store)
+    init = load_checkpoint(cfg.init) if cfg.init else None
+    if init is not None:  # the checkpoint's architecture (a pruned one carries its channels table)
+        if init.preset != store.profile.name:
+            raise ValueError(f"--init {cfg.init} is for preset {init.preset!r}, the store for {store.profile.name!r}")
+        hyper = dataclasses.replace(hyper, model=init.model_name,
+                                    model_config={k: v for k, v in init.config.items() if k != "preset"})
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
@@ -681,6 +697,8 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
     task = TASKS[cfg.stage](cfg, hyper, store, run_dir)
     task.prepare(world.rank)
     model = task.build_model().to(device)
+    if init is not None:
+        model.load_state_dict(init.state_dict)
     optimizer = task.optimizer(model.parameters())
     dataset = task.train_dataset()
     if len(dataset) < world.size * hyper.batch_size:
@@ -718,6 +736,9 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
                    disable=not cfg.progress or world.rank != 0, dynamic_ncols=True)
         for batch in bar:
             named = task.loss(model, batch, device)
+            if cfg.slim_lambda:  # network slimming: L1 on every BatchNorm scale
+                named["slim_l1"] = cfg.slim_lambda * slimming_penalty(unwrap(model))
+                named["total"] = named["total"] + named["slim_l1"]
             optimizer.zero_grad(set_to_none=True)
             named["total"].backward()
             optimizer.step()
@@ -854,6 +875,9 @@ def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentPa
     parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
     parser.add_argument("--address", help="Ray address (default: embedded local Ray)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
+                        help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
+    parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
     parser.add_argument("--no-progress", action="store_true")
     return parser
 
@@ -866,7 +890,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
         val_split=None if args.val_split.lower() == "none" else args.val_split, max_steps=args.max_steps,
         resume=args.resume, workers=args.workers, jitter_from=args.jitter_from,
         jitter_std=tuple(args.jitter_std) if args.jitter_std else None, ray_workers=args.ray_workers,
-        address=args.address, threads=args.threads, progress=not args.no_progress)
+        address=args.address, threads=args.threads, progress=not args.no_progress, slim_lambda=args.slim_lambda,
+        init=args.init)
 
 
 def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.train") -> TrainConfig:

@@ -16,6 +16,10 @@ mirroring of whole windows.
 Profiles (:data:`PROFILES`): ``paper`` is the reference's recipe (300 epochs, batch 6, Adam 1e-4,
 x0.9 every 20 epochs, flips); ``quick`` is a CPU budget for the ``small`` preset (not tuned yet).
 
+Network slimming as in :mod:`pipelines.train`: ``--slim-lambda [L]`` (L1 on every BatchNorm scale, 1e-4 when
+given alone) and ``--init CKPT`` (start from a checkpoint's architecture and weights, e.g. a pruned one; the
+paper fine-tunes the baselines at lr 1e-5).
+
 The run directory follows :mod:`pipelines.train`: ``config.json`` (with the resolved hyperparameters),
 ``metrics.jsonl`` (one line per epoch), ``last.pt`` (weights, optimiser, scheduler: ``--resume``),
 ``model.pt`` (the epoch with the best validation mIoU, mean over the predicted views), all
@@ -45,6 +49,7 @@ from tqdm import tqdm
 from models.baselines.losses import MultiViewLoss, class_weights_from_counts
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.registry import create_model
+from models.slimming import slimming_penalty
 from pipelines.train import StoreInfo, resolve_device
 from pipelines.views import ViewDataset, ViewStats, collate_views, masks_of, model_inputs, view_class_counts
 from radar.metrics import confusion_matrix, iou_per_class, mean_iou
@@ -97,6 +102,8 @@ class BaselineConfig:
     resume: bool = False
     workers: int = 0
     progress: bool = True
+    slim_lambda: float = 0.0  # network slimming: weight of the L1 penalty on every BatchNorm scale
+    init: str | None = None  # start from this checkpoint's architecture and weights (fine-tuning)
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -115,6 +122,8 @@ class BaselineConfig:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
+        if not self.slim_lambda >= 0:
+            raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
 
     def hyper(self) -> BaselineHyper:
         overrides = {name: getattr(self, name) for name in ("epochs", "batch_size", "lr") if getattr(self, name)}
@@ -139,7 +148,8 @@ class BaselineConfig:
 
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run it continues."""
-        keep = ("model", "store", "profile", "view", "model_config", "batch_size", "lr", "seed", "train_split")
+        keep = ("model", "store", "profile", "view", "model_config", "batch_size", "lr", "seed", "train_split",
+                "slim_lambda", "init")
         return {k: v for k, v in self.to_dict().items() if k in keep}
 
 
@@ -221,7 +231,15 @@ def train_baseline(cfg: BaselineConfig) -> dict[str, Any]:
     config_path.write_text(json.dumps({**cfg.to_dict(), "resolved": dataclasses.asdict(hyper)}, indent=2))
 
     builder_config = cfg.builder_config(store.profile.name)
+    init = load_checkpoint(cfg.init) if cfg.init else None
+    if init is not None:  # the checkpoint's architecture (a pruned one carries its channels table)
+        if init.model_name != cfg.model or init.preset != store.profile.name:
+            raise ValueError(f"--init {cfg.init} holds {init.model_name} for preset {init.preset!r}, not "
+                             f"{cfg.model} for {store.profile.name!r}")
+        builder_config = dict(init.config)
     model = create_model(cfg.model, **builder_config).to(device)
+    if init is not None:
+        model.load_state_dict(init.state_dict)
     views = predicted_views(model)
     stats = ViewStats.from_store(cfg.store, cfg.train_split)
     weights = class_weights(cfg.store, cfg.train_split, views)
@@ -269,6 +287,9 @@ def train_baseline(cfg: BaselineConfig) -> dict[str, Any]:
                    disable=not cfg.progress, dynamic_ncols=True)
         for batch in bar:
             named = loss_fn(model(*model_inputs(model, batch, device)), masks_of(batch, device))
+            if cfg.slim_lambda:  # network slimming: L1 on every BatchNorm scale
+                named["slim_l1"] = cfg.slim_lambda * slimming_penalty(model)
+                named["total"] = named["total"] + named["slim_l1"]
             optimizer.zero_grad(set_to_none=True)
             named["total"].backward()
             optimizer.step()
@@ -334,6 +355,9 @@ def build_parser(prog: str = "python -m pipelines.train_baselines") -> argparse.
     parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
     parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
+    parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
+                        help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
+    parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
     parser.add_argument("--no-progress", action="store_true")
     return parser
 
@@ -344,7 +368,8 @@ def config_from_args(args: argparse.Namespace) -> BaselineConfig:
         model_config=args.model_config, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
         device=args.device, train_split=args.train_split,
         val_split=None if args.val_split.lower() == "none" else args.val_split, max_steps=args.max_steps,
-        resume=args.resume, workers=args.workers, progress=not args.no_progress)
+        resume=args.resume, workers=args.workers, progress=not args.no_progress, slim_lambda=args.slim_lambda,
+        init=args.init)
 
 
 def parse_args(argv: Sequence[str] | None = None, *,
