@@ -426,6 +426,9 @@ class ShardSegmenter:
         started = time.perf_counter()
         self.net = EraseNet.from_checkpoints(detector, segmenter, score_threshold=score_threshold,
                                              max_objects=max_objects)
+        # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
+        # not count against the first shard.
+        self.net.segment(np.zeros(self.net.profile.shape, np.float32), is_log_power=True)
         self.model_loads = 1
         self.load_seconds = time.perf_counter() - started
         self.calls = 0
