@@ -73,6 +73,29 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_prune(args: argparse.Namespace) -> int:
+    from models.checkpoint import load_checkpoint, save_checkpoint
+    from models.slimming import prune_checkpoint
+
+    pruned, report = prune_checkpoint(load_checkpoint(args.checkpoint), ratio=args.ratio, params=args.params,
+                                      macs=args.macs, min_channels=args.min_channels)
+    save_checkpoint(pruned, args.out)
+    macs = (f", MACs {report.macs_before / 1e9:.3f} G -> {report.macs_after / 1e9:.3f} G"
+            if report.macs_before is not None else "")
+    print(f"{args.out}: ratio {report.ratio:.3f}, {report.removed_channels}/{report.candidate_channels} channels "
+          f"removed (threshold {report.threshold:.3g}), params {report.params_before:,} -> {report.params_after:,}"
+          f"{macs}")
+    return 0
+
+
+def _cmd_slim_sweep(args: argparse.Namespace) -> int:
+    from pipelines.slim_sweep import main, parse_args
+
+    result = main(parse_args(args.job_args, prog="radarseg slim-sweep"))
+    print(f"table: {result['table']}\nplot: {result['plot']}")
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from pipelines.evaluate import build_parser as evaluate_parser
     from pipelines.evaluate import config_from_args, evaluate, format_summary
@@ -191,6 +214,21 @@ def build_parser() -> argparse.ArgumentParser:
                                                                "metrics.json, report.md, pictures")
     evaluate.set_defaults(job_args=[], func=_cmd_evaluate)
 
+    prune = sub.add_parser("prune", help="network slimming: remove the channels with the smallest BatchNorm "
+                                         "scales, save a genuinely narrower checkpoint")
+    prune.add_argument("--checkpoint", required=True, help="checkpoint to prune (ideally trained with --slim-lambda)")
+    budget = prune.add_mutually_exclusive_group(required=True)
+    budget.add_argument("--ratio", type=float, help="fraction of BatchNorm channels removed (global threshold)")
+    budget.add_argument("--params", type=int, help="or: largest parameter count of the pruned model")
+    budget.add_argument("--macs", type=int, help="or: largest MACs per frame (dense models: detector, baselines)")
+    prune.add_argument("--min-channels", type=int, default=1, help="channels every layer keeps at least")
+    prune.add_argument("--out", required=True, help="pruned checkpoint")
+    prune.set_defaults(func=_cmd_prune)
+    sweep = sub.add_parser("slim-sweep", add_help=False, help="compression sweep: prune (and fine-tune) at several "
+                                                              "ratios, reports/slimming.md and .png "
+                                                              "(arguments: radarseg slim-sweep --help)")
+    sweep.set_defaults(job_args=[], func=_cmd_slim_sweep)
+
     store = sub.add_parser("store", help="inspect a preprocessed store")
     store_sub = store.add_subparsers(dest="store_command", required=True)
     info = store_sub.add_parser("info", help="frames per split, class counts, statistics, quarantined frames")
@@ -245,7 +283,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if args.command in ("preprocess", "segment-batch", "train", "evaluate"):
+    if args.command in ("preprocess", "segment-batch", "train", "evaluate", "slim-sweep"):
         args.job_args = extra  # read by the job's own parser
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")
