@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 import copy
 import importlib
+import importlib.resources
+import importlib.util
 import json
 import os
 import re
@@ -33,6 +35,7 @@ COMPOSE = DEPLOY / "docker-compose.yml"
 # Placeholder secrets for the interpolation of ${VAR:?} (the file refuses to render without them).
 SECRETS = {"RAY_AUTH_TOKEN": "test-token-0123456789abcdef", "POSTGRES_PASSWORD": "test-password",
            "RADARSEG_API_KEYS": json.dumps({"key-test-0123456789abcdef": "acme"})}
+SERVE_MISSING = "Ray Serve's dependencies (ray[serve]) are not installed"
 INTERPOLATION = re.compile(r"\$\{(\w+)(?::?[-?])?([^}]*)\}")
 
 
@@ -68,10 +71,11 @@ def _dockerfile_instructions() -> list[tuple[str, str]]:
 
 # --------------------------------------------------------------------------- schema and config checks
 def test_compose_file_matches_the_compose_specification_schema():
-    jsonschema = pytest.importorskip("jsonschema")
-    resources = pytest.importorskip("importlib.resources")
+    import jsonschema
+
     pytest.importorskip("check_jsonschema", reason="check-jsonschema (vendors the compose-spec schema) not installed")
-    schema = json.loads((resources.files("check_jsonschema.builtin_schemas.vendor") / "compose-spec.json").read_text())
+    vendored = importlib.resources.files("check_jsonschema.builtin_schemas.vendor") / "compose-spec.json"
+    schema = json.loads(vendored.read_text())
     validator = jsonschema.Draft202012Validator(schema)
     errors = [f"{'/'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(_compose())]
     assert not errors, errors
@@ -256,6 +260,7 @@ def test_healthcheck_script_roles(tmp_path):
 
 # --------------------------------------------------------------------------- the Serve config vs the project
 def test_serve_config_validates_and_points_at_the_service():
+    pytest.importorskip("ray.serve", reason=SERVE_MISSING)
     from ray.serve.schema import ServeDeploySchema
 
     from service.settings import Settings
@@ -282,6 +287,7 @@ def test_serve_config_validates_and_points_at_the_service():
 
 
 def test_serve_application_builder_checks_its_arguments():
+    pytest.importorskip("ray.serve", reason=SERVE_MISSING)
     from service.serve_app import RadarsegService, build_app
 
     assert build_app({"settings": {"max_queue": 3}}) is not None

@@ -126,6 +126,7 @@ def _serve_cli(cluster, *args: str) -> subprocess.CompletedProcess:
 
 def test_ray_serve_two_replicas_serve_concurrent_requests(cluster, tiny_checkpoints, postgres_url, pg_prefix,
                                                           tmp_path):
+    pytest.importorskip("ray.serve", reason="Ray Serve's dependencies (ray[serve]) are not installed")
     port = free_port()
     ledger = {"ledger_url": postgres_url, "ledger_table_prefix": pg_prefix}
     config_path = tmp_path / "serve.yaml"
