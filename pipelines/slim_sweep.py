@@ -1,0 +1,320 @@
+"""Compression sweep of network slimming (issue 9; SPEC section 11): prune, optionally fine-tune, score.
+
+The job is ``parse_args() -> main(cfg) -> dict``::
+
+    python -m pipelines.slim_sweep --store STORE.zarr --detector DET.pt --minkunet SEG_M.pt --spvcnn SEG_S.pt \\
+        --smvanet SMVA.pt [--ratios 0.1 0.3 0.4 0.6 0.7] [--split test] [--max-frames N] [--finetune-steps S]
+    radarseg slim-sweep ...                                      # the same arguments
+
+For every given checkpoint and every ratio (0 included: the unpruned reference) the checkpoint is pruned
+with :func:`models.slimming.prune_checkpoint` (one global BatchNorm-scale threshold), fine-tuned for
+``--finetune-steps`` optimiser steps with ``--init`` (0: prune only; the paper fine-tunes 50 epochs at
+lr 1e-3 for ERASE-Net and 1e-5 for the baselines, the defaults of ``--lr-*``), then scored on ``--split``:
+
+- detector: AP at 1/3/5 m and mAP (the trainer's validation: :meth:`pipelines.train.DetectorTask.validate`);
+- ERASE-Net (M) / (S): the pruned MinkUNet / SPVCNN behind the *unpruned* detector, end to end with
+  :func:`pipelines.evaluate.evaluate` (RA and RD mIoU, background included; segmenter params and mean
+  segmenter MACs per frame, which depend on the ROI);
+- SMVA-Net: :func:`pipelines.train_baselines.score_baseline` (RA and RD mIoU), params and analytic MACs.
+
+Writes ``OUT/slimming.md`` (tables in the paper's form, with the command and what was done),
+``OUT/slimming.png`` (RA and RD mIoU against the parameters left, ERASE-Net (M), ERASE-Net (S), SMVA-Net)
+and ``OUT/slimming.json`` (every figure); pruned checkpoints and fine-tune runs go to ``--work``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import shlex
+import shutil
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from models.compute import count_macs, count_params
+from models.slimming import dense_input_shapes, prune_checkpoint
+
+log = logging.getLogger(__name__)
+
+PAPER_RATIOS = (0.1, 0.3, 0.4, 0.6, 0.7)
+SEGMENTERS = {"minkunet": "ERASE-Net (M)", "spvcnn": "ERASE-Net (S)"}
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """A sweep. Checkpoints left as None are skipped (the segmenters need the detector)."""
+
+    store: str
+    out: str = "reports"
+    work: str = "out/slim-sweep"
+    detector: str | None = None
+    minkunet: str | None = None
+    spvcnn: str | None = None
+    smvanet: str | None = None
+    ratios: tuple[float, ...] = PAPER_RATIOS
+    split: str = "test"
+    max_frames: int = 0  # frames scored per model and ratio (0 = the whole split)
+    finetune_steps: int = 0  # 0 = prune only
+    lr_erasenet: float = 1e-3
+    lr_baseline: float = 1e-5
+    batch_size: int = 4
+    threads: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if any(not 0 <= r < 1 for r in self.ratios):
+            raise ValueError(f"ratios must lie in [0, 1), got {self.ratios}")
+        if (self.minkunet or self.spvcnn) and not self.detector:
+            raise ValueError("the ERASE-Net segmenters are scored end to end: give --detector too")
+        if self.max_frames < 0 or self.finetune_steps < 0:
+            raise ValueError("max_frames and finetune_steps must be >= 0")
+
+
+# --------------------------------------------------------------------------- scoring
+def score_detector(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
+    """AP@1/3/5 and mAP of a detector checkpoint on ``cfg.split`` (up to ``cfg.max_frames`` frames)."""
+    from pipelines.train import DetectorTask, StoreInfo, TrainConfig
+
+    train_cfg = TrainConfig(stage="detector", store=cfg.store, out=cfg.work, val_split=cfg.split, progress=False)
+    hyper = dataclasses.replace(train_cfg.hyper(), val_frames=cfg.max_frames)
+    task = DetectorTask(train_cfg, hyper, StoreInfo.read(cfg.store), Path(cfg.work))
+    metrics = task.validate(load_checkpoint(path).build(), torch.device("cpu"))
+    return {k.removeprefix("val_"): float(v) for k, v in metrics.items() if k.startswith("val_AP") or k == "val_mAP"}
+
+
+def _radar_profile_safe(path: str | Path, work: Path, role: str) -> str:
+    """A copy of a trainer checkpoint whose ``extra["profile"]`` (the training profile name, e.g. "quick")
+    is renamed: :meth:`models.erasenet.EraseNet.from_checkpoints` reads that key as a radar description.
+    Checkpoints without the clash are used as they are."""
+    checkpoint = load_checkpoint(path)
+    if not isinstance(checkpoint.extra.get("profile"), str):
+        return str(path)
+    extra = dict(checkpoint.extra)
+    extra["training_profile"] = extra.pop("profile")
+    return str(save_checkpoint(dataclasses.replace(checkpoint, extra=extra), work / f"{role}.pt"))
+
+
+def score_segmenter(path: str | Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
+    """RA/RD mIoU of ERASE-Net with this segmenter behind the unpruned detector, and the segmenter's cost."""
+    from pipelines.evaluate import EvaluateConfig, evaluate
+
+    work = Path(cfg.work) / f"eval-{tag}"
+    detector = _radar_profile_safe(cfg.detector, work, "detector")
+    segmenter = _radar_profile_safe(path, work, "segmenter")
+    metrics = evaluate(EvaluateConfig(detector=detector, segmenter=segmenter, store=cfg.store,
+                                      out=str(work), split=cfg.split,
+                                      max_frames=cfg.max_frames, pictures=0, sweep=(), sweep_frames=0,
+                                      oracle=False, progress=False))
+    cost = metrics["cost"]
+    return {"mIoU_RA": metrics["segmentation"]["RA"]["mIoU"], "mIoU_RD": metrics["segmentation"]["RD"]["mIoU"],
+            "macs": float(cost["macs_mean"].get("segment", float("nan"))), "frames": metrics.get("frames")}
+
+
+def score_smvanet(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
+    """RA/RD mIoU of a multi-view baseline and its analytic MACs (both counting conventions)."""
+    from pipelines.train_baselines import load_baseline, score_baseline
+    from pipelines.views import ViewDataset
+
+    model, checkpoint, stats = load_baseline(path)
+    dataset = ViewDataset(cfg.store, cfg.split, n_frames=model.n_frames, stats=stats, limit=cfg.max_frames)
+    scores = score_baseline(model, dataset, num_classes=len(checkpoint.class_names))
+    report = count_macs(model, *dense_input_shapes(model, checkpoint.preset))
+    return {"mIoU_RA": scores["mIoU_ra"], "mIoU_RD": scores["mIoU_rd"], "macs": float(report.macs),
+            "macs_paper": float(report.macs_paper), "frames": scores["frames"]}
+
+
+# --------------------------------------------------------------------------- fine-tuning
+def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
+    """``cfg.finetune_steps`` steps from the pruned checkpoint with the trainers' ``--init``; the last weights.
+
+    ``run`` belongs to the sweep: a run left there by an earlier sweep is replaced."""
+    shutil.rmtree(run, ignore_errors=True)
+    if kind == "smvanet":
+        from pipelines.train_baselines import BaselineConfig
+        from pipelines.train_baselines import main as train_baseline
+
+        train_baseline(BaselineConfig(model=load_checkpoint(pruned).model_name, store=cfg.store, out=str(run),
+                                      init=str(pruned), lr=cfg.lr_baseline, epochs=10_000,
+                                      batch_size=cfg.batch_size, max_steps=cfg.finetune_steps, val_split=None,
+                                      seed=cfg.seed, progress=False))
+    else:
+        from pipelines.train import TrainConfig
+        from pipelines.train import main as train
+
+        stage = "detector" if kind == "detector" else "segmenter"
+        train(TrainConfig(stage=stage, store=cfg.store, out=str(run), init=str(pruned), lr=cfg.lr_erasenet,
+                          epochs=10_000, batch_size=cfg.batch_size, max_steps=cfg.finetune_steps, val_split=None,
+                          seed=cfg.seed, threads=cfg.threads, progress=False,
+                          jitter_std=None if stage == "detector" else (1.0, 1.0, 0.5)))
+    return run / "model.pt"  # without validation model.pt holds the latest weights
+
+
+# --------------------------------------------------------------------------- the sweep
+def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
+    """Rows (one per ratio, 0 first) for one checkpoint."""
+    checkpoint: Checkpoint = load_checkpoint(path)
+    work = Path(cfg.work) / kind
+    rows = []
+    for ratio in sorted({0.0, *cfg.ratios}):
+        started = time.perf_counter()
+        tag = f"{kind}-r{ratio:.2f}"
+        if ratio == 0:
+            scored, params, macs_dense = Path(path), count_params(checkpoint.build()), None
+        else:
+            pruned, report = prune_checkpoint(checkpoint, ratio=ratio)
+            scored = save_checkpoint(pruned, work / f"pruned-r{ratio:.2f}.pt")
+            params, macs_dense = report.params_after, report.macs_after
+            if cfg.finetune_steps:
+                scored = finetune(kind, scored, work / f"finetune-r{ratio:.2f}", cfg)
+        if kind == "detector":
+            scores = score_detector(scored, cfg)
+            macs_dense = macs_dense or count_macs(checkpoint.build(),
+                                                  *dense_input_shapes(checkpoint.build(), checkpoint.preset)).macs
+            scores["macs"] = float(macs_dense)
+        elif kind == "smvanet":
+            scores = score_smvanet(scored, cfg)
+        else:
+            scores = score_segmenter(scored, cfg, tag)
+        rows.append({"model": kind, "ratio": ratio, "params": params, "finetune_steps": cfg.finetune_steps if ratio
+                     else 0, "checkpoint": str(scored), "seconds": time.perf_counter() - started, **scores})
+        log.info("%s ratio %.2f: %s", kind, ratio, {k: v for k, v in rows[-1].items() if isinstance(v, float)})
+    return rows
+
+
+def _pct(value: float) -> str:
+    return "n/a" if value is None or value != value else f"{100 * value:.2f}"
+
+
+def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, seconds: float) -> str:
+    """``slimming.md``: the detector table and the segmentation table in the paper's form."""
+    what = (f"pruned, then fine-tuned for {cfg.finetune_steps} optimiser steps (batch {cfg.batch_size}; lr "
+            f"{cfg.lr_erasenet:g} ERASE-Net, {cfg.lr_baseline:g} SMVA-Net)" if cfg.finetune_steps
+            else "pruned only, **no fine-tuning** (the paper fine-tunes 50 epochs after pruning)")
+    lines = ["# Network slimming: compression sweep", "",
+             f"Made by `{command}` in {seconds / 60:.1f} min on a shared 2-core CPU.", "",
+             f"- Store `{cfg.store}`, split `{cfg.split}`, "
+             f"{'all frames' if not cfg.max_frames else f'up to {cfg.max_frames} frames'} per model and ratio.",
+             f"- Each checkpoint was {what}. Ratio = fraction of BatchNorm channels removed under one global "
+             "threshold (`models/slimming.py`); params are those of the genuinely narrower rebuilt model "
+             "(all of them non-zero).",
+             "- Segmenter rows run ERASE-Net end to end behind the *unpruned* detector; their MACs are the "
+             "segmenter's mean per frame (ROI-dependent). SMVA-Net MACs are analytic per frame (FlopCounter "
+             "convention; the paper's counter in brackets).", ""]
+    sources = {r["model"]: r["checkpoint"] for r in rows if r["ratio"] == 0}
+    lines += ["Checkpoints: " + ", ".join(f"{k} `{v}`" for k, v in sources.items()), ""]
+    det = [r for r in rows if r["model"] == "detector"]
+    if det:
+        lines += ["## Detector", "", "| ratio | params (M) | GMACs | AP@1 | AP@3 | AP@5 | mAP |",
+                  "|---|---|---|---|---|---|---|"]
+        for r in det:
+            ap = " | ".join(f"{r.get(k, float('nan')):.3f}" for k in ("AP@1", "AP@3", "AP@5", "mAP"))
+            lines.append(f"| {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {r['macs'] / 1e9:.3f} | {ap} |")
+        lines += [""]
+    seg = [r for r in rows if r["model"] != "detector"]
+    if seg:
+        lines += ["## Segmentation (mIoU %, background included)", "",
+                  "| model | ratio | params (M) | GMACs | RA mIoU | RD mIoU |", "|---|---|---|---|---|---|"]
+        for r in seg:
+            name = SEGMENTERS.get(r["model"], "SMVA-Net")
+            macs = f"{r['macs'] / 1e9:.4f}" + (f" [{r['macs_paper'] / 1e9:.4f}]" if "macs_paper" in r else "")
+            lines.append(f"| {name} | {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {macs} | {_pct(r['mIoU_RA'])} "
+                         f"| {_pct(r['mIoU_RD'])} |")
+        lines += ["", "![mIoU against parameters](slimming.png)", ""]
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> Path | None:
+    """RA and RD mIoU against the parameters left, one line per segmentation model."""
+    seg = [r for r in rows if r["model"] != "detector"]
+    if not seg:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for view, ax in zip(("RA", "RD"), axes, strict=True):
+        for kind in dict.fromkeys(r["model"] for r in seg):
+            points = sorted((r["params"] / 1e6, 100 * r[f"mIoU_{view}"], r["ratio"]) for r in seg if r["model"] == kind)
+            ax.plot([p[0] for p in points], [p[1] for p in points], "o-", label=SEGMENTERS.get(kind, "SMVA-Net"))
+            for x, y, ratio in points:
+                ax.annotate(f"{ratio:.1f}", (x, y), fontsize=7, textcoords="offset points", xytext=(3, 3))
+        ax.set_xscale("log")
+        ax.set_xlabel("non-zero parameters (M)")
+        ax.set_title(f"{view} view")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("mIoU (%)")
+    axes[0].legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(cfg: SweepConfig, command: str | None = None) -> dict[str, Any]:
+    """Run the sweep; returns the rows and where the table, plot and JSON were written."""
+    torch.set_num_threads(max(1, cfg.threads))
+    started = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    for kind in ("detector", "minkunet", "spvcnn", "smvanet"):
+        path = getattr(cfg, kind)
+        if path:
+            rows += sweep_model(kind, path, cfg)
+    if not rows:
+        raise ValueError("give at least one checkpoint (--detector, --minkunet, --spvcnn, --smvanet)")
+    seconds = time.perf_counter() - started
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if command is None:
+        program = "python -m pipelines.slim_sweep" if sys.argv[0].endswith(".py") else Path(sys.argv[0]).name
+        command = " ".join([program, *(shlex.quote(a) for a in sys.argv[1:])])
+    table = out / "slimming.md"
+    table.write_text(format_report(rows, cfg, command, seconds))
+    (out / "slimming.json").write_text(json.dumps({"config": dataclasses.asdict(cfg), "command": command,
+                                                   "seconds": seconds, "rows": rows}, indent=2))
+    return {"table": str(table), "plot": str(plot(rows, out / "slimming.png")), "rows": rows, "seconds": seconds}
+
+
+def build_parser(prog: str = "python -m pipelines.slim_sweep") -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description="network slimming sweep: prune, fine-tune, score")
+    parser.add_argument("--store", required=True, help="preprocessed store (zarr) to score (and fine-tune) on")
+    parser.add_argument("--out", default="reports", help="where slimming.md/.png/.json go")
+    parser.add_argument("--work", default="out/slim-sweep", help="pruned checkpoints and fine-tune runs")
+    for kind in ("detector", "minkunet", "spvcnn", "smvanet"):
+        parser.add_argument(f"--{kind}", help=f"{kind} checkpoint (trained with --slim-lambda, ideally)")
+    parser.add_argument("--ratios", type=float, nargs="+", default=list(PAPER_RATIOS))
+    parser.add_argument("--split", default="test")
+    parser.add_argument("--max-frames", type=int, default=0, help="frames scored per model and ratio (0: all)")
+    parser.add_argument("--finetune-steps", type=int, default=0, help="optimiser steps after pruning (0: none)")
+    parser.add_argument("--lr-erasenet", type=float, default=1e-3)
+    parser.add_argument("--lr-baseline", type=float, default=1e-5)
+    parser.add_argument("--batch-size", type=int, default=4)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.slim_sweep") -> SweepConfig:
+    args = build_parser(prog).parse_args(argv)
+    return SweepConfig(store=args.store, out=args.out, work=args.work, detector=args.detector,
+                       minkunet=args.minkunet, spvcnn=args.spvcnn, smvanet=args.smvanet, ratios=tuple(args.ratios),
+                       split=args.split, max_frames=args.max_frames, finetune_steps=args.finetune_steps,
+                       lr_erasenet=args.lr_erasenet, lr_baseline=args.lr_baseline, batch_size=args.batch_size,
+                       threads=args.threads, seed=args.seed)
+
+
+if __name__ == "__main__":
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    result = main(parse_args())
+    print(json.dumps({k: v for k, v in result.items() if k != "rows"}, indent=2))
