@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections.abc import Callable
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -236,3 +238,32 @@ def test_sparsity_training_drives_scales_toward_zero():
     plain, sparse = train(0.0), train(0.3)  # strong lambda: 30 steps must show it
     assert plain > 0.9
     assert sparse < 0.8 * plain
+
+
+def test_pruned_checkpoints_serve_through_erasenet_with_fewer_macs(tmp_path):
+    """The service's path: EraseNet.from_checkpoints on pruned checkpoints, compute report included."""
+    from models.erasenet import EraseNet
+    from radar.detections import Centres
+    from radar.simulate import simulate_sequence
+
+    frame = next(iter(simulate_sequence("small", 1, seed=3)))
+    cube = frame.cube
+    seeds = Centres.from_bins(np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin]
+                                        for o in frame.objects if o.n_voxels]))
+    paths = {}
+    for stage, name in (("det", "centre_detector_tiny"), ("seg", "minkunet_tiny")):
+        torch.manual_seed(0)
+        model = create_model(name, preset="small")
+        _randomise_norms(model, seed=3)
+        checkpoint = dataclasses.replace(_checkpoint(name, model), normalisation={"mean": 60.0, "std": 8.0})
+        paths[stage] = save_checkpoint(checkpoint, tmp_path / f"{stage}.pt")
+        paths[f"{stage}_pruned"] = save_checkpoint(prune_checkpoint(checkpoint, ratio=0.5)[0],
+                                                   tmp_path / f"{stage}_pruned.pt")
+    full = EraseNet.from_checkpoints(paths["det"], paths["seg"], score_threshold=0.0, max_objects=2)
+    slim = EraseNet.from_checkpoints(paths["det_pruned"], paths["seg_pruned"], score_threshold=0.0, max_objects=2)
+    assert 0 < slim.segment(cube).compute["macs"]["detect"] < full.segment(cube).compute["macs"]["detect"]
+    # the same seeds (the same ROI) for both segmenters: fewer channels, fewer MACs
+    full_macs = full.segment(cube, centres=seeds).compute["macs"]
+    slim_macs = slim.segment(cube, centres=seeds).compute["macs"]
+    assert 0 < slim_macs["segment"] < full_macs["segment"]
+    assert slim.params["detector"] < full.params["detector"] and slim.params["segmenter"] < full.params["segmenter"]
