@@ -54,7 +54,7 @@ class EvaluateConfig:
     segmenter: str
     store: str
     out: str
-    split: str = "test"
+    split: str | None = "test"  # None: every frame of the store
     max_frames: int = 0  # 0 = every frame of the split
     pictures: int = 4
     sweep: tuple[float, ...] = D_THRESH_SWEEP_M
@@ -117,6 +117,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     if root.attrs["preset"] != profile.name:
         raise ValueError(f"store {cfg.store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
     frames = frames_of_split(root, cfg.split)
+    split_name = cfg.split or "all"
     if cfg.max_frames:
         frames = frames[_spread(len(frames), cfg.max_frames)]
     if len(frames) == 0:
@@ -134,7 +135,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     seconds: dict[str, list[float]] = {}
     pictures: list[str] = []
     started = time.perf_counter()
-    for slot in tqdm(frames, desc=f"evaluate {cfg.split}", unit="frame", disable=not cfg.progress):
+    for slot in tqdm(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
         log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
         instances = arrays["instances"][slot]
@@ -180,7 +181,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
             path = plot_truth_vs_prediction(
                 log_power, profile, (truth_ra, truth_rd), (result.ra_mask, result.rd_mask),
                 out / f"frame_{slot:05d}.png", truth_objects=truth_notes, predicted_objects=pred_notes,
-                title=f"{cfg.split} frame {slot}: ground truth (top) / prediction (bottom)")
+                title=f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)")
             pictures.append(path.name)
 
     curves = detection.curves()
@@ -188,11 +189,11 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
                                        out / "pr_curves.png").name]
     for view in ("RA", "RD"):
         summary_pictures.append(plot_confusion(confusion[view], class_names, out / f"confusion_{view.lower()}.png",
-                                               title=f"{view} confusion ({cfg.split}, {len(frames)} frames)").name)
+                                               title=f"{view} confusion ({split_name}, {len(frames)} frames)").name)
     pictures = summary_pictures + pictures
     summary = detection.summary()
     metrics: dict[str, Any] = {
-        "store": str(cfg.store), "split": cfg.split, "frames": len(frames), "preset": profile.name,
+        "store": str(cfg.store), "split": split_name, "frames": len(frames), "preset": profile.name,
         "detector": str(cfg.detector), "segmenter": str(cfg.segmenter),
         "models": {"detector": det_ckpt.model_name, "segmenter": seg_ckpt.model_name},
         "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
@@ -233,7 +234,7 @@ def build_parser(prog: str = "python -m pipelines.evaluate") -> argparse.Argumen
     parser.add_argument("--detector", required=True, help="detector checkpoint")
     parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
     parser.add_argument("--store", required=True)
-    parser.add_argument("--split", default="test")
+    parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
     parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread")
     parser.add_argument("--pictures", type=int, default=4)
@@ -248,7 +249,8 @@ def build_parser(prog: str = "python -m pipelines.evaluate") -> argparse.Argumen
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
     return EvaluateConfig(detector=args.detector, segmenter=args.segmenter, store=args.store, out=args.out,
-                          split=args.split, max_frames=args.max_frames, pictures=args.pictures,
+                          split=None if args.split == "all" else args.split, max_frames=args.max_frames,
+                          pictures=args.pictures,
                           sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
                           score_threshold=args.score_threshold, oracle=not args.no_oracle, device=args.device,
                           progress=not args.no_progress)
