@@ -104,8 +104,8 @@ class EraseNet:
         seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
         if det.preset != seg.preset:
             raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
-        # A radar described by a file travels in the checkpoint (extra["profile"], file form).
-        profile = resolve_profile(det.preset, det.extra.get("profile"), source="detector checkpoint")
+        # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
+        profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
         for ckpt, what in ((det, "detector"), (seg, "segmenter")):
             if "schema" in ckpt.extra:
                 check_schema(cube_schema(profile), ckpt.extra["schema"], what=f"{what} checkpoint")

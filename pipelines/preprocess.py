@@ -55,6 +55,7 @@ from pipelines.store import (
     SPLIT_CODE,
     SPLITS,
     StoreLayout,
+    check_resumable_out,
     create_store,
     done_shards,
     encode_frame,
@@ -66,8 +67,8 @@ from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
 from radar.io.errors import DataError
 from radar.io.recording import Recording
-from radar.profile_files import profile_to_dict
-from radar.profiles import get_profile
+from radar.profile_files import ProfileError, profile_to_dict
+from radar.profiles import UnknownPresetError, get_profile
 from radar.schema import cube_schema
 from radar.simulate import sequence_name, simulate_sequence
 
@@ -235,7 +236,10 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
     splits: dict[str, str]
     if kind == "sim":
         preset = cfg.preset or "small"
-        get_profile(preset)
+        try:
+            get_profile(preset)
+        except (UnknownPresetError, ProfileError) as exc:
+            raise ValueError(f"--preset: {exc}") from None
         n_sequences = 2 if cfg.sequences is None else cfg.sequences
         n_frames = 8 if cfg.frames is None else cfg.frames
         if n_sequences < 1 or n_frames < 1:
@@ -280,25 +284,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
 
 def _check_out(plan: JobPlan) -> None:
     """An existing ``--out`` must be empty, or a store made by the same job (which is then resumed)."""
-    out = plan.out
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a directory")
-    meta = out / "zarr.json"
-    if not meta.is_file():
-        if any(out.iterdir()):
-            raise ValueError(f"--out {out} exists and is not a radarseg store; choose another path")
-        return
-    try:
-        attrs = json.loads(meta.read_text()).get("attributes", {})
-    except json.JSONDecodeError as exc:
-        raise DataError(meta, f"not valid JSON ({exc})") from None
-    if attrs.get("format") != FORMAT:
-        raise ValueError(f"--out {out} is a zarr store but not a radarseg store; choose another path")
-    if attrs.get("plan") != plan.identity():
-        raise ValueError(f"--out {out} holds a store written with other source, layout or split arguments "
-                         f"(it can only be resumed with the same ones); choose another path or remove it")
+    check_resumable_out(plan.out, store_format=FORMAT, identity=plan.identity(), what="radarseg store")
 
 
 # --------------------------------------------------------------------------- frames of a source
@@ -473,7 +459,7 @@ def store_attributes(plan: JobPlan, stats: dict[str, Any]) -> dict[str, Any]:
     profile = plan.layout.profile
     return {
         "preset": profile.name,
-        "profile": profile_to_dict(profile) if profile.chirp is not None else None,
+        "radar_file": profile_to_dict(profile) if profile.chirp is not None else None,
         "schema": cube_schema(profile, "log_power_db"),  # what `input` holds
         "radar": profile.to_dict(),
         "class_names": list(profile.all_class_names),

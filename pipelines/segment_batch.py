@@ -60,7 +60,16 @@ from tqdm import tqdm
 from zarr.codecs import ZstdCodec
 
 from pipelines.preprocess import code_version, init_ray
-from pipelines.store import ZSTD_LEVEL, done_shards, finish_store, frames_of_split, mark_shard_done, open_store
+from pipelines.store import (
+    ZSTD_LEVEL,
+    Sharded,
+    check_resumable_out,
+    done_shards,
+    finish_store,
+    frames_of_split,
+    mark_shard_done,
+    open_store,
+)
 from radar.io.errors import DataError
 from radar.io.recording import Recording
 from radar.profiles import RadarProfile, get_profile
@@ -114,7 +123,7 @@ class FrameRef:
 
 
 @dataclass(frozen=True)
-class PredictionLayout:
+class PredictionLayout(Sharded):
     """Shapes, dtypes and shard boundaries of a predictions store (duck-compatible with
     :func:`pipelines.store.write_shard_arrays`)."""
 
@@ -123,25 +132,9 @@ class PredictionLayout:
     shard_frames: int
     max_objects: int = DEFAULT_MAX_OBJECTS
 
-    def __post_init__(self) -> None:
-        if self.n_frames < 1 or self.shard_frames < 1 or self.max_objects < 1:
-            raise ValueError(f"n_frames, shard_frames and max_objects must be >= 1, got {self.n_frames}, "
-                             f"{self.shard_frames}, {self.max_objects}")
-
     @property
     def profile(self) -> RadarProfile:
         return get_profile(self.preset)
-
-    @property
-    def n_shards(self) -> int:
-        return -(-self.n_frames // self.shard_frames)
-
-    def shard_bounds(self, shard: int) -> tuple[int, int]:
-        """Frame slots ``[start, stop)`` of shard ``shard``."""
-        if not 0 <= shard < self.n_shards:
-            raise ValueError(f"shard {shard} out of range [0, {self.n_shards})")
-        start = shard * self.shard_frames
-        return start, min(start + self.shard_frames, self.n_frames)
 
     def arrays(self) -> dict[str, tuple[tuple[int, ...], str, Any]]:
         """``name -> (per-frame shape, dtype, fill value)``."""
@@ -328,25 +321,7 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
 
 def _check_out(plan: BatchPlan) -> None:
     """An existing ``--out`` must be empty, or a predictions store of the same job (which is then resumed)."""
-    out = plan.out
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a directory")
-    meta = out / "zarr.json"
-    if not meta.is_file():
-        if any(out.iterdir()):
-            raise ValueError(f"--out {out} exists and is not a predictions store; choose another path")
-        return
-    try:
-        attrs = json.loads(meta.read_text()).get("attributes", {})
-    except json.JSONDecodeError as exc:
-        raise DataError(meta, f"not valid JSON ({exc})") from None
-    if attrs.get("format") != FORMAT:
-        raise ValueError(f"--out {out} is a zarr store but not a radarseg predictions store; choose another path")
-    if attrs.get("plan") != plan.identity():
-        raise ValueError(f"--out {out} holds predictions made with other source, split, checkpoints or layout "
-                         "(it can only be resumed with the same ones); choose another path or remove it")
+    check_resumable_out(plan.out, store_format=FORMAT, identity=plan.identity(), what="radarseg predictions store")
 
 
 def create_predictions(path: str | Path, layout: PredictionLayout, attributes: dict[str, Any]) -> zarr.Group:

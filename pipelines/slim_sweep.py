@@ -64,6 +64,7 @@ class SweepConfig:
     split: str = "test"
     max_frames: int = 0  # frames scored per model and ratio (0 = the whole split)
     finetune_steps: int = 0  # 0 = prune only
+    finetune_steps_baseline: int | None = None  # SMVA-Net's, when its steps cost too much (None: finetune_steps)
     lr_erasenet: float = 1e-3
     lr_baseline: float = 1e-5
     batch_size: int = 4
@@ -75,8 +76,14 @@ class SweepConfig:
             raise ValueError(f"ratios must lie in [0, 1), got {self.ratios}")
         if (self.minkunet or self.spvcnn) and not self.detector:
             raise ValueError("the ERASE-Net segmenters are scored end to end: give --detector too")
-        if self.max_frames < 0 or self.finetune_steps < 0:
-            raise ValueError("max_frames and finetune_steps must be >= 0")
+        if self.max_frames < 0 or self.finetune_steps < 0 or (self.finetune_steps_baseline or 0) < 0:
+            raise ValueError("max_frames and finetune steps must be >= 0")
+
+    def steps(self, kind: str) -> int:
+        """Fine-tuning steps after pruning for a model kind."""
+        if kind == "smvanet" and self.finetune_steps_baseline is not None:
+            return self.finetune_steps_baseline
+        return self.finetune_steps
 
 
 # --------------------------------------------------------------------------- scoring
@@ -134,7 +141,7 @@ def score_smvanet(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
 
 # --------------------------------------------------------------------------- fine-tuning
 def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
-    """``cfg.finetune_steps`` steps from the pruned checkpoint with the trainers' ``--init``; the last weights.
+    """``cfg.steps(kind)`` steps from the pruned checkpoint with the trainers' ``--init``; the last weights.
 
     ``run`` belongs to the sweep: a run left there by an earlier sweep is replaced."""
     shutil.rmtree(run, ignore_errors=True)
@@ -144,7 +151,7 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
 
         train_baseline(BaselineConfig(model=load_checkpoint(pruned).model_name, store=cfg.store, out=str(run),
                                       init=str(pruned), lr=cfg.lr_baseline, epochs=10_000,
-                                      batch_size=cfg.batch_size, max_steps=cfg.finetune_steps, val_split=None,
+                                      batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None,
                                       seed=cfg.seed, progress=False))
     else:
         from pipelines.train import TrainConfig
@@ -152,7 +159,7 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
 
         stage = "detector" if kind == "detector" else "segmenter"
         train(TrainConfig(stage=stage, store=cfg.store, out=str(run), init=str(pruned), lr=cfg.lr_erasenet,
-                          epochs=10_000, batch_size=cfg.batch_size, max_steps=cfg.finetune_steps, val_split=None,
+                          epochs=10_000, batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None,
                           seed=cfg.seed, threads=cfg.threads, progress=False,
                           jitter_std=None if stage == "detector" else (1.0, 1.0, 0.5)))
     return run / "model.pt"  # without validation model.pt holds the latest weights
@@ -173,7 +180,7 @@ def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
             pruned, report = prune_checkpoint(checkpoint, ratio=ratio)
             scored = save_checkpoint(pruned, work / f"pruned-r{ratio:.2f}.pt")
             params, macs_dense = report.params_after, report.macs_after
-            if cfg.finetune_steps:
+            if cfg.steps(kind):
                 scored = finetune(kind, scored, work / f"finetune-r{ratio:.2f}", cfg)
         if kind == "detector":
             scores = score_detector(scored, cfg)
@@ -184,8 +191,8 @@ def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
             scores = score_smvanet(scored, cfg)
         else:
             scores = score_segmenter(scored, cfg, tag)
-        rows.append({"model": kind, "ratio": ratio, "params": params, "finetune_steps": cfg.finetune_steps if ratio
-                     else 0, "checkpoint": str(scored), "seconds": time.perf_counter() - started, **scores})
+        rows.append({"model": kind, "ratio": ratio, "params": params, "finetune_steps": cfg.steps(kind) if ratio else 0,
+                     "checkpoint": str(scored), "seconds": time.perf_counter() - started, **scores})
         log.info("%s ratio %.2f: %s", kind, ratio, {k: v for k, v in rows[-1].items() if isinstance(v, float)})
     return rows
 
@@ -196,14 +203,20 @@ def _pct(value: float) -> str:
 
 def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, seconds: float) -> str:
     """``slimming.md``: the detector table and the segmentation table in the paper's form."""
-    what = (f"pruned, then fine-tuned for {cfg.finetune_steps} optimiser steps (batch {cfg.batch_size}; lr "
-            f"{cfg.lr_erasenet:g} ERASE-Net, {cfg.lr_baseline:g} SMVA-Net)" if cfg.finetune_steps
-            else "pruned only, **no fine-tuning** (the paper fine-tunes 50 epochs after pruning)")
+    def what(kind: str) -> str:
+        steps = cfg.steps(kind)
+        lr = cfg.lr_baseline if kind == "smvanet" else cfg.lr_erasenet
+        return (f"pruned, then fine-tuned for {steps} optimiser steps (batch {cfg.batch_size}, lr {lr:g})" if steps
+                else "pruned only, **not fine-tuned**")
+
+    kinds = list(dict.fromkeys(r["model"] for r in rows))
     lines = ["# Network slimming: compression sweep", "",
              f"Made by `{command}` in {seconds / 60:.1f} min on a shared 2-core CPU.", "",
              f"- Store `{cfg.store}`, split `{cfg.split}`, "
              f"{'all frames' if not cfg.max_frames else f'up to {cfg.max_frames} frames'} per model and ratio.",
-             f"- Each checkpoint was {what}. Ratio = fraction of BatchNorm channels removed under one global "
+             "- After pruning, each checkpoint was: " + "; ".join(f"{k} {what(k)}" for k in kinds)
+             + " (the paper fine-tunes 50 epochs). Ratio 0 is the checkpoint as given.",
+             "- Ratio = fraction of BatchNorm channels removed under one global "
              "threshold (`models/slimming.py`); params are those of the genuinely narrower rebuilt model "
              "(all of them non-zero).",
              "- Segmenter rows run ERASE-Net end to end behind the *unpruned* detector; their MACs are the "
@@ -297,6 +310,7 @@ def build_parser(prog: str = "python -m pipelines.slim_sweep") -> argparse.Argum
     parser.add_argument("--split", default="test")
     parser.add_argument("--max-frames", type=int, default=0, help="frames scored per model and ratio (0: all)")
     parser.add_argument("--finetune-steps", type=int, default=0, help="optimiser steps after pruning (0: none)")
+    parser.add_argument("--finetune-steps-smvanet", type=int, help="SMVA-Net's fine-tuning steps (default: the same)")
     parser.add_argument("--lr-erasenet", type=float, default=1e-3)
     parser.add_argument("--lr-baseline", type=float, default=1e-5)
     parser.add_argument("--batch-size", type=int, default=4)
@@ -310,6 +324,7 @@ def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipe
     return SweepConfig(store=args.store, out=args.out, work=args.work, detector=args.detector,
                        minkunet=args.minkunet, spvcnn=args.spvcnn, smvanet=args.smvanet, ratios=tuple(args.ratios),
                        split=args.split, max_frames=args.max_frames, finetune_steps=args.finetune_steps,
+                       finetune_steps_baseline=args.finetune_steps_smvanet,
                        lr_erasenet=args.lr_erasenet, lr_baseline=args.lr_baseline, batch_size=args.batch_size,
                        threads=args.threads, seed=args.seed)
 

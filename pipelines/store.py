@@ -70,15 +70,13 @@ TABLE_ARRAYS = ("objects", "n_objects", "frame_index", "sequence_id", "split", "
 FRAME_ARRAYS = VOLUME_ARRAYS + ("objects", "n_objects")  # what encode_frame produces
 
 
-@dataclass(frozen=True)
-class StoreLayout:
-    """Shapes, dtypes and shard boundaries of a store of ``n_frames`` slots of one radar profile."""
+class Sharded:
+    """Shard arithmetic of a layout with ``n_frames`` slots in shards of ``shard_frames`` and at most
+    ``max_objects`` objects per frame (mixed into the frozen layout dataclasses of the jobs' stores)."""
 
-    profile: RadarProfile
     n_frames: int
     shard_frames: int
-    max_objects: int = MAX_OBJECTS
-    output_stride: int = OUTPUT_STRIDE
+    max_objects: int
 
     def __post_init__(self) -> None:
         if self.n_frames < 1 or self.shard_frames < 1 or self.max_objects < 1:
@@ -95,6 +93,41 @@ class StoreLayout:
             raise ValueError(f"shard {shard} out of range [0, {self.n_shards})")
         start = shard * self.shard_frames
         return start, min(start + self.shard_frames, self.n_frames)
+
+
+def check_resumable_out(out: Path, *, store_format: str, identity: Any, what: str) -> None:
+    """An existing ``--out`` must be empty, or a store of ``store_format`` written by a job with the same
+    ``identity`` (which is then resumed); anything else is refused before any work starts."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a directory")
+    meta = out / "zarr.json"
+    if not meta.is_file():
+        if any(out.iterdir()):
+            raise ValueError(f"--out {out} exists and is not a {what}; choose another path")
+        return
+    try:
+        attrs = json.loads(meta.read_text()).get("attributes", {})
+    except json.JSONDecodeError as exc:
+        raise DataError(meta, f"not valid JSON ({exc})") from None
+    if attrs.get("format") != store_format:
+        raise ValueError(f"--out {out} is a zarr store but not a {what}; choose another path")
+    if attrs.get("plan") != identity:
+        raise ValueError(f"--out {out} holds a {what} written with other arguments (it can only be resumed "
+                         f"with the same ones); choose another path or remove it")
+
+
+@dataclass(frozen=True)
+class StoreLayout(Sharded):
+    """Shapes, dtypes and shard boundaries of a store of ``n_frames`` slots of one radar profile."""
+
+    profile: RadarProfile
+    n_frames: int
+    shard_frames: int
+    max_objects: int = MAX_OBJECTS
+    output_stride: int = OUTPUT_STRIDE
+
 
     @property
     def heatmap_shape(self) -> tuple[int, int]:

@@ -103,7 +103,7 @@ class RecordingWriter:
             "format": FORMAT,
             "version": VERSION,
             "preset": self.profile.name,
-            "profile": profile_to_dict(self.profile) if self.profile.chirp is not None else None,
+            "radar_file": profile_to_dict(self.profile) if self.profile.chirp is not None else None,
             "schema": cube_schema(self.profile),
             "content": self.content,
             "tdm_compensation": self.tdm_compensation,
@@ -152,7 +152,7 @@ class Recording:
         if meta.get("version") != VERSION:
             raise DataError(meta_path, f"unsupported recording version {meta.get('version')!r}, expected {VERSION}")
         try:
-            self.profile = resolve_profile(meta.get("preset"), meta.get("profile"), source=str(meta_path))
+            self.profile = resolve_profile(meta.get("preset"), meta.get("radar_file"), source=str(meta_path))
         except (ProfileError, UnknownPresetError) as exc:
             raise DataError(meta_path, str(exc)) from None
         if "schema" in meta:  # cubes written for another radar (or an older profile) are refused here

@@ -25,7 +25,15 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.pipelines.conftest import BIN, REPO, free_port, ray_env, small_store, stop_group  # noqa: F401
+from tests.pipelines.conftest import (  # noqa: F401
+    BIN,
+    REPO,
+    free_port,
+    ray_env,
+    ray_job_submit,
+    small_store,
+    stop_group,
+)
 from tests.service.conftest import pg_prefix, postgres_url, tiny_checkpoints  # noqa: F401  (re-exported fixtures)
 
 
@@ -107,11 +115,7 @@ def cluster() -> Iterator[LocalCluster]:
 
 def submit_job(cluster: LocalCluster, *job: str, timeout_s: float = 240) -> dict:
     """``ray job submit --working-dir . -- python -m JOB...`` to the head; returns the JSON line the job printed."""
-    cmd = [str(BIN / "ray"), "job", "submit", "--address", cluster.dashboard_url, "--working-dir", ".", "--",
-           "python", "-m", *job]
-    proc = subprocess.run(cmd, cwd=REPO, env=ray_env(), capture_output=True, text=True, timeout=timeout_s)
-    log = proc.stdout + proc.stderr
-    assert proc.returncode == 0 and "succeeded" in log, log[-4000:]
+    log = ray_job_submit(cluster.dashboard_url, *job, timeout_s=timeout_s)
     return json.loads(next(line for line in reversed(log.splitlines()) if line.startswith('{"store"')))
 
 

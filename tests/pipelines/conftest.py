@@ -76,6 +76,22 @@ def stop_group(pgid: int, *, grace_s: float = 10.0) -> list[int]:
     return group_alive(pgid)
 
 
+def ray_job_submit(dashboard_url: str, *job: str, timeout_s: float = 240) -> str:
+    """``ray job submit --working-dir . -- python -m JOB...``; returns the job's log. The dashboard answers
+    before its job agent is up on a loaded machine ("No available agent"): such a refusal is retried."""
+    cmd = [str(BIN / "ray"), "job", "submit", "--address", dashboard_url, "--working-dir", ".", "--",
+           "python", "-m", *job]
+    deadline = time.monotonic() + 90
+    while True:
+        proc = subprocess.run(cmd, cwd=REPO, env=ray_env(), capture_output=True, text=True, timeout=timeout_s)
+        log = proc.stdout + proc.stderr
+        if proc.returncode == 0 or "No available agent" not in log or time.monotonic() > deadline:
+            break
+        time.sleep(3)
+    assert proc.returncode == 0 and "succeeded" in log, log[-4000:]
+    return log
+
+
 class RayHead:
     def __init__(self, dashboard_url: str, pgid: int, temp_dir: Path):
         self.dashboard_url = dashboard_url

@@ -29,7 +29,7 @@ from radar import transforms
 from radar.io.errors import DataError
 from radar.io.recording import Recording
 from radar.simulate import simulate_sequence
-from tests.pipelines.conftest import REPO, assert_store_matches_simulator, ray_env, stop_group
+from tests.pipelines.conftest import REPO, assert_store_matches_simulator, ray_env, ray_job_submit, stop_group
 
 SUBMIT_ARGS = ["--source", "sim", "--preset", "small", "--sequences", "3", "--frames", "8", "--seed", "11"]
 
@@ -47,7 +47,7 @@ def test_wrong_arguments_fail_before_any_work(tmp_path, small_recording, capsys)
         (["--source", "sim", "--tasks", "0"], "--tasks must be >= 1"),
         (["--source", "sim", "--split-fractions", "0.5", "0.2", "0.2"], "summing to 1"),
         (["--source", "sim", "--split-fractions", "0", "0.5", "0.5"], "train > 0"),
-        (["--source", "sim", "--preset", "tiny"], "invalid choice"),
+        (["--source", "sim", "--preset", "tiny"], "unknown radar preset 'tiny'"),
     ]
     for args, message in bad:
         with pytest.raises(SystemExit) as exc:
@@ -89,13 +89,8 @@ def test_simulated_frames_start_mid_sequence_as_simulate_sequence():
 @pytest.mark.slow
 def test_ray_job_submit_on_a_local_cluster(ray_head, tmp_path):
     out = tmp_path / "STORE.zarr"
-    cmd = [str(Path(sys.executable).parent / "ray"), "job", "submit", "--address", ray_head.dashboard_url,
-           "--working-dir", ".", "--", "python", "-m", "pipelines.preprocess", *SUBMIT_ARGS, "--out", str(out),
-           "--no-progress"]
-    proc = subprocess.run(cmd, cwd=REPO, env=ray_env(), capture_output=True, text=True, timeout=240)
-    log = proc.stdout + proc.stderr
-    assert proc.returncode == 0, log[-4000:]
-    assert "succeeded" in log, log[-4000:]
+    log = ray_job_submit(ray_head.dashboard_url, "pipelines.preprocess", *SUBMIT_ARGS, "--out", str(out),
+                         "--no-progress")
     result = json.loads(next(line for line in log.splitlines() if line.startswith('{"store"')))
     assert result["written"] == 24 and result["quarantined"] == 0 and result["shards_run"] == 3
     assert_store_matches_simulator(out, preset="small", sequences=3, frames=8, seed=11)
@@ -155,7 +150,7 @@ def test_killed_run_resumes_to_an_identical_store(tmp_path, embedded_ray):
     # 4. a rerun of a complete store does no work; other arguments on it are refused
     again = main(parse_args([*args, "--out", str(out), "--no-progress"]))
     assert again["shards_run"] == 0 and array_checksums(out) == array_checksums(straight)
-    with pytest.raises(ValueError, match="other source, layout or split"):
+    with pytest.raises(ValueError, match="written with other arguments"):
         plan_job(PreprocessConfig(source="sim", out=str(out), preset="small", sequences=2, frames=10, seed=5,
                                   shard_frames=1))
 

@@ -92,7 +92,7 @@ def test_pickled_payload_is_refused(tmp_path):
 def test_unknown_preset_and_bad_metadata(recording_copy):
     meta_path = recording_copy / "recording.json"
     meta = json.loads(meta_path.read_text())
-    meta_path.write_text(json.dumps({**meta, "preset": "radarx", "profile": None}))
+    meta_path.write_text(json.dumps({**meta, "preset": "radarx", "radar_file": None}))
     with pytest.raises(DataError, match="'radarx' is not a built-in preset"):
         Recording(recording_copy)
     schema = {**meta["schema"], "doppler": {**meta["schema"]["doppler"], "orientation": "positive approaching"}}
