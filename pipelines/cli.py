@@ -65,6 +65,16 @@ def _cmd_store_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_baseline(args: argparse.Namespace) -> int:
+    from pipelines.train_baselines import build_parser as baseline_parser
+    from pipelines.train_baselines import config_from_args
+    from pipelines.train_baselines import main as train_baseline
+
+    cfg = config_from_args(baseline_parser("radarseg train-baseline").parse_args(args.job_args))
+    print(json.dumps(train_baseline(cfg), indent=2, default=str))
+    return 0
+
+
 def _cmd_train(args: argparse.Namespace) -> int:
     from pipelines.train import run_cli
 
@@ -210,6 +220,9 @@ def build_parser() -> argparse.ArgumentParser:
     train = sub.add_parser("train", add_help=False, help="train the detector or the segmenter from a store "
                                                          "(arguments: radarseg train --help)")
     train.set_defaults(job_args=[], func=_cmd_train)
+    baseline = sub.add_parser("train-baseline", add_help=False, help="train a 2-D baseline (unet, tmvanet, smvanet) "
+                                                                      "from a store (radarseg train-baseline --help)")
+    baseline.set_defaults(job_args=[], func=_cmd_train_baseline)
     evaluate = sub.add_parser("evaluate", add_help=False, help="evaluate both stages on a split of a store: "
                                                                "metrics.json, report.md, pictures")
     evaluate.set_defaults(job_args=[], func=_cmd_evaluate)
@@ -283,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    if args.command in ("preprocess", "segment-batch", "train", "evaluate", "slim-sweep"):
+    if getattr(args, "job_args", None) is not None:  # a job with its own parser (preprocess, train, ...)
         args.job_args = extra  # read by the job's own parser
     elif extra:
         parser.error(f"unrecognized arguments: {' '.join(extra)}")

@@ -32,3 +32,16 @@ def test_demo_writes_pictures(tmp_path):
     assert len(result["pictures"]) == 2
     for path in result["pictures"]:
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
+
+
+def test_job_commands_hand_their_arguments_to_the_jobs_parsers(capsys):
+    import pytest
+
+    for command in ("preprocess", "train", "train-baseline", "evaluate", "segment-batch"):
+        with pytest.raises(SystemExit) as exc:
+            main([command, "--help"])
+        assert exc.value.code == 0
+        assert f"radarseg {command}" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["simulate", "--out", "x", "--bogus"])
+    assert "unrecognized arguments: --bogus" in capsys.readouterr().err
