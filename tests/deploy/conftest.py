@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -22,7 +21,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
-import httpx
 import pytest
 
 from tests.pipelines.conftest import (  # noqa: F401
@@ -34,7 +32,7 @@ from tests.pipelines.conftest import (  # noqa: F401
     small_store,
     stop_group,
 )
-from tests.service.conftest import pg_prefix, postgres_url, tiny_checkpoints  # noqa: F401  (re-exported fixtures)
+from tests.service.conftest import ApiProcess, pg_prefix, postgres_url, tiny_checkpoints  # noqa: F401  (fixtures)
 
 
 @dataclass
@@ -117,41 +115,6 @@ def submit_job(cluster: LocalCluster, *job: str, timeout_s: float = 240) -> dict
     """``ray job submit --working-dir . -- python -m JOB...`` to the head; returns the JSON line the job printed."""
     log = ray_job_submit(cluster.dashboard_url, *job, timeout_s=timeout_s)
     return json.loads(next(line for line in reversed(log.splitlines()) if line.startswith('{"store"')))
-
-
-class ApiProcess:
-    """An API process on loopback (any command that serves ``service.main:create_app``), stopped by pid."""
-
-    def __init__(self, command: list[str], port: int, env: dict[str, str], log_path: Path) -> None:
-        self.url = f"http://127.0.0.1:{port}"
-        self.log_path = log_path
-        self._log = log_path.open("w")
-        self.proc = subprocess.Popen(command, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT,
-                                     env={**os.environ, **env, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
-
-    def wait_ready(self, timeout_s: float = 150.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"API exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.3)
-        raise RuntimeError(f"API not ready within {timeout_s} s:\n{self.log_path.read_text()[-3000:]}")
-
-    def stop(self) -> None:
-        """SIGTERM by pid (uvicorn shuts down gracefully), SIGKILL if it lingers."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        self._log.close()
 
 
 @pytest.fixture

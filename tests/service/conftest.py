@@ -123,31 +123,29 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-class Server:
-    """A ``radarseg serve`` process on loopback."""
+class ApiProcess:
+    """An API process on loopback (any command that serves ``service.main:create_app``), stopped by pid."""
 
-    def __init__(self, env: dict[str, str], log_path: Path) -> None:
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
+    def __init__(self, command: list[str], port: int, env: dict[str, str], log_path: Path) -> None:
+        self.port = port
+        self.url = f"http://127.0.0.1:{port}"
         self.log_path = log_path
-        full_env = {**os.environ, **env, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"}
         self._log = log_path.open("w")
-        self.proc = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(self.port),
-                                      "--log-level", "warning"], cwd=REPO, env=full_env,
-                                     stdout=self._log, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(command, cwd=REPO, stdout=self._log, stderr=subprocess.STDOUT,
+                                     env={**os.environ, **env, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
 
-    def wait_ready(self, timeout_s: float = 120.0) -> None:
+    def wait_ready(self, timeout_s: float = 150.0) -> None:
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"server exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
+                raise RuntimeError(f"API exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
             try:
                 if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
                     return
             except httpx.HTTPError:
                 pass
             time.sleep(0.3)
-        raise RuntimeError(f"server not ready within {timeout_s} s:\n{self.log_path.read_text()[-3000:]}")
+        raise RuntimeError(f"API not ready within {timeout_s} s:\n{self.log_path.read_text()[-3000:]}")
 
     def stop(self) -> None:
         """SIGTERM by pid (uvicorn shuts down gracefully), SIGKILL if it lingers."""
@@ -161,12 +159,19 @@ class Server:
         self._log.close()
 
 
+def Server(env: dict[str, str], log_path: Path) -> ApiProcess:  # noqa: N802 (reads like the class it builds)
+    """A ``radarseg serve`` process on a free loopback port."""
+    port = free_port()
+    return ApiProcess([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(port), "--log-level", "warning"],
+                      port, env, log_path)
+
+
 @pytest.fixture
 def serve(tmp_path):
     """``with serve(env) as server``: start ``radarseg serve`` with RADARSEG_* ``env``; stopped on exit."""
 
     @contextmanager
-    def run(*envs: dict[str, str]) -> Iterator[list[Server]]:
+    def run(*envs: dict[str, str]) -> Iterator[list[ApiProcess]]:
         servers = [Server(env, tmp_path / f"server-{i}-{uuid.uuid4().hex[:6]}.log") for i, env in enumerate(envs)]
         try:
             for server in servers:  # started together: their start-ups overlap
