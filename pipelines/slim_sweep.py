@@ -321,7 +321,7 @@ def build_parser(prog: str = "python -m pipelines.slim_sweep") -> argparse.Argum
     parser.add_argument("--batch-size", type=int, default=4)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--notes", default="", help="how the checkpoints were made (markdown, goes in the report)")
+    parser.add_argument("--notes-file", help="markdown file saying how the checkpoints were made (goes in the report)")
     return parser
 
 
@@ -332,7 +332,8 @@ def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipe
                        split=args.split, max_frames=args.max_frames, finetune_steps=args.finetune_steps,
                        finetune_steps_baseline=args.finetune_steps_smvanet,
                        lr_erasenet=args.lr_erasenet, lr_baseline=args.lr_baseline, batch_size=args.batch_size,
-                       threads=args.threads, seed=args.seed, notes=args.notes)
+                       threads=args.threads, seed=args.seed,
+                       notes=Path(args.notes_file).read_text().strip() if args.notes_file else "")
 
 
 if __name__ == "__main__":
