@@ -99,27 +99,12 @@ def score_detector(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
     return {k.removeprefix("val_"): float(v) for k, v in metrics.items() if k.startswith("val_AP") or k == "val_mAP"}
 
 
-def _radar_profile_safe(path: str | Path, work: Path, role: str) -> str:
-    """A copy of a trainer checkpoint whose ``extra["profile"]`` (the training profile name, e.g. "quick")
-    is renamed: :meth:`models.erasenet.EraseNet.from_checkpoints` reads that key as a radar description.
-    Checkpoints without the clash are used as they are."""
-    checkpoint = load_checkpoint(path)
-    if not isinstance(checkpoint.extra.get("profile"), str):
-        return str(path)
-    extra = dict(checkpoint.extra)
-    extra["training_profile"] = extra.pop("profile")
-    return str(save_checkpoint(dataclasses.replace(checkpoint, extra=extra), work / f"{role}.pt"))
-
-
 def score_segmenter(path: str | Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
     """RA/RD mIoU of ERASE-Net with this segmenter behind the unpruned detector, and the segmenter's cost."""
     from pipelines.evaluate import EvaluateConfig, evaluate
 
-    work = Path(cfg.work) / f"eval-{tag}"
-    detector = _radar_profile_safe(cfg.detector, work, "detector")
-    segmenter = _radar_profile_safe(path, work, "segmenter")
-    metrics = evaluate(EvaluateConfig(detector=detector, segmenter=segmenter, store=cfg.store,
-                                      out=str(work), split=cfg.split,
+    metrics = evaluate(EvaluateConfig(detector=cfg.detector, segmenter=str(path), store=cfg.store,
+                                      out=str(Path(cfg.work) / f"eval-{tag}"), split=cfg.split,
                                       max_frames=cfg.max_frames, pictures=0, sweep=(), sweep_frames=0,
                                       oracle=False, progress=False))
     cost = metrics["cost"]
