@@ -40,7 +40,7 @@ from typing import Any
 import torch
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from models.compute import count_macs, count_params
+from models.compute import count_macs
 from models.slimming import dense_input_shapes, prune_checkpoint
 
 log = logging.getLogger(__name__)
@@ -152,32 +152,37 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
 
 
 # --------------------------------------------------------------------------- the sweep
+def _score(kind: str, path: Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
+    if kind == "detector":
+        return score_detector(path, cfg)
+    if kind == "smvanet":
+        return score_smvanet(path, cfg)
+    return score_segmenter(path, cfg, tag)
+
+
 def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
-    """Rows (one per ratio, 0 first) for one checkpoint."""
+    """Rows (one per ratio, 0 first) for one checkpoint.
+
+    With fine-tuning, every ratio (0 included, so the reference gets the same extra steps) is scored after
+    pruning and again after fine-tuning: keys ``pruned_<metric>`` hold the first scores.
+    """
     checkpoint: Checkpoint = load_checkpoint(path)
     work = Path(cfg.work) / kind
     rows = []
     for ratio in sorted({0.0, *cfg.ratios}):
         started = time.perf_counter()
         tag = f"{kind}-r{ratio:.2f}"
-        if ratio == 0:
-            scored, params, macs_dense = Path(path), count_params(checkpoint.build()), None
-        else:
-            pruned, report = prune_checkpoint(checkpoint, ratio=ratio)
-            scored = save_checkpoint(pruned, work / f"pruned-r{ratio:.2f}.pt")
-            params, macs_dense = report.params_after, report.macs_after
-            if cfg.steps(kind):
-                scored = finetune(kind, scored, work / f"finetune-r{ratio:.2f}", cfg)
-        if kind == "detector":
-            scores = score_detector(scored, cfg)
-            macs_dense = macs_dense or count_macs(checkpoint.build(),
-                                                  *dense_input_shapes(checkpoint.build(), checkpoint.preset)).macs
-            scores["macs"] = float(macs_dense)
-        elif kind == "smvanet":
-            scores = score_smvanet(scored, cfg)
-        else:
-            scores = score_segmenter(scored, cfg, tag)
-        rows.append({"model": kind, "ratio": ratio, "params": params, "finetune_steps": cfg.steps(kind) if ratio else 0,
+        pruned, report = prune_checkpoint(checkpoint, ratio=ratio)
+        scored = Path(path) if ratio == 0 else save_checkpoint(pruned, work / f"pruned-r{ratio:.2f}.pt")
+        scores = _score(kind, scored, cfg, tag)
+        if cfg.steps(kind):
+            scores = {f"pruned_{k}": v for k, v in scores.items()}
+            scored = finetune(kind, save_checkpoint(pruned, work / f"pruned-r{ratio:.2f}.pt"),
+                              work / f"finetune-r{ratio:.2f}", cfg)
+            scores.update(_score(kind, scored, cfg, f"{tag}-ft"))
+        if report.macs_after is not None:
+            scores.setdefault("macs", float(report.macs_after))
+        rows.append({"model": kind, "ratio": ratio, "params": report.params_after, "finetune_steps": cfg.steps(kind),
                      "checkpoint": str(scored), "seconds": time.perf_counter() - started, **scores})
         log.info("%s ratio %.2f: %s", kind, ratio, {k: v for k, v in rows[-1].items() if isinstance(v, float)})
     return rows
@@ -202,7 +207,8 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
              f"- Store `{cfg.store}`, split `{cfg.split}`, "
              f"{'all frames' if not cfg.max_frames else f'up to {cfg.max_frames} frames'} per model and ratio.",
              "- After pruning, each checkpoint was: " + "; ".join(f"{k} {what(k)}" for k in kinds)
-             + " (the paper fine-tunes 50 epochs). Ratio 0 is the checkpoint as given.",
+             + " (the paper fine-tunes 50 epochs). Ratio 0 is the checkpoint as given, fine-tuned like the others "
+             "when they are, so every row has had the same training.",
              "- Ratio = fraction of BatchNorm channels removed under one global "
              "threshold (`models/slimming.py`); params are those of the genuinely narrower rebuilt model "
              "(all of them non-zero).",
@@ -215,22 +221,28 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
         lines += [cfg.notes, ""]
     det = [r for r in rows if r["model"] == "detector"]
     if det:
-        lines += ["## Detector", "", "| ratio | params (M) | GMACs | AP@1 | AP@3 | AP@5 | mAP |",
-                  "|---|---|---|---|---|---|---|"]
+        tuned = cfg.steps("detector") > 0
+        lines += ["## Detector", "", "| ratio | params (M) | GMACs | AP@1 | AP@3 | AP@5 | mAP |"
+                  + (" mAP before fine-tuning |" if tuned else ""),
+                  "|---|---|---|---|---|---|---|" + ("---|" if tuned else "")]
         for r in det:
             ap = " | ".join(f"{r.get(k, float('nan')):.3f}" for k in ("AP@1", "AP@3", "AP@5", "mAP"))
-            lines.append(f"| {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {r['macs'] / 1e9:.3f} | {ap} |")
+            before = f" {r['pruned_mAP']:.3f} |" if tuned else ""
+            lines.append(f"| {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {r['macs'] / 1e9:.3f} | {ap} |{before}")
         lines += ["", "Paper (NXP, 50-epoch fine-tunes), ratio 0/0.1/0.3/0.4/0.6/0.7: params "
                   "2.08/1.87/1.45/1.25/0.83/0.62 M, mAP 0.853/0.82/0.83/0.84/0.79/0.13.", ""]
     seg = [r for r in rows if r["model"] != "detector"]
     if seg:
         lines += ["## Segmentation (mIoU %, background included)", "",
-                  "| model | ratio | params (M) | GMACs | RA mIoU | RD mIoU |", "|---|---|---|---|---|---|"]
+                  "| model | ratio | params (M) | GMACs | RA mIoU | RD mIoU | RA / RD before fine-tuning |",
+                  "|---|---|---|---|---|---|---|"]
         for r in seg:
             name = SEGMENTERS.get(r["model"], "SMVA-Net")
             macs = f"{r['macs'] / 1e9:.4f}" + (f" [{r['macs_paper'] / 1e9:.4f}]" if "macs_paper" in r else "")
+            before = (f"{_pct(r['pruned_mIoU_RA'])} / {_pct(r['pruned_mIoU_RD'])}" if "pruned_mIoU_RA" in r
+                      else "(not fine-tuned)")
             lines.append(f"| {name} | {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {macs} | {_pct(r['mIoU_RA'])} "
-                         f"| {_pct(r['mIoU_RD'])} |")
+                         f"| {_pct(r['mIoU_RD'])} | {before} |")
         lines += ["", "![mIoU against parameters](slimming.png)", ""]
     return "\n".join(lines)
 
