@@ -33,6 +33,12 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
         print(f"preprocessed with embedded Ray into {result['store']} (radarseg store info {result['store']}):")
         print(format_summary(summarise(result["store"])))
+    if "segmentation" in result:
+        segmentation = result["segmentation"]
+        print(f"segmented with the shipped model (checkpoints/); report {segmentation['report']}:")
+        print(segmentation["table"])
+        for path in segmentation["pictures"]:
+            print(f"  {path}")
     return 0
 
 
