@@ -215,8 +215,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
              "- Segmenter rows run ERASE-Net end to end behind the *unpruned* detector; their MACs are the "
              "segmenter's mean per frame (ROI-dependent). SMVA-Net MACs are analytic per frame (FlopCounter "
              "convention; the paper's counter in brackets).", ""]
-    sources = {r["model"]: r["checkpoint"] for r in rows if r["ratio"] == 0}
-    lines += ["Checkpoints: " + ", ".join(f"{k} `{v}`" for k, v in sources.items()), ""]
+    lines += ["Input checkpoints: " + ", ".join(f"{k} `{getattr(cfg, k)}`" for k in kinds), ""]
     if cfg.notes:
         lines += [cfg.notes, ""]
     det = [r for r in rows if r["model"] == "detector"]
