@@ -37,7 +37,7 @@ REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "service.json"
 STAGES = ("transform", "detect", "grow", "segment", "project")
 CLASSES = ("background", "pedestrian", "cyclist", "car")
-SHIPPED = ("checkpoints/small_detector.pt", "checkpoints/small_segmenter.pt")
+SHIPPED = ("checkpoints/detector.pt", "checkpoints/segmenter.pt")
 
 
 def _untrained(preset: str, out: Path) -> dict:

@@ -3,7 +3,7 @@
 ::
 
     python -m pipelines.segment_batch --source store:STORE.zarr --split test \\
-        --detector checkpoints/small_detector.pt --segmenter checkpoints/small_segmenter.pt --out PRED.zarr
+        --detector checkpoints/detector.pt --segmenter checkpoints/segmenter.pt --out PRED.zarr
     python -m pipelines.segment_batch --source recording:DIR --detector DET.pt --segmenter SEG.pt --out PRED.zarr
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \\
         python -m pipelines.segment_batch ... --out /abs/PRED.zarr --workers 4

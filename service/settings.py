@@ -27,8 +27,8 @@ MAX_BODY_LIMIT = 1 << 30  # never accept more than 1 GiB in one request
 ANONYMOUS_TENANT = "anonymous"
 
 # The shipped checkpoints of the `small` preset (committed under checkpoints/ by the training issue).
-DEFAULT_DETECTOR = "checkpoints/small_detector.pt"
-DEFAULT_SEGMENTER = "checkpoints/small_segmenter.pt"
+DEFAULT_DETECTOR = "checkpoints/detector.pt"
+DEFAULT_SEGMENTER = "checkpoints/segmenter.pt"
 
 
 def resolve_path(path: str | Path) -> Path:
