@@ -82,8 +82,8 @@ def test_shipped_model_reaches_its_report(tmp_path):
 
     shipped = json.loads((SHIPPED / "metrics.json").read_text())
     store = build_store_inline(PreprocessConfig(source="sim", out=str(tmp_path / "fresh.zarr"), preset="small",
-                                                sequences=3, frames=8, seed=90210, split_fractions=(0.0, 0.0, 1.0),
-                                                shard_frames=8, progress=False))
+                                                sequences=4, frames=12, seed=90210,
+                                                split_fractions=(0.25, 0.25, 0.5), shard_frames=12, progress=False))
     metrics = evaluate(EvaluateConfig(detector=str(SHIPPED / "detector.pt"), segmenter=str(SHIPPED / "segmenter.pt"),
                                       store=str(store), out=str(tmp_path / "eval"), split="test", pictures=0,
                                       sweep=(), sweep_frames=0, oracle=False, progress=False))
