@@ -39,6 +39,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         print(segmentation["table"])
         for path in segmentation["pictures"]:
             print(f"  {path}")
+    if "service" in result:
+        from pipelines.demo_service import format_service_answer
+
+        print("the service, started on loopback and stopped again:")
+        print(format_service_answer(result["service"]))
     return 0
 
 

@@ -20,7 +20,7 @@ SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
 def run_demo(out: str | Path = "out/demo", *, preset: str = "small", sequences: int = 3, frames: int = 6,
              seed: int = 7, pictures: int = 4, store: bool = True, segment_frames: int = 4,
-             checkpoints: str | Path = SHIPPED) -> dict[str, object]:
+             checkpoints: str | Path = SHIPPED, service: bool = True) -> dict[str, object]:
     out = Path(out)
     rec_dir = out / "recording"
     store_dir = out / "store.zarr"
@@ -56,4 +56,9 @@ def run_demo(out: str | Path = "out/demo", *, preset: str = "small", sequences: 
             result["segmentation"] = {"dir": eval_dir, "report": eval_dir / "report.md",
                                       "pictures": [eval_dir / name for name in metrics["pictures"]],
                                       "table": format_summary(metrics)}
+            if service:
+                from pipelines.demo_service import post_to_service
+
+                result["service"] = post_to_service(out, detector=checkpoints / "detector.pt",
+                                                    segmenter=checkpoints / "segmenter.pt")
     return result
