@@ -854,10 +854,22 @@ def export_checkpoint(source: str | Path, target: str | Path, *, float16: bool =
 def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description="train a stage of ERASE-Net from a preprocessed store")
     parser.add_argument("stage", choices=STAGES)
+    parser.add_argument("--model", help="registered model name (default: the profile's)")
+    add_common_arguments(parser)
+    parser.add_argument("--jitter-from", help="segmenter: detector checkpoint whose errors jitter the seeds")
+    parser.add_argument("--jitter-std", type=float, nargs=3, metavar=("RANGE", "ANGLE", "DOPPLER"),
+                        help="segmenter: Gaussian seed errors in bins instead")
+    parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
+    parser.add_argument("--address", help="Ray address (default: embedded local Ray)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    return parser
+
+
+def add_common_arguments(parser: argparse.ArgumentParser, *, profiles: Sequence[str] = ("quick", "paper")) -> None:
+    """The options every trainer shares (this one and pipelines.train_baselines)."""
     parser.add_argument("--store", required=True, help="preprocessed store (zarr)")
     parser.add_argument("--out", required=True, help="run directory")
-    parser.add_argument("--profile", choices=("quick", "paper"), default="quick")
-    parser.add_argument("--model", help="registered model name (default: the profile's)")
+    parser.add_argument("--profile", choices=sorted(profiles), default="quick")
     parser.add_argument("--model-config", type=json.loads, help="builder keyword arguments as JSON")
     parser.add_argument("--epochs", type=int)
     parser.add_argument("--batch-size", type=int)
@@ -869,29 +881,26 @@ def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentPa
     parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
     parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
-    parser.add_argument("--jitter-from", help="segmenter: detector checkpoint whose errors jitter the seeds")
-    parser.add_argument("--jitter-std", type=float, nargs=3, metavar=("RANGE", "ANGLE", "DOPPLER"),
-                        help="segmenter: Gaussian seed errors in bins instead")
-    parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
-    parser.add_argument("--address", help="Ray address (default: embedded local Ray)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
                         help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
     parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
     parser.add_argument("--no-progress", action="store_true")
-    return parser
+
+
+def common_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The config fields of :func:`add_common_arguments`' options."""
+    return dict(store=args.store, out=args.out, profile=args.profile, model_config=args.model_config,
+                epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
+                train_split=args.train_split, val_split=None if args.val_split.lower() == "none" else args.val_split,
+                max_steps=args.max_steps, resume=args.resume, workers=args.workers, progress=not args.no_progress,
+                slim_lambda=args.slim_lambda, init=args.init)
 
 
 def config_from_args(args: argparse.Namespace) -> TrainConfig:
     return TrainConfig(
-        stage=args.stage, store=args.store, out=args.out, profile=args.profile, model=args.model,
-        model_config=args.model_config, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-        device=args.device, train_split=args.train_split,
-        val_split=None if args.val_split.lower() == "none" else args.val_split, max_steps=args.max_steps,
-        resume=args.resume, workers=args.workers, jitter_from=args.jitter_from,
+        stage=args.stage, model=args.model, jitter_from=args.jitter_from,
         jitter_std=tuple(args.jitter_std) if args.jitter_std else None, ray_workers=args.ray_workers,
-        address=args.address, threads=args.threads, progress=not args.no_progress, slim_lambda=args.slim_lambda,
-        init=args.init)
+        address=args.address, threads=args.threads, **common_config(args))
 
 
 def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.train") -> TrainConfig:

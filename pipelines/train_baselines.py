@@ -50,7 +50,7 @@ from models.baselines.losses import MultiViewLoss, class_weights_from_counts
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.registry import create_model
 from models.slimming import slimming_penalty
-from pipelines.train import StoreInfo, resolve_device
+from pipelines.train import StoreInfo, add_common_arguments, common_config, resolve_device
 from pipelines.views import ViewDataset, ViewStats, collate_views, masks_of, model_inputs, view_class_counts
 from radar.metrics import confusion_matrix, iou_per_class, mean_iou
 
@@ -341,35 +341,12 @@ def build_parser(prog: str = "python -m pipelines.train_baselines") -> argparse.
     parser = argparse.ArgumentParser(prog=prog, description="train a 2-D baseline (U-Net, TMVA-Net, SMVA-Net)")
     parser.add_argument("model", choices=MODELS)
     parser.add_argument("--view", choices=("ra", "rd"), help="U-Net only: the view it segments")
-    parser.add_argument("--store", required=True, help="preprocessed store (zarr)")
-    parser.add_argument("--out", required=True, help="run directory")
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="quick")
-    parser.add_argument("--model-config", type=json.loads, help="extra builder keyword arguments as JSON")
-    parser.add_argument("--epochs", type=int)
-    parser.add_argument("--batch-size", type=int)
-    parser.add_argument("--lr", type=float)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N")
-    parser.add_argument("--train-split", default="train")
-    parser.add_argument("--val-split", default="val", help="'none' to skip validation")
-    parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
-    parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
-    parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
-                        help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
-    parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
-    parser.add_argument("--no-progress", action="store_true")
+    add_common_arguments(parser, profiles=PROFILES)
     return parser
 
 
 def config_from_args(args: argparse.Namespace) -> BaselineConfig:
-    return BaselineConfig(
-        model=args.model, store=args.store, out=args.out, profile=args.profile, view=args.view,
-        model_config=args.model_config, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed,
-        device=args.device, train_split=args.train_split,
-        val_split=None if args.val_split.lower() == "none" else args.val_split, max_steps=args.max_steps,
-        resume=args.resume, workers=args.workers, progress=not args.no_progress, slim_lambda=args.slim_lambda,
-        init=args.init)
+    return BaselineConfig(model=args.model, view=args.view, **common_config(args))
 
 
 def parse_args(argv: Sequence[str] | None = None, *,
