@@ -58,7 +58,7 @@ def dense_weight(weight: Tensor, kernel_size: int, *, transposed: bool) -> Tenso
     return grid.permute(3, 4, 0, 1, 2) if transposed else grid.permute(4, 3, 0, 1, 2)
 
 
-def compare_with_dense(sparse_fn, dense_fn, coords: Tensor, feats: Tensor, weight: Tensor, generator):
+def check_against_dense(sparse_fn, dense_fn, coords: Tensor, feats: Tensor, weight: Tensor, generator):
     """Run both paths with the same loss sum(out * probe) and assert equal outputs and gradients."""
     feats_sparse = feats.clone().requires_grad_(True)
     out_sparse, out_coords = sparse_fn(feats_sparse)
@@ -93,7 +93,7 @@ def test_submanifold_conv_matches_dense_conv3d(kernel_size):
         dense = F.conv3d(densify(coords, f, batch_size, extent), weight, padding=kernel_size // 2)
         return read_dense(dense, out_coords)
 
-    compare_with_dense(sparse_fn, dense_fn, coords, feats, conv.weight, generator)
+    check_against_dense(sparse_fn, dense_fn, coords, feats, conv.weight, generator)
 
 
 @pytest.mark.parametrize("tensor_stride", [1, 2])
@@ -117,7 +117,7 @@ def test_strided_conv_matches_dense_conv3d(tensor_stride):
         dense = F.conv3d(densify(coords, f, batch_size, extent), weight, stride=2)
         return read_dense(dense, out_coords)
 
-    compare_with_dense(sparse_fn, dense_fn, coords, feats, conv.weight, generator)
+    check_against_dense(sparse_fn, dense_fn, coords, feats, conv.weight, generator)
 
 
 def test_strided_conv_output_voxels_are_unique_halved_coordinates():
@@ -158,7 +158,7 @@ def test_transposed_conv_matches_dense_conv_transpose3d_and_reuses_the_strided_m
         dense = F.conv_transpose3d(densify(coarse.coords, f, batch_size, coarse_extent), weight, stride=2)
         return read_dense(dense, out_coords)
 
-    compare_with_dense(sparse_fn, dense_fn, coarse.coords, feats, conv.weight, generator)
+    check_against_dense(sparse_fn, dense_fn, coarse.coords, feats, conv.weight, generator)
     assert builds == [(2, 2)], "the transposed conv must reuse the strided conv's kernel map"
 
 
