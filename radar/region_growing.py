@@ -126,7 +126,7 @@ def _seed_voxels(seeds: Centres | np.ndarray, log_power: np.ndarray, search: tup
     return voxels
 
 
-def noise_level_db(log_power: np.ndarray, step: int = 7) -> float:
+def noise_level_db(log_power: np.ndarray, step: int = 31) -> float:
     """Median log power (dB) of a cube from every ``step``-th voxel: the frame's noise level."""
     return float(np.median(log_power.reshape(-1)[::step]))
 
@@ -189,5 +189,8 @@ def grow_regions(log_power: np.ndarray, seeds: Centres | np.ndarray, profile: Ra
     flat = np.concatenate(members)
     unique_flat, first = np.unique(flat, return_index=True)  # the first seed to reach a voxel keeps it
     voxels = np.stack(np.unravel_index(unique_flat, shape), axis=1).astype(np.int64)
-    n_visited = len(np.unique(np.concatenate(visited)))
+    seen = np.zeros(int(np.prod(shape)), bool)  # counting through a mask beats sorting the visited indices
+    for examined_flat in visited:
+        seen[examined_flat] = True
+    n_visited = int(np.count_nonzero(seen))
     return Regions(voxels, np.concatenate(owners)[first], seed_voxels, n_visited, shape)
