@@ -57,13 +57,12 @@ import numpy as np
 import ray
 import zarr
 from tqdm import tqdm
-from zarr.codecs import ZstdCodec
 
 from pipelines.preprocess import code_version, init_ray
 from pipelines.store import (
-    ZSTD_LEVEL,
     Sharded,
     check_resumable_out,
+    create_store,
     done_shards,
     finish_store,
     frames_of_split,
@@ -85,7 +84,6 @@ PREDICTION_OBJECT_FIELDS = ("class_id", "score", "range_m", "angle_deg", "veloci
 COMPUTE_FIELDS = ("macs_detect", "macs_grow", "macs_segment", "macs_total",
                   "seconds_transform", "seconds_detect", "seconds_grow", "seconds_segment", "seconds_project",
                   "seconds_total", "roi_voxels", "visited_points", "detections")
-VOLUME_ARRAYS = ("labels", "ra_mask", "rd_mask")  # sharded, one inner chunk per frame
 
 
 @dataclass(frozen=True)
@@ -325,19 +323,8 @@ def _check_out(plan: BatchPlan) -> None:
 
 
 def create_predictions(path: str | Path, layout: PredictionLayout, attributes: dict[str, Any]) -> zarr.Group:
-    """Create the group, every (empty) array and the progress group; ``complete`` starts False."""
-    root = zarr.open_group(str(path), mode="w", zarr_format=3)
-    for name, (shape, dtype, fill) in layout.arrays().items():
-        if name in VOLUME_ARRAYS:
-            chunks, shards = (1, *shape), (layout.shard_frames, *shape)
-        else:
-            chunks, shards = (layout.shard_frames, *shape), None
-        root.create_array(name, shape=(layout.n_frames, *shape), dtype=dtype, chunks=chunks, shards=shards,
-                          compressors=ZstdCodec(level=ZSTD_LEVEL), fill_value=fill)
-    root.create_group("progress")
-    root.attrs.update({**attributes, "format": FORMAT, "version": VERSION, "layout": layout.to_dict(),
-                       "complete": False})
-    return root
+    """Create the predictions store: :func:`pipelines.store.create_store` with this job's format."""
+    return create_store(path, layout, attributes, store_format=FORMAT, version=VERSION)
 
 
 def open_predictions(path: str | Path, *, require_complete: bool = True) -> zarr.Group:

@@ -163,8 +163,12 @@ class StoreLayout(Sharded):
 
 
 # --------------------------------------------------------------------------- writing
-def create_store(path: str | Path, layout: StoreLayout, attributes: dict[str, Any]) -> zarr.Group:
-    """Create the group, every (empty) array and the progress group; ``complete`` starts False."""
+def create_store(path: str | Path, layout: Sharded, attributes: dict[str, Any], *, store_format: str = FORMAT,
+                 version: int = VERSION) -> zarr.Group:
+    """Create the group, every (empty) array and the progress group; ``complete`` starts False.
+
+    ``layout`` is any sharded layout with ``arrays()`` and ``to_dict()`` (this store's, or the batch
+    segmentation job's predictions, which pass their own ``store_format``)."""
     root = zarr.open_group(str(path), mode="w", zarr_format=3)
     for name, (shape, dtype, fill) in layout.arrays().items():
         if name in VOLUME_ARRAYS:
@@ -174,7 +178,7 @@ def create_store(path: str | Path, layout: StoreLayout, attributes: dict[str, An
         root.create_array(name, shape=(layout.n_frames, *shape), dtype=dtype, chunks=chunks, shards=shards,
                           compressors=ZstdCodec(level=ZSTD_LEVEL), fill_value=fill)
     root.create_group(PROGRESS)
-    root.attrs.update({**attributes, "format": FORMAT, "version": VERSION, "layout": layout.to_dict(),
+    root.attrs.update({**attributes, "format": store_format, "version": version, "layout": layout.to_dict(),
                        "complete": False})
     return root
 
