@@ -21,6 +21,7 @@ quota errs on the strict side); the billed counters stay exact.
 from __future__ import annotations
 
 import datetime as dt
+import hashlib
 import uuid
 from dataclasses import dataclass
 
@@ -38,6 +39,7 @@ from sqlalchemy import (
     event,
     func,
     select,
+    text,
     update,
 )
 from sqlalchemy.dialects import postgresql, sqlite
@@ -109,6 +111,7 @@ class Ledger:
 
     def __init__(self, url: str, *, table_prefix: str = "radarseg_", pool_size: int = 8) -> None:
         self.url = url
+        self.table_prefix = table_prefix
         self.dialect = make_url(url).get_backend_name()
         if self.dialect == "sqlite":
             self.engine = _sqlite_engine(url)
@@ -142,8 +145,16 @@ class Ledger:
         )
 
     def create(self) -> None:
-        """Create the tables when missing (idempotent; safe from several processes at once)."""
-        self.metadata.create_all(self.engine, checkfirst=True)
+        """Create the tables when missing (idempotent; safe from several processes at once).
+
+        On PostgreSQL, processes starting together would race between "is it there?" and CREATE (a
+        DuplicateObject error on the table's type): a transaction-level advisory lock keyed by the table
+        prefix serialises them."""
+        with self.engine.begin() as conn:
+            if self.dialect == "postgresql":
+                key = int.from_bytes(hashlib.sha256(self.table_prefix.encode()).digest()[:8], "big", signed=True)
+                conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": key})
+            self.metadata.create_all(conn, checkfirst=True)
 
     def drop(self) -> None:
         """Drop this ledger's tables (tests clean up their own)."""
