@@ -127,6 +127,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from pipelines.compare import format_summary, main, parse_args
+
+    result = main(parse_args(args.job_args, prog="radarseg compare"))
+    print(format_summary(result))
+    print(f"report: {result['out']}/compare.md")
+    return 0
+
+
 def _cmd_segment(args: argparse.Namespace) -> int:
     import json
 
@@ -237,6 +246,10 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate = sub.add_parser("evaluate", add_help=False, help="evaluate both stages on a split of a store: "
                                                                "metrics.json, report.md, pictures")
     evaluate.set_defaults(job_args=[], func=_cmd_evaluate)
+    compare = sub.add_parser("compare", add_help=False, help="ERASE-Net and the 2-D baselines on the same frames: "
+                                                             "compare.json, compare.md, compare_frames.png "
+                                                             "(arguments: radarseg compare --help)")
+    compare.set_defaults(job_args=[], func=_cmd_compare)
 
     prune = sub.add_parser("prune", help="network slimming: remove the channels with the smallest BatchNorm "
                                          "scales, save a genuinely narrower checkpoint")

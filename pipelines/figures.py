@@ -106,6 +106,29 @@ def plot_truth_vs_prediction(log_power: np.ndarray, profile: RadarProfile, truth
     return _finish(fig, profile, title, path)
 
 
+def plot_compare_frames(frames: list[tuple[str, np.ndarray, dict[str, tuple[np.ndarray, np.ndarray]]]],
+                        profile: RadarProfile, path: str | Path, *,
+                        title: str = "the same frames, every model") -> Path:
+    """Write a PNG with one row per model and an RA and an RD column per frame.
+
+    ``frames``: ``(label, log_power (R, A, D) dB, {row name: (RA mask (R, A), RD mask (R, D))})``, every frame
+    with the same row names in the same order (ground truth first, then the models).
+    """
+    names = list(frames[0][2])
+    fig, axes = plt.subplots(len(names), 2 * len(frames), figsize=(3.2 * 2 * len(frames), 2.7 * len(names) + 0.6),
+                             gridspec_kw={"width_ratios": [1.3, 1] * len(frames)}, squeeze=False)
+    for column, (label, log_power, masks) in enumerate(frames):
+        for row, name in enumerate(names):
+            pair = axes[row, 2 * column:2 * column + 2]
+            draw_views(pair, log_power, profile, *masks[name], [], colorbar=False)
+            for ax, view in zip(pair, ("RA", "RD"), strict=True):
+                ax.set_title(f"{name}: {label} {view}", fontsize=8)
+                ax.tick_params(labelsize=6)
+                ax.xaxis.label.set_size(6)
+                ax.yaxis.label.set_size(6)
+    return _finish(fig, profile, title, path)
+
+
 def plot_pr_curves(curves: dict[str, tuple[np.ndarray, np.ndarray, float]], path: str | Path, *,
                    title: str = "detection precision-recall") -> Path:
     """Write a PNG of precision-recall curves; ``curves[label] = (recall (N,), precision (N,), AP)``."""

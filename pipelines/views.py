@@ -161,7 +161,8 @@ class ViewDataset(Dataset):
 
     Item: ``rd`` (T, R, D), ``ra`` (T, R, A), ``ad`` (T, A, D) float32 normalised views, T = ``n_frames``
     oldest first; ``rd_mask`` (R, D) and ``ra_mask`` (R, A) int64 of the target frame; ``frame`` (the
-    target's store slot), ``sequence``, ``frame_index``, ``flipped``. With ``flip_prob`` > 0 the whole
+    target's store slot), ``sequence``, ``frame_index``, ``flipped``. ``targets`` (store slots) keeps only
+    the windows ending at one of them, ``limit`` then an evenly spread subset. With ``flip_prob`` > 0 the whole
     window is mirrored in angle (RA, AD and the RA mask; RD is unchanged by construction), reproducibly
     from ``(seed, epoch, target slot)``: call :meth:`set_epoch` before each epoch.
 
@@ -171,13 +172,15 @@ class ViewDataset(Dataset):
 
     def __init__(self, path: str | Path, split: str | None = "train", *, n_frames: int = 1,
                  stats: ViewStats | None = None, flip_prob: float = 0.0, seed: int = 0,
-                 limit: int = 0, cache_frames: int = 16) -> None:
+                 limit: int = 0, targets: np.ndarray | None = None, cache_frames: int = 16) -> None:
         if not 0.0 <= flip_prob <= 1.0:
             raise ValueError(f"flip_prob must be in [0, 1], got {flip_prob}")
         self.path = Path(path)
         self.split = split
         self.n_frames = n_frames
         self.windows = split_windows(path, split, n_frames)
+        if targets is not None:  # only these target slots (models compared on the same frames)
+            self.windows = self.windows[np.isin(self.windows[:, -1], np.asarray(targets, np.int64))]
         if limit and limit < len(self.windows):  # evenly spread subset (validation on a budget)
             self.windows = self.windows[np.unique(np.linspace(0, len(self.windows) - 1, limit).round().astype(int))]
         self.stats = stats if stats is not None else ViewStats.from_store(path)

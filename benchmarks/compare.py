@@ -1,0 +1,130 @@
+"""ERASE-Net against the 2-D baselines in one run on one machine: CPU latency per frame and MACs side by
+side, as ratios to ERASE-Net. Prints a table and writes benchmarks/results/compare.json.
+
+    .venv/bin/python -m benchmarks.compare [--preset small|carrada] [--frames 8] [--repeats 3] [--threads 1]
+
+ERASE-Net runs end to end (:meth:`models.erasenet.EraseNet.segment` on a simulated frame's log-power cube:
+normalisation, detector, decoding, region growing, sparse segmenter, projections). At ``small`` it is the
+shipped model (checkpoints/detector.pt, checkpoints/segmenter.pt); at ``carrada`` the same architectures
+with random weights and the detector's top-K seeds (K = true objects, threshold 0, as
+benchmarks/end_to_end.py), since the checkpoints are for ``small``. Its MACs are the mean per frame of
+detector + segmenter (the segmenter's depend on the ROI). The baselines (U-Net RD and RA, TMVA-Net,
+SMVA-Net) run one forward pass at batch 1 with random weights and inputs (their cost does not depend on
+either; :mod:`benchmarks.baselines`), their MACs analytic by both counters (correct, and the paper's,
+which counts a transposed conv per output position). Latency: median over ``--repeats`` x ``--frames``
+runs (baselines: ``--repeats``), after a warm-up. Figures are for comparing within one run only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.baselines import MODELS, input_shapes, latency
+from models.checkpoint import load_checkpoint
+from models.compute import count_macs
+from models.erasenet import EraseNet
+from models.registry import create_model
+from radar.simulate import simulate_sequence
+
+REPO = Path(__file__).resolve().parents[1]
+CHECKPOINTS = REPO / "checkpoints"
+ROWS = {"unet_rd": "U-Net RD", "unet_ra": "U-Net RA", "tmvanet": "TMVA-Net", "smvanet": "SMVA-Net"}
+
+
+def build_erasenet(preset: str, first_log_power: np.ndarray) -> EraseNet:
+    """The shipped model at ``small``; its architectures with random weights at another preset."""
+    det, seg = load_checkpoint(CHECKPOINTS / "detector.pt"), load_checkpoint(CHECKPOINTS / "segmenter.pt")
+    if preset == det.preset:
+        return EraseNet.from_checkpoints(det, seg)
+    torch.manual_seed(0)
+    detector = create_model(det.model_name, **{**det.config, "preset": preset})
+    segmenter = create_model(seg.model_name, **{**seg.config, "preset": preset})
+    return EraseNet(detector, segmenter, preset, mean_db=float(first_log_power.mean()),
+                    std_db=float(first_log_power.std()), score_threshold=0.0)
+
+
+@torch.no_grad()
+def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
+    frames = list(simulate_sequence(preset, n_frames, seed=5))
+    cubes = [frame.log_power() for frame in frames]
+    net = build_erasenet(preset, cubes[0])
+    random_weights = net.score_threshold == 0.0
+    net.segment(cubes[0], is_log_power=True)  # warm-up: the detector's meta copy for its MAC count, first maps
+    times, macs, macs_paper = [], [], []
+    r, a, d = net.profile.shape
+    detector = count_macs(net.detector, (1, d, r, a))
+    for frame, cube in zip(frames, cubes, strict=True):
+        if random_weights:  # top-K seeds: the ROI a trained detector would grow
+            net.max_objects = max(1, sum(1 for o in frame.objects if o.n_voxels))
+        for _ in range(repeats):
+            started = time.perf_counter()
+            result = net.segment(cube, is_log_power=True)
+            times.append(time.perf_counter() - started)
+        macs.append(result.compute["macs"]["total"])
+        macs_paper.append(result.compute["macs"]["total"] + detector.macs_paper - detector.macs)
+    return {"median_s": statistics.median(times), "min_s": min(times), "runs": len(times),
+            "macs": float(np.mean(macs)), "macs_paper": float(np.mean(macs_paper)),
+            "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute["roi_voxels"]),
+            "weights": "random, top-K seeds" if random_weights else "checkpoints/detector.pt + segmenter.pt"}
+
+
+def baseline_run(key: str, preset: str, repeats: int) -> dict:
+    name, config = MODELS[key]
+    model = create_model(name, preset=preset, **config)
+    report = count_macs(model, *input_shapes(model, preset))
+    return {**latency(key, preset, repeats), "macs": float(report.macs), "macs_paper": float(report.macs_paper),
+            "params": report.params, "weights": "random"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="small", choices=["small", "carrada"])
+    parser.add_argument("--frames", type=int, default=8, help="ERASE-Net: simulated frames")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "compare.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()[0]
+    rows = {"erasenet": erasenet_run(args.preset, args.frames, args.repeats)}
+    for key in ROWS:
+        rows[key] = baseline_run(key, args.preset, args.repeats)
+    unet = {k: rows["unet_rd"][k] + rows["unet_ra"][k] for k in ("median_s", "min_s", "macs", "macs_paper", "params")}
+    rows["unet_pair"] = {**unet, "weights": "random", "note": "U-Net RD + U-Net RA (one network per view)"}
+    reference = rows["erasenet"]
+    for row in rows.values():
+        row["latency_ratio"] = row["median_s"] / reference["median_s"]
+        row["macs_ratio"] = row["macs"] / reference["macs"]
+    names = {"erasenet": "ERASE-Net (end to end)", **ROWS, "unet_pair": "U-Net RD + RA"}
+    print(f"{args.preset}, {args.threads} torch thread(s)")
+    print(f"{'model':24} {'params':>11} {'GMACs':>8} {'[paper]':>8} {'ms/frame':>9} {'x ERASE-Net':>12} {'x MACs':>8}")
+    for key, row in rows.items():
+        print(f"{names[key]:24} {row['params']:>11,} {row['macs'] / 1e9:8.3f} {row['macs_paper'] / 1e9:8.3f} "
+              f"{row['median_s'] * 1e3:9.1f} {row['latency_ratio']:12.1f} {row['macs_ratio']:8.1f}")
+    result = {
+        "preset": args.preset, "rows": {names[k]: row for k, row in rows.items()},
+        "latency": "seconds per frame, median; ERASE-Net over frames x repeats, baselines over repeats, batch 1",
+        "macs_conventions": {"macs": "correct (FlopCounterMode FLOPs / 2)",
+                             "macs_paper": "transposed convs counted per output position (paper/thop)"},
+        "ratios": "latency_ratio and macs_ratio are the row's figure over ERASE-Net's, measured in this run",
+        "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "threads": args.threads,
+                    "torch": torch.__version__, "load_average_before": load_before,
+                    "load_average_after": os.getloadavg()[0],
+                    "note": "shared 2-core CPU, other jobs running beside the benchmark"},
+    }
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
