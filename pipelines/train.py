@@ -140,6 +140,7 @@ class TrainConfig:
     train_split: str = "train"
     val_split: str | None = "val"
     max_steps: int | None = None  # stop after this many optimiser steps in all (smoke tests)
+    max_minutes: float | None = None  # stop after this much training time in all (equal budgets)
     resume: bool = False
     workers: int = 0  # DataLoader worker processes
     jitter_from: str | None = None  # segmenter: detector checkpoint whose errors are measured
@@ -162,6 +163,10 @@ class TrainConfig:
                 raise ValueError(f"{name} must be >= 1, got {value}")
         if self.lr is not None and not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
+        check_budget(self.max_minutes)
+        if self.max_minutes is not None and self.ray_workers:
+            raise ValueError("--max-minutes is for single-process runs: Ray Train workers would stop at different "
+                             "steps; use --max-steps with --ray-workers")
         if not self.slim_lambda >= 0:
             raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
         if self.ray_workers < 0 or self.workers < 0:
@@ -724,8 +729,9 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
     model.train()
 
     metrics: dict[str, Any] = {}
+    budget = Budget(cfg.max_steps, cfg.max_minutes, spent_s=elapsed)
     for epoch in range(start_epoch, hyper.epochs):
-        if cfg.max_steps is not None and step >= cfg.max_steps:
+        if budget.spent(step):
             break
         sampler.set_epoch(epoch)
         if hasattr(dataset, "set_epoch"):
@@ -750,7 +756,7 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
                 losses.setdefault(name, []).append(float(value.detach()))
             rate = samples / max(time.perf_counter() - started, 1e-9)
             bar.set_postfix(loss=f"{_mean(losses['total'][-20:]):.4f}", frames_s=f"{rate:.1f}")
-            if cfg.max_steps is not None and step >= cfg.max_steps:
+            if budget.spent(step):
                 break
         bar.close()
         if not task.steps_scheduler_per_batch:
@@ -861,8 +867,25 @@ def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentPa
                         help="segmenter: Gaussian seed errors in bins instead")
     parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
     parser.add_argument("--address", help="Ray address (default: embedded local Ray)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     return parser
+
+
+def check_budget(max_minutes: float | None) -> None:
+    if max_minutes is not None and not max_minutes > 0:
+        raise ValueError(f"max_minutes must be > 0, got {max_minutes}")
+
+
+class Budget:
+    """When a run stops early: after ``max_steps`` optimiser steps or ``max_minutes`` of training in all
+    (``spent_s``: time a resumed run had already used; measured from construction)."""
+
+    def __init__(self, max_steps: int | None, max_minutes: float | None, *, spent_s: float = 0.0) -> None:
+        self.max_steps, self.max_minutes = max_steps, max_minutes
+        self.deadline = None if max_minutes is None else time.perf_counter() + 60.0 * max_minutes - spent_s
+
+    def spent(self, step: int) -> bool:
+        return ((self.max_steps is not None and step >= self.max_steps)
+                or (self.deadline is not None and time.perf_counter() >= self.deadline))
 
 
 def add_common_arguments(parser: argparse.ArgumentParser, *, profiles: Sequence[str] = ("quick", "paper")) -> None:
@@ -879,6 +902,9 @@ def add_common_arguments(parser: argparse.ArgumentParser, *, profiles: Sequence[
     parser.add_argument("--train-split", default="train")
     parser.add_argument("--val-split", default="val", help="'none' to skip validation")
     parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
+    parser.add_argument("--max-minutes", type=float,
+                        help="stop after this many minutes of training (validation included; equal budgets)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
     parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
     parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
@@ -892,7 +918,8 @@ def common_config(args: argparse.Namespace) -> dict[str, Any]:
     return dict(store=args.store, out=args.out, profile=args.profile, model_config=args.model_config,
                 epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, seed=args.seed, device=args.device,
                 train_split=args.train_split, val_split=None if args.val_split.lower() == "none" else args.val_split,
-                max_steps=args.max_steps, resume=args.resume, workers=args.workers, progress=not args.no_progress,
+                max_steps=args.max_steps, max_minutes=args.max_minutes, threads=args.threads, resume=args.resume,
+                workers=args.workers, progress=not args.no_progress,
                 slim_lambda=args.slim_lambda, init=args.init)
 
 
@@ -900,7 +927,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
     return TrainConfig(
         stage=args.stage, model=args.model, jitter_from=args.jitter_from,
         jitter_std=tuple(args.jitter_std) if args.jitter_std else None, ray_workers=args.ray_workers,
-        address=args.address, threads=args.threads, **common_config(args))
+        address=args.address, **common_config(args))
 
 
 def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.train") -> TrainConfig:

@@ -50,7 +50,7 @@ from models.baselines.losses import MultiViewLoss, class_weights_from_counts
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.registry import create_model
 from models.slimming import slimming_penalty
-from pipelines.train import StoreInfo, add_common_arguments, common_config, resolve_device
+from pipelines.train import Budget, StoreInfo, add_common_arguments, check_budget, common_config, resolve_device
 from pipelines.views import ViewDataset, ViewStats, collate_views, masks_of, model_inputs, view_class_counts
 from radar.metrics import confusion_matrix, iou_per_class, mean_iou
 
@@ -99,6 +99,8 @@ class BaselineConfig:
     train_split: str = "train"
     val_split: str | None = "val"
     max_steps: int | None = None  # stop after this many optimiser steps in all (smoke tests)
+    max_minutes: float | None = None  # stop after this much training time in all (equal budgets)
+    threads: int = 0  # torch intra-op threads (0 = torch's default)
     resume: bool = False
     workers: int = 0
     progress: bool = True
@@ -122,6 +124,7 @@ class BaselineConfig:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         if self.workers < 0:
             raise ValueError(f"workers must be >= 0, got {self.workers}")
+        check_budget(self.max_minutes)
         if not self.slim_lambda >= 0:
             raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
 
@@ -217,6 +220,8 @@ def train_baseline(cfg: BaselineConfig) -> dict[str, Any]:
     store = StoreInfo.read(cfg.store)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
     last_path, model_path, config_path = run_dir / "last.pt", run_dir / "model.pt", run_dir / "config.json"
     run_dir.mkdir(parents=True, exist_ok=True)
     if last_path.exists() and not cfg.resume:
@@ -263,18 +268,20 @@ def train_baseline(cfg: BaselineConfig) -> dict[str, Any]:
                           class_names=store.class_names, normalisation=stats.to_dict(),
                           extra={**extra_static, **extra})
 
-    start_epoch, step, best = 0, 0, -math.inf
+    start_epoch, step, best, elapsed = 0, 0, -math.inf, 0.0
     if cfg.resume and last_path.is_file():
         state = load_checkpoint(last_path)
         model.load_state_dict(state.state_dict)
         optimizer.load_state_dict(state.extra["optimizer"])
         scheduler.load_state_dict(state.extra["scheduler"])
         start_epoch, step, best = int(state.extra["epoch"]), int(state.extra["step"]), float(state.extra["best"])
+        elapsed = float(state.extra.get("elapsed_s", 0.0))
         log.info("resumed %s at epoch %d, step %d", run_dir, start_epoch, step)
 
     metrics: dict[str, Any] = {}
+    budget = Budget(cfg.max_steps, cfg.max_minutes, spent_s=elapsed)
     for epoch in range(start_epoch, hyper.epochs):
-        if cfg.max_steps is not None and step >= cfg.max_steps:
+        if budget.spent(step):
             break
         dataset.set_epoch(epoch)
         order = np.random.default_rng([cfg.seed, epoch]).permutation(len(dataset)).tolist()  # same on resume
@@ -298,7 +305,7 @@ def train_baseline(cfg: BaselineConfig) -> dict[str, Any]:
             for name, value in named.items():
                 losses.setdefault(name, []).append(float(value.detach()))
             bar.set_postfix(loss=f"{_mean(losses['total'][-20:]):.4f}")
-            if cfg.max_steps is not None and step >= cfg.max_steps:
+            if budget.spent(step):
                 break
         bar.close()
         if (epoch + 1) % hyper.lr_step == 0:
@@ -313,13 +320,16 @@ def train_baseline(cfg: BaselineConfig) -> dict[str, Any]:
                                     device=device)
             metrics.update({f"val_{k}": v for k, v in scores.items() if not k.startswith(("confusion", "iou"))})
             metrics["seconds_validation"] = time.perf_counter() - started_val
+        elapsed += time.perf_counter() - started
+        metrics["elapsed_s"] = elapsed  # training + validation time of the whole run so far
         score = metrics.get("val_mIoU", float("nan"))
         improved = not math.isfinite(score) or score >= best  # no validation: model.pt = latest weights
         if improved:
             best = score if math.isfinite(score) else best
             save_checkpoint(checkpoint({"epoch": epoch + 1, "step": step, "metrics": metrics}), model_path)
         metrics["best"] = improved
-        save_checkpoint(checkpoint({"epoch": epoch + 1, "step": step, "best": best, "metrics": metrics,
+        save_checkpoint(checkpoint({"epoch": epoch + 1, "step": step, "best": best, "elapsed_s": elapsed,
+                                    "metrics": metrics,
                                     "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}),
                         last_path)
         with (run_dir / "metrics.jsonl").open("a") as fh:

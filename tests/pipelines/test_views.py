@@ -8,6 +8,7 @@ import torch
 
 from models.checkpoint import load_checkpoint
 from pipelines.store import open_store
+from pipelines.train import Budget
 from pipelines.train_baselines import BaselineConfig, load_baseline, score_baseline, train_baseline
 from pipelines.views import (
     ViewDataset,
@@ -133,3 +134,19 @@ def test_unet_job_needs_a_view(seq_store, tmp_path):
     metrics = train_baseline(BaselineConfig(model="unet_tiny", view="rd", store=str(seq_store), out=str(tmp_path / "u"),
                                             epochs=1, batch_size=2, max_steps=2, val_split=None, progress=False))
     assert metrics["step"] == 2 and "train_coherence" not in metrics and "train_rd_ce" in metrics
+
+
+def test_time_budget_stops_a_run_after_its_first_step(seq_store, tmp_path):
+    cfg = BaselineConfig(model="unet_tiny", view="ra", store=str(seq_store), out=str(tmp_path / "u"), epochs=3,
+                         batch_size=1, max_minutes=1e-6, threads=1, val_split=None, progress=False)
+    metrics = train_baseline(cfg)
+    assert metrics["epoch"] == 1 and metrics["step"] == 1 and metrics["elapsed_s"] > 0
+    with pytest.raises(ValueError, match="max_minutes"):
+        BaselineConfig(**{**cfg.to_dict(), "max_minutes": 0.0})
+
+
+def test_budget_counts_steps_minutes_and_time_already_spent():
+    assert Budget(2, None).spent(2) and not Budget(2, None).spent(1)
+    assert not Budget(None, 10.0).spent(10**6)
+    assert Budget(None, 10.0, spent_s=600.0).spent(0)  # a resumed run that had used its 10 minutes
+    assert not Budget(None, None).spent(10**6)
