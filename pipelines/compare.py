@@ -51,8 +51,8 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet import EraseNet
 from models.slimming import dense_input_shapes
-from pipelines.evaluate import _spread, _view_summary
-from pipelines.report import _num, _pct, _table
+from pipelines.evaluate import spread, view_summary
+from pipelines.report import fmt_num, fmt_pct, md_table
 from pipelines.store import open_store
 from pipelines.train import StoreInfo
 from pipelines.train_baselines import load_baseline, predicted_views
@@ -327,7 +327,7 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
     targets = split_windows(cfg.store, cfg.split, window)[:, -1]
     usable = len(targets)
     if cfg.max_frames:
-        targets = targets[_spread(len(targets), cfg.max_frames)]
+        targets = targets[spread(len(targets), cfg.max_frames)]
     if len(targets) == 0:
         raise ValueError(f"split {split_name!r} of {cfg.store} has no frame with {window - 1} earlier frames of its "
                          f"sequence (the window of the longest-window model): nothing to score")
@@ -338,7 +338,7 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
 
     root = open_store(cfg.store)
     arrays = {name: root[name] for name in ("input", "ra_mask", "rd_mask")}
-    picture_slots = [int(targets[i]) for i in _spread(len(targets), cfg.pictures)]
+    picture_slots = [int(targets[i]) for i in spread(len(targets), cfg.pictures)]
     pictures: dict[int, dict[str, Any]] = {}
     tallies = {p.spec.name: _Tally(num_classes) for p in predictors}
     truth_tally = _Tally(num_classes)
@@ -374,7 +374,7 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
             "name": predictor.spec.name, "kind": predictor.spec.kind, "checkpoints": list(predictor.spec.checkpoints),
             "n_frames": predictor.n_frames, "frames_scored": len(targets),
             "frames_usable_alone": scored_frames(cfg.store, cfg.split, predictor.n_frames),
-            **{view: _view_summary(tally.confusion[view], class_names) for view in VIEWS},
+            **{view: view_summary(tally.confusion[view], class_names) for view in VIEWS},
             "params": int(predictor.params),
             "macs": float(np.mean(tally.macs)), "macs_paper": float(np.mean(tally.macs_paper)),
             "macs_note": predictor.macs_note,
@@ -416,11 +416,11 @@ def render_compare(result: dict[str, Any]) -> str:
     classes = result["classes"]
     header = ["model", *[f"{view} {c}" for view in VIEWS for c in [*classes, "mIoU"]], "params (M)",
               "GMACs [paper]", "RA/RD consistency % [occupancy]", "s / frame", "frames"]
-    rows = [[row["name"], *[_pct(value) for view in VIEWS
+    rows = [[row["name"], *[fmt_pct(value) for view in VIEWS
                             for value in [*(row[view]["iou"][c] for c in classes), row[view]["mIoU"]]],
              f"{row['params'] / 1e6:.3f}", f"{row['macs'] / 1e9:.4f} [{row['macs_paper'] / 1e9:.4f}]",
-             f"{_pct(row['consistency'])} [{_pct(row['occupancy_consistency'])}]",
-             _num(row["seconds_per_frame"], ".4f"), str(row["frames_scored"])]
+             f"{fmt_pct(row['consistency'])} [{fmt_pct(row['occupancy_consistency'])}]",
+             fmt_num(row["seconds_per_frame"], ".4f"), str(row["frames_scored"])]
             for row in result["models"]]
     lines = [f"# ERASE-Net and the 2-D baselines: {result['preset']} / {result['split']}", "",
              f"Store `{result['store']}`, split `{result['split']}`, **{result['frames']} frames, the same for every "
@@ -432,13 +432,13 @@ def render_compare(result: dict[str, Any]) -> str:
              "with an object in either view, all classes merged; 100 % for any projection of one RAD labelling; "
              "`pipelines/compare.py` `consistency_counts`); seconds per frame: wall clock on this CPU in "
              f"this run, {result['threads']} torch thread(s), from the frame in memory (store reads excluded).", ""]
-    lines += _table(header, rows)
-    lines += ["", f"Ground truth RA/RD consistency on these frames: {_pct(result['truth_consistency'])} % "
-              f"[{_pct(result['truth_occupancy_consistency'])} %] (the ground-truth masks are projections of one "
+    lines += md_table(header, rows)
+    lines += ["", f"Ground truth RA/RD consistency on these frames: {fmt_pct(result['truth_consistency'])} % "
+              f"[{fmt_pct(result['truth_occupancy_consistency'])} %] (the ground-truth masks are projections of one "
               "labelling, like ERASE-Net's: per class, the majority vote of a projection can drop a class that "
               "shares a range bin with another).", "",
               "## Frames and cost per model", ""]
-    lines += _table(["model", "kind", "window (frames)", "frames scored", "frames it could use alone", "MACs",
+    lines += md_table(["model", "kind", "window (frames)", "frames scored", "frames it could use alone", "MACs",
                      "checkpoints"],
                     [[row["name"], row["kind"], str(row["n_frames"]), str(row["frames_scored"]),
                       str(row["frames_usable_alone"]), row["macs_note"],
@@ -499,9 +499,10 @@ def format_summary(result: dict[str, Any]) -> str:
     """One line per model: RD and RA mIoU, GMACs, consistency, seconds per frame."""
     lines = [f"{result['split']}: {result['frames']} frames of {result['store']} (the same for every model)"]
     for row in result["models"]:
-        lines.append(f"  {row['name']:<28} RD {_pct(row['RD']['mIoU']):>6}  RA {_pct(row['RA']['mIoU']):>6} mIoU  "
-                     f"{row['macs'] / 1e9:8.3f} GMACs  consistency {_pct(row['consistency'])} % "
-                     f"[{_pct(row['occupancy_consistency'])} %]  "
+        lines.append(f"  {row['name']:<28} RD {fmt_pct(row['RD']['mIoU']):>6}  "
+                     f"RA {fmt_pct(row['RA']['mIoU']):>6} mIoU  "
+                     f"{row['macs'] / 1e9:8.3f} GMACs  consistency {fmt_pct(row['consistency'])} % "
+                     f"[{fmt_pct(row['occupancy_consistency'])} %]  "
                      f"{row['seconds_per_frame']:.3f} s/frame")
     return "\n".join(lines)
 

@@ -90,13 +90,13 @@ class _RecallCounter:
                 "visited_mean": self.visited / frames, "roi_voxels_mean": self.roi / frames, "frames": self.frames}
 
 
-def _spread(n: int, k: int) -> list[int]:
+def spread(n: int, k: int) -> list[int]:
     if k <= 0 or n == 0:
         return []
     return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n))})
 
 
-def _view_summary(confusion: np.ndarray, class_names: Sequence[str]) -> dict[str, Any]:
+def view_summary(confusion: np.ndarray, class_names: Sequence[str]) -> dict[str, Any]:
     iou = iou_per_class(confusion)
     return {"iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(class_names, iou, strict=True)},
             "mIoU": mean_iou(confusion), "confusion": confusion.tolist()}
@@ -119,12 +119,12 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     frames = frames_of_split(root, cfg.split)
     split_name = cfg.split or "all"
     if cfg.max_frames:
-        frames = frames[_spread(len(frames), cfg.max_frames)]
+        frames = frames[spread(len(frames), cfg.max_frames)]
     if len(frames) == 0:
         raise ValueError(f"split {cfg.split!r} of {cfg.store} has no frames")
     arrays = {name: root[name] for name in ("input", "instances", "ra_mask", "rd_mask", "objects", "n_objects")}
-    picture_frames = {int(frames[i]) for i in _spread(len(frames), cfg.pictures)}
-    sweep_frames = {int(frames[i]) for i in _spread(len(frames), cfg.sweep_frames)}
+    picture_frames = {int(frames[i]) for i in spread(len(frames), cfg.pictures)}
+    sweep_frames = {int(frames[i]) for i in spread(len(frames), cfg.sweep_frames)}
 
     detection = DetectionEvaluator()
     confusion = {view: np.zeros((num_classes, num_classes), np.int64) for view in ("RA", "RD")}
@@ -206,7 +206,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
             "predicted_seeds": predicted_seeds.summary(), "truth_seeds": truth_seeds.summary(),
             "sweep": [{"seeds": seeds, "distance_m": d, **counter.summary()} for (seeds, d), counter in sweep.items()],
         },
-        "segmentation": {view: _view_summary(confusion[view], class_names) for view in ("RA", "RD")},
+        "segmentation": {view: view_summary(confusion[view], class_names) for view in ("RA", "RD")},
         "cost": {"params": net.params | {"total": sum(net.params.values())},
                  "macs_mean": {k: float(np.mean(v)) for k, v in macs.items()},
                  "seconds_mean": {k: float(np.mean(v)) for k, v in seconds.items()}},
@@ -214,7 +214,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         "pictures": pictures,
     }
     if cfg.oracle:
-        metrics["segmentation_truth_seeds"] = {view: _view_summary(oracle_confusion[view], class_names)
+        metrics["segmentation_truth_seeds"] = {view: view_summary(oracle_confusion[view], class_names)
                                                for view in ("RA", "RD")}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     write_report(metrics, out / "report.md")

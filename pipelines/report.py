@@ -13,15 +13,15 @@ PAPER_REFERENCE = {  # SPEC section 12, ERASE-Net (M); for context only (other d
 }
 
 
-def _pct(value: float | None) -> str:
+def fmt_pct(value: float | None) -> str:
     return "-" if value is None or value != value else f"{100 * value:.2f}"
 
 
-def _num(value: float | None, fmt: str = ".3f") -> str:
+def fmt_num(value: float | None, fmt: str = ".3f") -> str:
     return "-" if value is None or value != value else format(value, fmt)
 
 
-def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
     return ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|",
             *("| " + " | ".join(row) + " |" for row in rows)]
 
@@ -42,11 +42,11 @@ def render_report(metrics: dict[str, Any]) -> str:
         "",
     ]
     macs_text = f"{macs.get('segment', 0) / 1e9:.3f} + {macs.get('detect', 0) / 1e9:.3f}"
-    lines += _table(["set / view", "ERASE-Net (this model)"],
-                    [[f"{metrics['preset']} RD", _pct(seg["RD"]["mIoU"])],
-                     [f"{metrics['preset']} RA", _pct(seg["RA"]["mIoU"])],
-                     ["detection mAP", _num(det["mAP"])],
-                     ["region-growing recall (predicted seeds)", _num(rg["predicted_seeds"]["recall"])],
+    lines += md_table(["set / view", "ERASE-Net (this model)"],
+                    [[f"{metrics['preset']} RD", fmt_pct(seg["RD"]["mIoU"])],
+                     [f"{metrics['preset']} RA", fmt_pct(seg["RA"]["mIoU"])],
+                     ["detection mAP", fmt_num(det["mAP"])],
+                     ["region-growing recall (predicted seeds)", fmt_num(rg["predicted_seeds"]["recall"])],
                      [f"MACs ({metrics['preset']})", macs_text]])
     lines += ["", "Paper, ERASE-Net (M), for context (other radars and data, not comparable figures): "
               + "; ".join(f"{name} RD {ref['RD']} / RA {ref['RA']} mIoU, mAP {ref['mAP']}, MACs {ref['macs_g']} G"
@@ -56,59 +56,60 @@ def render_report(metrics: dict[str, Any]) -> str:
               "A prediction matches a ground-truth centre within k metres (Cartesian) and k Doppler bins; "
               f"greedy by score; COCO-interpolated AP; {det['n_truth']} objects, {det['n_predictions']} "
               f"detections down to score {det['ap_score_threshold']}.", ""]
-    lines += _table(["k", "1", "3", "5", "mAP"],
-                    [["AP", _num(det["AP@1"]), _num(det["AP@3"]), _num(det["AP@5"]), _num(det["mAP"])]])
+    lines += md_table(["k", "1", "3", "5", "mAP"],
+                    [["AP", fmt_num(det["AP@1"]), fmt_num(det["AP@3"]), fmt_num(det["AP@5"]), fmt_num(det["mAP"])]])
 
     lines += ["", "## Segmentation (one confusion matrix per view over the split)", ""]
     header = ["view", *[f"IoU {c}" for c in classes], "mIoU"]
-    rows = [[view, *[_pct(seg[view]["iou"][c]) for c in classes], _pct(seg[view]["mIoU"])] for view in ("RA", "RD")]
+    rows = [[view, *[fmt_pct(seg[view]["iou"][c]) for c in classes], fmt_pct(seg[view]["mIoU"])]
+            for view in ("RA", "RD")]
     if "segmentation_truth_seeds" in metrics:
         oracle = metrics["segmentation_truth_seeds"]
-        rows += [[f"{view} (true centres as seeds)", *[_pct(oracle[view]["iou"][c]) for c in classes],
-                  _pct(oracle[view]["mIoU"])] for view in ("RA", "RD")]
-    lines += _table(header, rows)
+        rows += [[f"{view} (true centres as seeds)", *[fmt_pct(oracle[view]["iou"][c]) for c in classes],
+                  fmt_pct(oracle[view]["mIoU"])] for view in ("RA", "RD")]
+    lines += md_table(header, rows)
 
     config = rg["config"]
     lines += ["", "## Region growing", "",
               f"Recall = ground-truth object voxels inside the ROI / all of them (pooled over frames). "
               f"D_thresh {config['distance_m']} m, I_thresh ratio {config['intensity_ratio']}, floor "
               f"{config['min_snr_db']} dB above the noise, bridge {config['bridge']}.", ""]
-    lines += _table(["seeds", "recall", "visited points / frame", "ROI voxels / frame"],
-                    [[name, _num(rg[key]["recall"]), _num(rg[key]["visited_mean"], ".0f"),
-                      _num(rg[key]["roi_voxels_mean"], ".0f")]
+    lines += md_table(["seeds", "recall", "visited points / frame", "ROI voxels / frame"],
+                    [[name, fmt_num(rg[key]["recall"]), fmt_num(rg[key]["visited_mean"], ".0f"),
+                      fmt_num(rg[key]["roi_voxels_mean"], ".0f")]
                      for name, key in (("predicted", "predicted_seeds"), ("true centres", "truth_seeds"))])
     if rg["sweep"]:
         distances = sorted({row["distance_m"] for row in rg["sweep"]})
         by = {(row["seeds"], row["distance_m"]): row for row in rg["sweep"]}
         frames = rg["sweep"][0]["frames"]
         lines += ["", f"D_thresh sweep ({frames} frames):", ""]
-        lines += _table(["D_thresh (m)", "recall (predicted)", "visited (predicted)", "recall (true centres)",
+        lines += md_table(["D_thresh (m)", "recall (predicted)", "visited (predicted)", "recall (true centres)",
                          "visited (true centres)"],
-                        [[f"{d:g}", _num(by[("predicted", d)]["recall"]), _num(by[("predicted", d)]["visited_mean"],
-                                                                                 ".0f"),
-                          _num(by[("truth", d)]["recall"]), _num(by[("truth", d)]["visited_mean"], ".0f")]
+                        [[f"{d:g}", fmt_num(by[("predicted", d)]["recall"]),
+                          fmt_num(by[("predicted", d)]["visited_mean"], ".0f"),
+                          fmt_num(by[("truth", d)]["recall"]), fmt_num(by[("truth", d)]["visited_mean"], ".0f")]
                          for d in distances])
 
     seconds = cost["seconds_mean"]
     lines += ["", "## Cost per frame (mean)", ""]
-    lines += _table(["stage", "params", "MACs (G)", "seconds"],
-                    [["transform", "-", "-", _num(seconds.get("transform"), ".4f")],
-                     ["detect", f"{cost['params']['detector']:,}", _num(macs.get("detect", 0) / 1e9, ".4f"),
-                      _num(seconds.get("detect"), ".4f")],
-                     ["grow", "-", "0", _num(seconds.get("grow"), ".4f")],
-                     ["segment", f"{cost['params']['segmenter']:,}", _num(macs.get("segment", 0) / 1e9, ".4f"),
-                      _num(seconds.get("segment"), ".4f")],
-                     ["project", "-", "-", _num(seconds.get("project"), ".4f")],
-                     ["total", f"{cost['params']['total']:,}", _num(macs.get("total", 0) / 1e9, ".4f"),
-                      _num(seconds.get("total"), ".4f")]])
+    lines += md_table(["stage", "params", "MACs (G)", "seconds"],
+                    [["transform", "-", "-", fmt_num(seconds.get("transform"), ".4f")],
+                     ["detect", f"{cost['params']['detector']:,}", fmt_num(macs.get("detect", 0) / 1e9, ".4f"),
+                      fmt_num(seconds.get("detect"), ".4f")],
+                     ["grow", "-", "0", fmt_num(seconds.get("grow"), ".4f")],
+                     ["segment", f"{cost['params']['segmenter']:,}", fmt_num(macs.get("segment", 0) / 1e9, ".4f"),
+                      fmt_num(seconds.get("segment"), ".4f")],
+                     ["project", "-", "-", fmt_num(seconds.get("project"), ".4f")],
+                     ["total", f"{cost['params']['total']:,}", fmt_num(macs.get("total", 0) / 1e9, ".4f"),
+                      fmt_num(seconds.get("total"), ".4f")]])
 
     training = metrics.get("training", {})
     if training:
         lines += ["", "## Training (from the checkpoints)", ""]
-        lines += _table(["stage", "profile", "epochs", "steps", "training time (s)", "validation"],
+        lines += md_table(["stage", "profile", "epochs", "steps", "training time (s)", "validation"],
                         [[stage, str(info.get("profile")), str(info.get("epoch")), str(info.get("step")),
-                          _num(info.get("elapsed_s"), ".0f"),
-                          ", ".join(f"{k.removeprefix('val_')} {_num(v)}" for k, v in info.items()
+                          fmt_num(info.get("elapsed_s"), ".0f"),
+                          ", ".join(f"{k.removeprefix('val_')} {fmt_num(v)}" for k, v in info.items()
                                     if k.startswith("val_") and isinstance(v, float))]
                          for stage, info in training.items()])
 

@@ -42,6 +42,7 @@ import torch
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.compute import count_macs
 from models.slimming import dense_input_shapes, prune_checkpoint
+from pipelines.report import fmt_pct
 
 log = logging.getLogger(__name__)
 
@@ -188,10 +189,6 @@ def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
     return rows
 
 
-def _pct(value: float) -> str:
-    return "n/a" if value is None or value != value else f"{100 * value:.2f}"
-
-
 def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, seconds: float) -> str:
     """``slimming.md``: the detector table and the segmentation table in the paper's form."""
 
@@ -238,10 +235,10 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
         for r in seg:
             name = SEGMENTERS.get(r["model"], "SMVA-Net")
             macs = f"{r['macs'] / 1e9:.4f}" + (f" [{r['macs_paper'] / 1e9:.4f}]" if "macs_paper" in r else "")
-            before = (f"{_pct(r['pruned_mIoU_RA'])} / {_pct(r['pruned_mIoU_RD'])}" if "pruned_mIoU_RA" in r
+            before = (f"{fmt_pct(r['pruned_mIoU_RA'])} / {fmt_pct(r['pruned_mIoU_RD'])}" if "pruned_mIoU_RA" in r
                       else "(not fine-tuned)")
-            lines.append(f"| {name} | {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {macs} | {_pct(r['mIoU_RA'])} "
-                         f"| {_pct(r['mIoU_RD'])} | {before} |")
+            lines.append(f"| {name} | {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {macs} | {fmt_pct(r['mIoU_RA'])} "
+                         f"| {fmt_pct(r['mIoU_RD'])} | {before} |")
         lines += ["", "![mIoU against parameters](slimming.png)", ""]
     return "\n".join(lines)
 
