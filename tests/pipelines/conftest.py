@@ -157,6 +157,43 @@ def build_store_inline(cfg):
     return plan.out
 
 
+TINY_CLASSES = ("background", "pedestrian", "cyclist", "car")
+
+
+def save_tiny_checkpoints(store, root) -> dict[str, str]:
+    """Untrained tiny checkpoints of every kind for ``store`` (small preset), saved as the trainers save them:
+    detector, segmenter, unet_rd, unet_ra, tmvanet, smvanet. The segmenter's classifier never picks
+    background, so its untrained labels mix the object classes inside every ROI."""
+    import torch
+
+    from models.checkpoint import Checkpoint, save_checkpoint
+    from models.registry import create_model
+    from pipelines.store import open_store
+    from pipelines.views import ViewStats
+
+    attrs = open_store(store).attrs
+    normalisation = {"mean": float(attrs["normalisation"]["mean"]), "std": float(attrs["normalisation"]["std"])}
+    stats = ViewStats.from_store(store, "train").to_dict()
+    torch.manual_seed(0)
+    made = {}
+    for key, name, config, stage, norm in (
+            ("detector", "centre_detector_tiny", {}, "detector", normalisation),
+            ("segmenter", "minkunet_tiny", {}, "segmenter", normalisation),
+            ("unet_rd", "unet_tiny", {"view": "rd"}, "baseline", stats),
+            ("unet_ra", "unet_tiny", {"view": "ra"}, "baseline", stats),
+            ("tmvanet", "tmvanet_tiny", {}, "baseline", stats),
+            ("smvanet", "smvanet_tiny", {}, "baseline", stats)):
+        config = {"preset": "small", **config}
+        model = create_model(name, **config)
+        if key == "segmenter":
+            with torch.no_grad():
+                model.classifier.linear.bias.copy_(torch.tensor([-1e3, 0.0, 0.0, 0.0]))
+        made[key] = save_checkpoint(Checkpoint(model_name=name, config=config, state_dict=model.state_dict(),
+                                               preset="small", class_names=TINY_CLASSES, normalisation=norm,
+                                               extra={"stage": stage}), Path(root) / f"{key}.pt")
+    return {key: str(path) for key, path in made.items()}
+
+
 @pytest.fixture(scope="session")
 def small_store(tmp_path_factory):
     """A store of the small preset built without Ray: 2 sequences x 3 frames, seed 5, shards of 2 frames."""

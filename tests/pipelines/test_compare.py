@@ -7,10 +7,8 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
-from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from models.registry import create_model
+from models.checkpoint import load_checkpoint, save_checkpoint
 from pipelines.compare import (
     CompareConfig,
     ModelSpec,
@@ -21,11 +19,9 @@ from pipelines.compare import (
     parse_model,
 )
 from pipelines.train_baselines import load_baseline, score_baseline
-from pipelines.views import ViewDataset, ViewStats
+from pipelines.views import ViewDataset
 from radar import transforms
-from tests.pipelines.conftest import build_store_inline
-
-CLASSES = ("background", "pedestrian", "cyclist", "car")
+from tests.pipelines.conftest import build_store_inline, save_tiny_checkpoints
 
 
 @pytest.fixture(scope="module")
@@ -41,32 +37,7 @@ def seq_store(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def checkpoints(seq_store, tmp_path_factory):
-    """Untrained tiny checkpoints of every kind, saved as the trainers save them. The segmenter's classifier
-    never picks background, so its untrained labels mix the object classes inside every ROI."""
-    from pipelines.store import open_store
-
-    root = tmp_path_factory.mktemp("ckpt")
-    attrs = open_store(seq_store).attrs
-    normalisation = {"mean": float(attrs["normalisation"]["mean"]), "std": float(attrs["normalisation"]["std"])}
-    stats = ViewStats.from_store(seq_store, "train").to_dict()
-    torch.manual_seed(0)
-    made = {}
-    for key, name, config, stage, norm in (
-            ("detector", "centre_detector_tiny", {}, "detector", normalisation),
-            ("segmenter", "minkunet_tiny", {}, "segmenter", normalisation),
-            ("unet_rd", "unet_tiny", {"view": "rd"}, "baseline", stats),
-            ("unet_ra", "unet_tiny", {"view": "ra"}, "baseline", stats),
-            ("tmvanet", "tmvanet_tiny", {}, "baseline", stats),
-            ("smvanet", "smvanet_tiny", {}, "baseline", stats)):
-        config = {"preset": "small", **config}
-        model = create_model(name, **config)
-        if key == "segmenter":
-            with torch.no_grad():
-                model.classifier.linear.bias.copy_(torch.tensor([-1e3, 0.0, 0.0, 0.0]))
-        made[key] = save_checkpoint(Checkpoint(model_name=name, config=config, state_dict=model.state_dict(),
-                                               preset="small", class_names=CLASSES, normalisation=norm,
-                                               extra={"stage": stage}), root / f"{key}.pt")
-    return {key: str(path) for key, path in made.items()}
+    return save_tiny_checkpoints(seq_store, tmp_path_factory.mktemp("ckpt"))
 
 
 def test_consistency_of_hand_built_masks():
