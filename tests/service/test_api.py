@@ -233,3 +233,29 @@ def test_a_cube_schema_mismatch_is_a_422_naming_the_difference(client, cube_body
                        headers={**NPY, "X-Cube-Schema": json.dumps(cube_schema(SMALL))})
     assert same.status_code == 200
     assert client.post("/v1/segment", content=cube_body, headers={**NPY, "X-Cube-Schema": "{"}).status_code == 400
+
+
+def test_a_pruned_model_serves_with_its_smaller_compute(make_settings, client_for, tiny_checkpoints, cube_body,
+                                                         tmp_path):
+    """Issue 9: a checkpoint pruned by `radarseg prune` serves next to its parent; the response's compute
+    accounting shows its fewer params and detector MACs (the same cube, so the detector cost is comparable)."""
+    from models.checkpoint import load_checkpoint, save_checkpoint
+    from models.slimming import prune_checkpoint
+    from service.settings import ModelSpec
+
+    det, seg = tiny_checkpoints
+    slim = [save_checkpoint(prune_checkpoint(load_checkpoint(path), ratio=0.5)[0], tmp_path / f"slim-{path.name}")
+            for path in (det, seg)]
+    full_spec = make_settings().models[0]
+    slim_spec = ModelSpec(name="tiny-slim", detector=slim[0], segmenter=slim[1], score_threshold=0.0, max_objects=1)
+    client = client_for(make_settings(models=[full_spec, slim_spec]))
+    full = client.post("/v1/segment?model=tiny", content=cube_body, headers=NPY)
+    pruned = client.post("/v1/segment?model=tiny-slim", content=cube_body, headers=NPY)
+    assert full.status_code == pruned.status_code == 200, pruned.text
+    full_c, slim_c = full.json()["compute"], pruned.json()["compute"]
+    assert pruned.json()["model"] == "tiny-slim"
+    assert 0 < slim_c["macs"]["detect"] < full_c["macs"]["detect"]
+    assert 0 < slim_c["params"]["detector"] < full_c["params"]["detector"]
+    assert 0 < slim_c["params"]["segmenter"] < full_c["params"]["segmenter"]
+    listed = {m["name"]: m for m in client.get("/v1/models").json()["models"]}
+    assert listed["tiny-slim"]["detector_macs"] < listed["tiny"]["detector_macs"]
