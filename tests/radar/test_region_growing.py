@@ -64,6 +64,25 @@ def test_distance_threshold_stops_a_long_region():
     assert len(regions) == 2 * int(5.0 / SMALL.range_res) + 1
 
 
+@pytest.mark.parametrize(("gap", "bridge", "joined"), [(1, 0, False), (2, 1, True), (3, 1, False), (4, 2, True),
+                                                      (5, 2, False)])
+def test_bridge_closes_gaps_of_up_to_twice_its_size(gap, bridge, joined):
+    lp = np.zeros(SMALL.shape, np.float32)
+    lp[60, 64, 5:10] = 40.0  # two blobs along Doppler, `gap` empty voxels apart
+    lp[60, 64, 10 + gap:15 + gap] = 40.0
+    config = RegionGrowingConfig(intensity_ratio=0.0, distance_m=4.0, seed_search=(0, 0, 0), bridge=bridge)
+    regions = grow_regions(lp, np.array([[60, 64, 7]]), SMALL, config, noise_db=0.0)
+    assert len(regions) == (10 if joined else 5)  # gap voxels themselves never join
+    assert not regions.mask()[60, 64, 10:10 + gap].any()
+
+
+def test_bridge_must_be_a_voxel_count():
+    assert RegionGrowingConfig(bridge=True).bridge == 1
+    for bad in (-1, 1.5):
+        with pytest.raises(ValueError, match="bridge"):
+            RegionGrowingConfig(bridge=bad)
+
+
 def test_overlapping_regions_keep_the_first_seed_and_bad_input_is_refused():
     lp = np.zeros(SMALL.shape, np.float32)
     lp[50:60, 64, 16] = 40.0
