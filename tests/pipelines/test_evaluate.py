@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from pipelines.evaluate import EvaluateConfig, evaluate
 from pipelines.train import TrainConfig, train_loop
@@ -65,9 +66,14 @@ def test_cli_evaluate(small_store, tiny_checkpoints, tmp_path, capsys):
     from pipelines.cli import main as cli
 
     detector, segmenter = tiny_checkpoints
-    code = cli(["evaluate", "--detector", str(detector), "--segmenter", str(segmenter), "--store", str(small_store),
-                "--split", "val", "--out", str(tmp_path), "--max-frames", "1", "--pictures", "0", "--sweep", "6",
-                "--sweep-frames", "0", "--no-oracle", "--no-progress"])
+    threads = torch.get_num_threads()
+    try:
+        code = cli(["evaluate", "--detector", str(detector), "--segmenter", str(segmenter), "--store",
+                    str(small_store), "--split", "val", "--out", str(tmp_path), "--max-frames", "1", "--pictures", "0",
+                    "--sweep", "6", "--sweep-frames", "0", "--no-oracle", "--no-progress", "--threads", "1"])
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
     assert code == 0 and (tmp_path / "report.md").is_file()
     assert "mAP" in capsys.readouterr().out
 
