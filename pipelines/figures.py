@@ -59,7 +59,8 @@ def _finish(fig, profile: RadarProfile, title: str, path: str | Path) -> Path:
     handles = [plt.Rectangle((0, 0), 1, 1, color=CLASS_COLOURS[c][:7]) for c in range(1, profile.num_classes)]
     fig.legend(handles, profile.class_names, loc="lower center", ncol=profile.num_classes - 1, frameon=False)
     fig.suptitle(title)
-    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    height = fig.get_figheight()  # keep about 0.3 inch for the title and the legend, whatever the figure's size
+    fig.tight_layout(rect=(0, min(0.05, 0.45 / height), 1, 1 - 0.3 / height))
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
