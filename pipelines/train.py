@@ -105,6 +105,19 @@ class Hyper:
     flip_prob: float = 0.5
     val_frames: int = 0  # frames of the validation split used per epoch (0 = all)
     jitter_std: tuple[float, float, float] = (1.0, 1.0, 0.5)  # segmenter, bins, when no detector is given
+    optimizer: str = ""  # "" = the stage's own (detector Adam, segmenter SGD); or "adam" / "sgd"
+
+
+OPTIMIZERS = ("adam", "sgd")
+def make_optimizer(hyper: Hyper, params, *, default: str) -> torch.optim.Optimizer:
+    """The stage's optimiser (``default``) unless ``hyper.optimizer`` names another: Adam, or SGD with Nesterov
+    momentum. Adam drives unneeded BatchNorm scales to zero under the slimming penalty within a short run; SGD's
+    steps of lr x lambda barely move them (reports/slimming.md)."""
+    name = hyper.optimizer or default
+    if name == "adam":
+        return torch.optim.Adam(params, lr=hyper.lr, weight_decay=hyper.weight_decay)
+    return torch.optim.SGD(params, lr=hyper.lr, momentum=hyper.momentum, weight_decay=hyper.weight_decay,
+                           nesterov=True)
 
 
 PROFILES: dict[str, dict[str, Hyper]] = {
@@ -141,6 +154,7 @@ class TrainConfig:
     val_split: str | None = "val"
     max_steps: int | None = None  # stop after this many optimiser steps in all (smoke tests)
     max_minutes: float | None = None  # stop after this much training time in all (equal budgets)
+    optimizer: str | None = None  # "adam" or "sgd" instead of the stage's own (e.g. Adam for sparsity training)
     resume: bool = False
     workers: int = 0  # DataLoader worker processes
     jitter_from: str | None = None  # segmenter: detector checkpoint whose errors are measured
@@ -164,6 +178,8 @@ class TrainConfig:
         if self.lr is not None and not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         check_budget(self.max_minutes)
+        if self.optimizer is not None and self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
         if self.max_minutes is not None and self.ray_workers:
             raise ValueError("--max-minutes is for single-process runs: Ray Train workers would stop at different "
                              "steps; use --max-steps with --ray-workers")
@@ -179,7 +195,7 @@ class TrainConfig:
     def hyper(self) -> Hyper:
         """The profile's hyperparameters with this config's overrides."""
         base = PROFILES[self.stage][self.profile]
-        overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr")
+        overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr", "optimizer")
                      if getattr(self, name) is not None}
         if self.model_config is not None:
             overrides["model_config"] = dict(self.model_config)
@@ -203,7 +219,7 @@ class TrainConfig:
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run it continues."""
         keep = ("stage", "store", "profile", "model", "model_config", "batch_size", "lr", "seed", "train_split",
-                "jitter_from", "jitter_std", "slim_lambda", "init")
+                "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer")
         return {k: v for k, v in self.to_dict().items() if k in keep}
 
 
@@ -367,7 +383,7 @@ class DetectorTask(StageTask):
         return unwrap(model).compute_loss(outputs, targets)
 
     def optimizer(self, params) -> torch.optim.Optimizer:
-        return torch.optim.Adam(params, lr=self.hyper.lr, weight_decay=self.hyper.weight_decay)
+        return make_optimizer(self.hyper, params, default="adam")
 
     def scheduler(self, optimizer, steps_per_epoch):
         if self.hyper.step_every:
@@ -612,8 +628,7 @@ class SegmenterTask(StageTask):
         return {"ce": loss, "total": loss}
 
     def optimizer(self, params):
-        return torch.optim.SGD(params, lr=self.hyper.lr, momentum=self.hyper.momentum,
-                               weight_decay=self.hyper.weight_decay, nesterov=True)
+        return make_optimizer(self.hyper, params, default="sgd")
 
     def scheduler(self, optimizer, steps_per_epoch):
         total = max(1, self.hyper.epochs * steps_per_epoch)
@@ -867,6 +882,8 @@ def build_parser(prog: str = "python -m pipelines.train") -> argparse.ArgumentPa
                         help="segmenter: Gaussian seed errors in bins instead")
     parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
     parser.add_argument("--address", help="Ray address (default: embedded local Ray)")
+    parser.add_argument("--optimizer", choices=OPTIMIZERS,
+                        help="instead of the stage's own (detector Adam, segmenter SGD), e.g. Adam for sparsity")
     return parser
 
 
@@ -927,7 +944,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
     return TrainConfig(
         stage=args.stage, model=args.model, jitter_from=args.jitter_from,
         jitter_std=tuple(args.jitter_std) if args.jitter_std else None, ray_workers=args.ray_workers,
-        address=args.address, **common_config(args))
+        address=args.address, optimizer=args.optimizer, **common_config(args))
 
 
 def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.train") -> TrainConfig:

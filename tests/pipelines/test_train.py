@@ -18,6 +18,7 @@ from pipelines.train import (
     TrainConfig,
     collate_roi,
     main,
+    make_optimizer,
     parse_args,
     train_loop,
 )
@@ -158,3 +159,17 @@ def test_ray_train_two_workers(small_store, tmp_path):
     assert [line["epoch"] for line in lines] == [1, 2] and lines[-1]["step"] == 2
     assert lines[-1]["frames_per_second"] > 0 and result["metrics"]["step"] == 2
     load_checkpoint(run / "model.pt").build()
+
+
+def test_optimizer_override_for_sparsity_training():
+    params = [torch.nn.Parameter(torch.ones(3))]
+    segmenter = TrainConfig(stage="segmenter", store="s.zarr", out="o")
+    assert isinstance(make_optimizer(segmenter.hyper(), params, default="sgd"), torch.optim.SGD)
+    adam = TrainConfig(stage="segmenter", store="s.zarr", out="o", optimizer="adam")
+    assert adam.hyper().optimizer == "adam" and adam.identity()["optimizer"] == "adam"
+    assert isinstance(make_optimizer(adam.hyper(), params, default="sgd"), torch.optim.Adam)
+    detector = TrainConfig(stage="detector", store="s.zarr", out="o", optimizer="sgd")
+    assert isinstance(make_optimizer(detector.hyper(), params, default="adam"), torch.optim.SGD)
+    with pytest.raises(ValueError, match="optimizer"):
+        TrainConfig(stage="segmenter", store="s.zarr", out="o", optimizer="lbfgs")
+    assert parse_args(["segmenter", "--store", "s.zarr", "--out", "o", "--optimizer", "adam"]).optimizer == "adam"
