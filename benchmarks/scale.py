@@ -23,7 +23,6 @@ import json
 import os
 import platform
 import shutil
-import socket
 import sys
 import tempfile
 import time
@@ -53,6 +52,7 @@ from pipelines.preprocess import (  # noqa: E402
     store_attributes,
 )
 from pipelines.segment_batch import SegmentBatchConfig, main  # noqa: E402
+from pipelines.serve_process import free_port  # noqa: E402
 from pipelines.store import create_store, finish_store  # noqa: E402
 from radar.simulate import simulate_sequence  # noqa: E402
 from service.settings import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, resolve_path  # noqa: E402
@@ -108,12 +108,6 @@ def batch_run(store: Path, out: Path, ckpt: dict, workers: int) -> dict:
     return {"workers": workers, "frames": result["frames"], "frames_per_second": result["frames_per_second"],
             "seconds": result["seconds_segmenting"], "load_average_1min_before": before,
             "load_average_1min_after": load()}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def serve_run(url: str, ckpt: dict, replicas: int, body: bytes, requests: int, ledger_dir: Path) -> dict:

@@ -21,8 +21,6 @@ import io
 import json
 import os
 import platform
-import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,6 +30,8 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+
+from pipelines.serve_process import free_port, serve_command, stop_process, wait_ready
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "service.json"
@@ -66,41 +66,18 @@ def _models(out: Path) -> tuple[list[dict], dict[str, str]]:
     return [small, _untrained("carrada", out)], kinds
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _start(models: list[dict], data_dir: Path, log: Path) -> tuple[subprocess.Popen, str]:
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "RADARSEG_MODELS": json.dumps(models), "RADARSEG_DATA_DIR": str(data_dir),
            "RADARSEG_MAX_QUEUE": "8"}
-    proc = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(port), "--log-level",
-                             "warning"], cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(serve_command(port), cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 300
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"server exited:\n{log.read_text()[-3000:]}")
-        try:
-            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                return proc, url
-        except httpx.HTTPError:
-            pass
-        time.sleep(0.5)
-    proc.kill()
-    raise RuntimeError("server not ready in 300 s")
-
-
-def _stop(proc: subprocess.Popen) -> None:
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    try:
+        wait_ready(url, proc, log, timeout_s=300)
+    except RuntimeError:
+        stop_process(proc)
+        raise
+    return proc, url
 
 
 def _server_timing(header: str) -> dict[str, float]:
@@ -187,7 +164,7 @@ def main() -> dict:
                           f"{level['overhead_share_of_p50']:.1%}", flush=True)
                 results["levels"][preset] = levels
         finally:
-            _stop(proc)
+            stop_process(proc, grace_s=30)
     carrada_c1 = results["levels"]["carrada"][0]
     results["target"] = {"carrada_overhead_share_of_p50_at_c1": carrada_c1["overhead_share_of_p50"],
                          "limit": 0.10, "met": carrada_c1["overhead_share_of_p50"] <= 0.10,

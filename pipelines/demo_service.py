@@ -5,52 +5,31 @@ from __future__ import annotations
 
 import io
 import os
-import signal
-import socket
 import subprocess
-import sys
-import time
 from pathlib import Path
 from typing import Any
 
 import httpx
 import numpy as np
 
+from pipelines.serve_process import free_port, serve_command, stop_process, wait_ready
 from radar.simulate import simulate_sequence
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def post_to_service(out: Path, *, detector: Path, segmenter: Path, seed: int = 99,
                     ready_timeout_s: float = 120.0) -> dict[str, Any]:
     """``radarseg serve`` with the given checkpoints on a free loopback port; one simulated ``small`` cube
     posted to ``/v1/segment``; returns the response's objects, compute and usage, and the true objects."""
-    port = _free_port()
+    port = free_port()
     env = {**os.environ, "RADARSEG_DATA_DIR": str((out / "service").absolute()),
            "RADARSEG_MODELS": f'[{{"name": "small", "detector": "{detector.absolute()}", '
                               f'"segmenter": "{segmenter.absolute()}"}}]'}
     log_path = out / "service.log"
     with log_path.open("w") as log:
-        server = subprocess.Popen([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(port),
-                                   "--log-level", "warning"], stdout=log, stderr=subprocess.STDOUT, env=env)
+        server = subprocess.Popen(serve_command(port), stdout=log, stderr=subprocess.STDOUT, env=env)
         try:
             url = f"http://127.0.0.1:{port}"
-            deadline = time.monotonic() + ready_timeout_s
-            while True:
-                if server.poll() is not None:
-                    raise RuntimeError(f"the service exited ({server.returncode}); see {log_path}")
-                try:
-                    if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                        break
-                except httpx.HTTPError:
-                    pass
-                if time.monotonic() > deadline:
-                    raise RuntimeError(f"the service was not ready within {ready_timeout_s} s; see {log_path}")
-                time.sleep(0.5)
+            wait_ready(url, server, log_path, timeout_s=ready_timeout_s)
             frame = next(simulate_sequence("small", 1, seed=seed))
             body = io.BytesIO()
             np.save(body, frame.cube, allow_pickle=False)
@@ -59,12 +38,7 @@ def post_to_service(out: Path, *, detector: Path, segmenter: Path, seed: int = 9
             response.raise_for_status()
             answer = response.json()
         finally:
-            server.send_signal(signal.SIGTERM)
-            try:
-                server.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                server.kill()
-                server.wait()
+            stop_process(server)
     truth = [{"class_name": o.class_name, "x": o.centre_x, "y": o.centre_y} for o in frame.objects if o.n_voxels]
     return {"url": url, "objects": answer["objects"], "compute": answer["compute"], "usage": answer["usage"],
             "truth": truth}

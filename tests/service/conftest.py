@@ -6,23 +6,19 @@ from __future__ import annotations
 
 import io
 import os
-import signal
-import socket
 import subprocess
-import sys
-import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 import torch
 
 from models.checkpoint import Checkpoint, save_checkpoint
 from models.registry import create_model
+from pipelines.serve_process import free_port, serve_command, stop_process, wait_ready
 from radar.simulate import simulate_sequence
 from service.settings import ModelSpec, Settings
 
@@ -117,12 +113,6 @@ def pg_prefix(postgres_url) -> Iterator[str]:
     ledger.dispose()
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 class ApiProcess:
     """An API process on loopback (any command that serves ``service.main:create_app``), stopped by pid."""
 
@@ -135,35 +125,18 @@ class ApiProcess:
                                      env={**os.environ, **env, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
 
     def wait_ready(self, timeout_s: float = 150.0) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"API exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.3)
-        raise RuntimeError(f"API not ready within {timeout_s} s:\n{self.log_path.read_text()[-3000:]}")
+        wait_ready(self.url, self.proc, self.log_path, timeout_s=timeout_s, poll_s=0.3)
 
     def stop(self) -> None:
         """SIGTERM by pid (uvicorn shuts down gracefully), SIGKILL if it lingers."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
+        stop_process(self.proc)
         self._log.close()
 
 
 def Server(env: dict[str, str], log_path: Path) -> ApiProcess:  # noqa: N802 (reads like the class it builds)
     """A ``radarseg serve`` process on a free loopback port."""
     port = free_port()
-    return ApiProcess([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(port), "--log-level", "warning"],
-                      port, env, log_path)
+    return ApiProcess(serve_command(port), port, env, log_path)
 
 
 @pytest.fixture
