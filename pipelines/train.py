@@ -897,7 +897,7 @@ class Budget:
     (``spent_s``: time a resumed run had already used; measured from construction)."""
 
     def __init__(self, max_steps: int | None, max_minutes: float | None, *, spent_s: float = 0.0) -> None:
-        self.max_steps, self.max_minutes = max_steps, max_minutes
+        self.max_steps = max_steps
         self.deadline = None if max_minutes is None else time.perf_counter() + 60.0 * max_minutes - spent_s
 
     def spent(self, step: int) -> bool:
