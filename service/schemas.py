@@ -128,6 +128,32 @@ class RequestUsage(DayUsage):
     remaining_macs: int | None
 
 
+class ViewAxes(BaseModel):
+    """The physical value at the centre of every bin of the views."""
+
+    range_m: list[float]
+    angle_deg: list[float] = Field(description="azimuth per angle bin, positive to the right (bins are uniform "
+                                               "in sin(azimuth))")
+    velocity_mps: list[float] = Field(description="radial velocity per Doppler bin, positive receding")
+
+
+class InputView(BaseModel):
+    """One view of the input quantised to uint8: ``dB = low_db + value * (high_db - low_db) / 255``."""
+
+    low_db: float
+    high_db: float
+    array: EncodedArray
+
+
+class InputViews(BaseModel):
+    """``?outputs=views``: what a client draws the masks over. ``ra`` (R, A): max log power over Doppler;
+    ``rd`` (R, D): log power summed over angle (``radar.transforms.ra_view``/``rd_view``)."""
+
+    ra: InputView
+    rd: InputView
+    axes: ViewAxes
+
+
 class SegmentResponse(BaseModel):
     request_id: str
     model: str
@@ -138,6 +164,7 @@ class SegmentResponse(BaseModel):
     ra_mask: EncodedArray | None = None
     rd_mask: EncodedArray | None = None
     voxels: VoxelsOut | None = None
+    views: InputViews | None = None
     compute: Compute
     usage: RequestUsage
 

@@ -21,6 +21,7 @@ from service.deps import Caller, ServiceState, State
 from service.encoding import encode_array
 from service.errors import ApiError
 from service.inference import NotReady, Saturated, ServedModel
+from service.input_views import input_views
 from service.ledger import DayTotals, QuotaExceeded, utc_today
 from service.routes.errors_doc import error_responses
 from service.schemas import (
@@ -37,7 +38,7 @@ from service.upload import ExpectedCube, read_cube
 router = APIRouter(tags=["segmentation"])
 
 CONTENT_TYPES = ("application/x-npy", "application/octet-stream")
-OUTPUTS = ("objects", "masks", "voxels")
+OUTPUTS = ("objects", "masks", "voxels", "views")
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 REQUEST_BODY = {
     "requestBody": {
@@ -186,7 +187,8 @@ async def segment(
     model: Annotated[str | None, Query(description="served model name (GET /v1/models); default model if omitted",
                                        max_length=64)] = None,
     input_kind: Annotated[InputKind, Query(alias="input", description="what the cube holds")] = InputKind.complex,
-    outputs: Annotated[str, Query(description="comma-separated among objects, masks, voxels",
+    outputs: Annotated[str, Query(description="comma-separated among objects, masks, voxels, views "
+                                              "(the RA/RD views of the input: uint8, dB range, bin values)",
                                   max_length=64)] = "objects,masks",
     encoding: Annotated[MaskEncoding, Query(description="encoding of masks and voxels")] = MaskEncoding.rle,
     tdm_compensation: Annotated[bool, Query(description="?input=adc: compensate TDM Doppler-angle coupling")] = True,
@@ -236,6 +238,8 @@ async def segment(
         except NotReady as exc:
             raise ApiError(503, str(exc), error="not_ready",
                            headers={"Retry-After": str(settings.retry_after_s)}) from None
+        views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
+                                         tdm_compensation=tdm_compensation) if "views" in chosen else None)
         del cube
         compute, compute_us = _compute(result, decode_s)
         request_id = uuid.uuid4().hex
@@ -262,7 +266,8 @@ async def segment(
 
     net = served.net
     body = SegmentResponse(request_id=request_id, model=name, preset=net.profile.name, shape=list(net.profile.shape),
-                           class_names=list(net.class_names), compute=compute, usage=_usage(billed, quota))
+                           class_names=list(net.class_names), views=views, compute=compute,
+                           usage=_usage(billed, quota))
     start = time.perf_counter()
     payload = await run_in_threadpool(_encode, body, result, chosen, encoding)
     encode_s = time.perf_counter() - start
