@@ -16,6 +16,12 @@ import numpy as np
 from radar.io.errors import DataError
 
 MAGIC = b"\x93NUMPY"
+# numpy's own default bound (``np.load(max_header_size=10000)``); real headers are about 120 bytes.
+MAX_HEADER_LEN = 10000
+# A plain header is a dict holding a shape tuple (depth 2); 4 leaves room and refuses what would make
+# ``ast.literal_eval`` recurse (4,000 nested brackets raise RecursionError, 60,000 unary minus signs MemoryError).
+MAX_HEADER_NESTING = 4
+MAX_UNARY_RUN = 2
 
 
 @dataclass(frozen=True)
@@ -47,10 +53,14 @@ def parse_npy_header(head: bytes, *, source: str | Path | None = None) -> NpyHea
         header_len, start = int.from_bytes(head[8:12], "little"), 12
     else:
         raise DataError(source, f"unsupported .npy format version {major}")
-    if header_len > 65536 or len(head) < start + header_len:
-        raise DataError(source, "truncated or oversized .npy header")
+    if header_len > MAX_HEADER_LEN:
+        raise DataError(source, f"oversized .npy header: {header_len} bytes, at most {MAX_HEADER_LEN} accepted")
+    if len(head) < start + header_len:
+        raise DataError(source, f"truncated .npy header: {len(head) - start} of its {header_len} bytes")
+    text = head[start:start + header_len].decode("latin1")
+    _check_literal_bounds(text, source)
     try:
-        meta = ast.literal_eval(head[start:start + header_len].decode("latin1"))
+        meta = ast.literal_eval(text)
         descr, fortran, shape = meta["descr"], meta["fortran_order"], meta["shape"]
         dtype = np.dtype(descr) if isinstance(descr, str) else None
     except (ValueError, SyntaxError, KeyError, TypeError) as exc:
@@ -61,6 +71,26 @@ def parse_npy_header(head: bytes, *, source: str | Path | None = None) -> NpyHea
     if not (isinstance(shape, tuple) and all(isinstance(s, int) and s >= 0 for s in shape)):
         raise DataError(source, f"malformed .npy shape {shape!r}")
     return NpyHeader(dtype, shape, bool(fortran), start + header_len)
+
+
+def _check_literal_bounds(text: str, source: str | Path | None) -> None:
+    """Refuse a header literal nested deeper than MAX_HEADER_NESTING brackets, or with a run of more than
+    MAX_UNARY_RUN unary signs, before ``ast.literal_eval`` sees it (its parser recurses on both)."""
+    depth = deepest = run = longest = 0
+    for char in text:
+        if char in "([{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in ")]}":
+            depth -= 1
+        run = run + 1 if char in "+-~" else (run if char.isspace() else 0)
+        longest = max(longest, run)
+    if deepest > MAX_HEADER_NESTING:
+        raise DataError(source, f"malformed .npy header: brackets nested {deepest} deep, at most "
+                                f"{MAX_HEADER_NESTING} expected")
+    if longest > MAX_UNARY_RUN:
+        raise DataError(source, f"malformed .npy header: a run of {longest} sign characters, at most "
+                                f"{MAX_UNARY_RUN} expected")
 
 
 def check_array(array: np.ndarray, *, source: str | Path | None, shape: tuple[int, ...] | None = None,
@@ -80,7 +110,7 @@ def check_array(array: np.ndarray, *, source: str | Path | None, shape: tuple[in
 def decode_npy(payload: bytes, *, shape: tuple[int, ...] | None = None, dtypes: tuple[type, ...] | None = None,
                finite: bool = True, source: str | Path | None = None) -> np.ndarray:
     """Decode a whole .npy payload held in memory, checking the header before allocating."""
-    header = parse_npy_header(payload[:70000], source=source)
+    header = parse_npy_header(payload[:MAX_HEADER_LEN + 12], source=source)
     if shape is not None and header.shape != tuple(shape):
         raise DataError(source, f"array has shape {header.shape}, expected {tuple(shape)}")
     if len(payload) - header.data_offset != header.nbytes:
@@ -97,7 +127,7 @@ def load_npy(path: str | Path, *, shape: tuple[int, ...] | None = None, dtypes: 
     if not path.is_file():
         raise DataError(path, f"missing file (expected the {what})")
     with path.open("rb") as fh:
-        header = parse_npy_header(fh.read(4096), source=path)
+        header = parse_npy_header(fh.read(MAX_HEADER_LEN + 12), source=path)
     if shape is not None and header.shape != tuple(shape):
         raise DataError(path, f"{what} has shape {header.shape}, expected {tuple(shape)}")
     size = path.stat().st_size
