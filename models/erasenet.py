@@ -24,8 +24,7 @@ from models.segmenter.spvcnn import SPVCNN, PointTensor
 from models.sparse import SparseTensor
 from radar import transforms
 from radar.detections import Centres
-from radar.profile_files import resolve_profile
-from radar.profiles import RadarProfile, get_profile
+from radar.profiles import RadarProfile, get_profile, resolve_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
 from radar.schema import check_schema, cube_schema

@@ -64,17 +64,21 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from models.baselines.mvnet import MultiViewNet
+from models.baselines.unet import UNet
+from models.channel_surgery import NORM_TYPES, channel_table, out_size, slice_module
+from models.checkpoint import Checkpoint
+from models.compute import count_macs, count_params
+from models.detector.bifpn import BiFPNNeck
+from models.detector.centre_detector import CentreDetector
+from models.detector.efficientnet import EfficientNetBackbone
+from models.layers import SeparableConv2d
+from models.registry import create_model
+from models.segmenter.minkunet import MinkUNet
+from models.segmenter.spvcnn import FUSE_AFTER_DECODER_STAGE, SPVCNN
+from radar.profiles import get_profile
+
 log = logging.getLogger(__name__)
-
-NORM_TYPES = (nn.BatchNorm1d, nn.BatchNorm2d, nn.BatchNorm3d)  # the sparse BatchNorm subclasses BatchNorm1d
-_CONVS = (nn.Conv1d, nn.Conv2d, nn.Conv3d)
-_TRANSPOSED = (nn.ConvTranspose1d, nn.ConvTranspose2d, nn.ConvTranspose3d)
-
-
-def _kernel_convs() -> tuple[type, ...]:
-    from models.sparse.conv import StridedConv3d, SubmanifoldConv3d, TransposedConv3d
-
-    return SubmanifoldConv3d, StridedConv3d, TransposedConv3d
 
 
 # --------------------------------------------------------------------------- sparsity training
@@ -126,14 +130,6 @@ class ChannelGroup:
 Space = list[ChannelGroup]  # the channels of one tensor: groups concatenated in order
 
 
-def _out_size(module: nn.Module) -> int:
-    if isinstance(module, NORM_TYPES):
-        return module.num_features
-    if isinstance(module, nn.Linear):
-        return module.out_features
-    return module.out_channels
-
-
 class _Tracer:
     """Collects groups while a tracer walks a model's structure."""
 
@@ -142,7 +138,7 @@ class _Tracer:
 
     def produced(self, name: str, module: nn.Module, norm: nn.Module | None = None) -> Space:
         """A new group: the output of ``module`` (and of the BatchNorm ``norm`` that follows it)."""
-        group = ChannelGroup(name, _out_size(module))
+        group = ChannelGroup(name, out_size(module))
         self.groups.append(group)
         space = [group]
         self.produce(space, module, norm)
@@ -194,9 +190,6 @@ class _NormSlice:
 
 # ----- tracers, one per architecture family
 def _trace_detector(model: nn.Module, t: _Tracer) -> None:
-    from models.detector.bifpn import BiFPNNeck
-    from models.detector.efficientnet import EfficientNetBackbone
-    from models.layers import SeparableConv2d
 
     backbone, neck = model.backbone, model.neck
     if not isinstance(backbone, EfficientNetBackbone) or not isinstance(neck, BiFPNNeck):
@@ -261,7 +254,6 @@ def _residual_stack(t: _Tracer, stack: nn.Sequential, cur: Space, name: str) -> 
 
 
 def _trace_segmenter(model: nn.Module, t: _Tracer) -> None:
-    from models.segmenter.spvcnn import FUSE_AFTER_DECODER_STAGE, SPVCNN
 
     first = t.produced("stem.0", model.stem[0][0], model.stem[0][1])
     t.consume(first, model.stem[1][0])
@@ -348,10 +340,6 @@ def _trace_unet(model: nn.Module, t: _Tracer) -> None:
 
 
 def _tracers() -> list[tuple[type, Callable[[nn.Module, _Tracer], None]]]:
-    from models.baselines.mvnet import MultiViewNet
-    from models.baselines.unet import UNet
-    from models.detector.centre_detector import CentreDetector
-    from models.segmenter.minkunet import MinkUNet
 
     return [(CentreDetector, _trace_detector), (MinkUNet, _trace_segmenter), (MultiViewNet, _trace_multiview),
             (UNet, _trace_unet)]
@@ -417,67 +405,6 @@ def select_channels(groups: Sequence[ChannelGroup], ratio: float, *, min_channel
 
 
 # --------------------------------------------------------------------------- surgery
-def _axes(module: nn.Module) -> tuple[int | None, int]:
-    """(input axis, output axis) of a module's weight (input axis None for a BatchNorm)."""
-    if isinstance(module, NORM_TYPES):
-        return None, 0
-    if isinstance(module, _TRANSPOSED):
-        return 0, 1
-    if isinstance(module, (*_CONVS, nn.Linear)):
-        return 1, 0
-    if isinstance(module, _kernel_convs()):
-        return 1, 2
-    raise ValueError(f"no channel surgery for {type(module).__name__}")
-
-
-def _in_size(module: nn.Module) -> int:
-    return module.in_features if isinstance(module, nn.Linear) else module.in_channels
-
-
-def _is_depthwise(module: nn.Module) -> bool:
-    return isinstance(module, _CONVS) and module.groups > 1 and module.groups == module.in_channels
-
-
-@torch.no_grad()
-def _slice_module(module: nn.Module, in_index: Tensor | None, out_index: Tensor | None) -> None:
-    """Narrow ``module`` in place to the given input/output channel indices (None: axis unchanged)."""
-    if isinstance(module, NORM_TYPES):
-        if out_index is None:
-            return
-        for name in ("weight", "bias"):
-            if getattr(module, name) is not None:
-                setattr(module, name, nn.Parameter(getattr(module, name)[out_index].clone()))
-        for name in ("running_mean", "running_var"):
-            if getattr(module, name) is not None:
-                setattr(module, name, getattr(module, name)[out_index].clone())
-        module.num_features = len(out_index)
-        return
-    in_axis, out_axis = _axes(module)
-    weight = module.weight
-    if _is_depthwise(module):  # weight (C, 1, k, k): one axis, groups follow
-        index = out_index if out_index is not None else in_index
-        if index is None:
-            return
-        weight = weight.index_select(0, index)
-        module.groups = module.in_channels = module.out_channels = len(index)
-        in_index, out_index = None, index
-    else:
-        if getattr(module, "groups", 1) != 1 and (in_index is not None or out_index is not None):
-            raise ValueError(f"cannot narrow a grouped (non-depthwise) {type(module).__name__}")
-        if in_index is not None:
-            weight = weight.index_select(in_axis, in_index)
-        if out_index is not None:
-            weight = weight.index_select(out_axis, out_index)
-    module.weight = nn.Parameter(weight.clone())
-    if getattr(module, "bias", None) is not None and out_index is not None:
-        module.bias = nn.Parameter(module.bias[out_index].clone())
-    if isinstance(module, nn.Linear):
-        module.in_features, module.out_features = module.weight.shape[1], module.weight.shape[0]
-    elif not _is_depthwise(module):
-        module.in_channels = weight.shape[in_axis] * getattr(module, "groups", 1)
-        module.out_channels = weight.shape[out_axis]
-
-
 def prune_model(model: nn.Module, groups: Sequence[ChannelGroup], keep: dict[int, Tensor]) -> nn.Module:
     """Remove channels in place: every member of every group is sliced to the kept indices.
 
@@ -497,63 +424,11 @@ def prune_model(model: nn.Module, groups: Sequence[ChannelGroup], keep: dict[int
                 continue
             parts = sorted({offset: idx for offset, idx in parts}.items())  # a module may produce a space twice
             index[axis] = torch.cat([idx for _, idx in parts])
-        _slice_module(module, index["in"], index["out"])
+        slice_module(module, index["in"], index["out"])
     return model
 
 
 # --------------------------------------------------------------------------- the channels table
-def _shape_entry(module: nn.Module) -> list[int] | None:
-    if isinstance(module, NORM_TYPES):
-        return [module.num_features]
-    if isinstance(module, (*_CONVS, *_TRANSPOSED, nn.Linear, *_kernel_convs())):
-        return [_in_size(module), _out_size(module)]
-    return None
-
-
-def channel_table(model: nn.Module, reference: nn.Module) -> dict[str, list[int]]:
-    """``{module path: [in, out]}`` (``[n]`` for a BatchNorm) of every layer of ``model`` whose width
-    differs from the same layer of ``reference`` (the default build of the same config)."""
-    ref = dict(reference.named_modules())
-    table = {}
-    for name, module in model.named_modules():
-        entry = _shape_entry(module)
-        if entry is not None and name in ref and entry != _shape_entry(ref[name]):
-            table[name] = entry
-    return table
-
-
-def apply_channel_table(model: nn.Module, channels: dict[str, Sequence[int]]) -> nn.Module:
-    """Narrow a freshly built default model to a ``channels`` table (the builders' ``channels=``).
-
-    Layers keep their first channels (the weights are loaded afterwards). Raises ``ValueError`` naming
-    a path that does not exist, a layer that cannot be narrowed, or a width that is not in
-    ``[1, current width]``.
-    """
-    if not isinstance(channels, dict):
-        raise ValueError(f"channels must be a dict of module path -> widths, got {type(channels).__name__}")
-    modules = dict(model.named_modules())
-    for path, dims in channels.items():
-        module = modules.get(path)
-        if module is None:
-            raise ValueError(f"channels: {type(model).__name__} has no layer {path!r}")
-        current = _shape_entry(module)
-        if current is None:
-            raise ValueError(f"channels: layer {path!r} ({type(module).__name__}) has no channel widths")
-        dims = [int(d) for d in dims]
-        if len(dims) != len(current) or any(not 1 <= d <= c for d, c in zip(dims, current, strict=True)):
-            raise ValueError(f"channels: layer {path!r} has widths {current}, cannot be narrowed to {dims}")
-        if isinstance(module, NORM_TYPES):
-            _slice_module(module, None, torch.arange(dims[0]))
-        elif _is_depthwise(module):
-            if dims[0] != dims[1]:
-                raise ValueError(f"channels: depthwise layer {path!r} needs in == out, got {dims}")
-            _slice_module(module, None, torch.arange(dims[1]))
-        else:
-            _slice_module(module, torch.arange(dims[0]) if dims[0] != current[0] else None,
-                          torch.arange(dims[1]) if dims[1] != current[1] else None)
-    return model
-
-
 # --------------------------------------------------------------------------- checkpoints and budgets
 @dataclass(frozen=True)
 class PruneReport:
@@ -576,10 +451,6 @@ class PruneReport:
 def dense_input_shapes(model: nn.Module, preset: str) -> tuple[tuple[int, ...], ...] | None:
     """Batch-1 input shapes of a dense model at ``preset`` (None for the sparse segmenters, whose MACs
     depend on the ROI)."""
-    from models.baselines.mvnet import MultiViewNet
-    from models.baselines.unet import UNet
-    from models.detector.centre_detector import CentreDetector
-    from radar.profiles import get_profile
 
     profile = get_profile(preset)
     r, a, d = profile.n_range, profile.n_angle, profile.n_doppler
@@ -594,7 +465,6 @@ def dense_input_shapes(model: nn.Module, preset: str) -> tuple[tuple[int, ...], 
 
 
 def _macs(model: nn.Module, shapes: tuple[tuple[int, ...], ...] | None) -> int | None:
-    from models.compute import count_macs
 
     return None if shapes is None else count_macs(model, *shapes).macs
 
@@ -617,9 +487,6 @@ def prune_checkpoint(checkpoint: Any, *, ratio: float | None = None, params: int
     ``extra["slimming"]`` holds the report) and the :class:`PruneReport`. The checkpoint is rebuilt
     from its config alone and loaded strictly before it is returned.
     """
-    from models.checkpoint import Checkpoint
-    from models.compute import count_params
-    from models.registry import create_model
 
     if sum(v is not None for v in (ratio, params, macs)) != 1:
         raise ValueError("give exactly one of ratio, params or macs")
@@ -650,7 +517,6 @@ def prune_checkpoint(checkpoint: Any, *, ratio: float | None = None, params: int
 def _budget_ratio(model: nn.Module, *, params: int | None, macs: int | None, shapes, min_channels: int,
                   iterations: int = 14) -> float:
     """Smallest global ratio whose pruned model fits the budget (bisection; cost falls with the ratio)."""
-    from models.compute import count_params
 
     if macs is not None and shapes is None:
         raise ValueError(f"{type(model).__name__}: MACs depend on the input voxels; give a params budget")

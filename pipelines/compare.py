@@ -59,7 +59,7 @@ from pipelines.train_baselines import load_baseline, predicted_views
 from pipelines.views import ViewDataset, ViewStats, collate_views, model_inputs, scored_frames, split_windows
 from radar.cfar import cfar_centres
 from radar.metrics import confusion_matrix
-from radar.profile_files import resolve_profile
+from radar.profiles import resolve_profile
 
 log = logging.getLogger(__name__)
 

@@ -23,11 +23,10 @@ from __future__ import annotations
 
 import json
 import tomllib
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from radar.profiles import SPEED_OF_LIGHT, RadarProfile
+from radar.radar_profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
 
 WINDOWS = ("hann", "rect")
 EXPECT_TOLERANCE = 0.005  # relative
@@ -35,28 +34,6 @@ EXPECT_TOLERANCE = 0.005  # relative
 
 class ProfileError(ValueError):
     """A radar profile file that is missing, malformed or physically inconsistent."""
-
-
-@dataclass(frozen=True)
-class ChirpParameters:
-    """The radar's waveform and array, as a profile file states them (SI units)."""
-
-    carrier_hz: float
-    sweep_bandwidth_hz: float  # bandwidth swept while the ADC samples
-    sample_rate_hz: float
-    samples_per_chirp: int
-    chirps_per_frame: int  # chirp cycles per frame
-    chirp_cycle_s: float  # time between two chirps of the same TX
-    tdm_order: tuple[int, ...]
-    window: str = "hann"
-
-    @property
-    def slope_hz_per_s(self) -> float:
-        return self.sweep_bandwidth_hz * self.sample_rate_hz / self.samples_per_chirp
-
-    @property
-    def adc_time_s(self) -> float:
-        return self.samples_per_chirp / self.sample_rate_hz
 
 
 _SCHEMA: dict[str, set[str]] = {
@@ -246,14 +223,3 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
         "simulation": {"noise_floor_db": profile.noise_floor_db, "snr_0dbsm_10m_db": profile.snr_0dbsm_10m_db,
                        "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg},
     }
-
-
-def resolve_profile(name: str, description: dict[str, Any] | None = None, *, source: str = "profile") -> RadarProfile:
-    """A built-in preset by name, or the radar a stored file-form ``description`` defines."""
-    from radar.profiles import BUILTIN_PRESETS, get_profile
-
-    if description is not None:
-        return profile_from_dict(description, source=source)
-    if name in BUILTIN_PRESETS:
-        return get_profile(name)
-    raise ProfileError(f"{source}: radar {name!r} is not a built-in preset and no profile description is stored")

@@ -12,6 +12,7 @@ from torch import nn
 
 from models.baselines.mvnet import MVRSS_WIDTH, MultiViewNet
 from models.baselines.unet import CLASSIC_WIDTHS, UNet
+from models.channel_surgery import apply_channel_table
 from models.registry import register_model
 from radar.profiles import RadarProfile, get_profile
 
@@ -23,8 +24,6 @@ TINY_MV_WIDTH = 8
 
 def _narrowed(model: nn.Module, channels: Channels) -> nn.Module:
     if channels:
-        from models.slimming import apply_channel_table
-
         apply_channel_table(model, channels)
     return model
 

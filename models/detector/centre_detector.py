@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.channel_surgery import apply_channel_table
 from models.detector.bifpn import BiFPNNeck
 from models.detector.centernet import CentreNetHead
 from models.detector.efficientnet import (
@@ -251,8 +252,6 @@ def build_centre_detector(
         doppler_bins=doppler_bins, cartesian=cartesian, backbone=backbone, neck=neck, head=head
     )
     if channels:
-        from models.slimming import apply_channel_table  # imports this package: only when slimmed
-
         apply_channel_table(detector, channels)
     return detector
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from models.channel_surgery import apply_channel_table
 from models.registry import register_model
 from models.segmenter.minkunet import MinkUNet, scaled_widths
 from models.segmenter.spvcnn import SPVCNN
@@ -26,8 +27,6 @@ def _build(cls: type[MinkUNet], preset: str | RadarProfile, ratio: float, widths
                 widths=tuple(widths) if widths is not None else scaled_widths(ratio),
                 blocks_per_stage=blocks_per_stage)
     if channels:  # per-layer widths of a slimmed network (models.slimming)
-        from models.slimming import apply_channel_table
-
         apply_channel_table(model, channels)
     return model
 

@@ -23,11 +23,11 @@ label code uses this to evaluate each object's own response in a window around i
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 import scipy.fft
 
+from radar.adc import adc_to_rad, chain_constants, tdm_slots
 from radar.profiles import RadarProfile, get_profile
 
 
@@ -68,48 +68,6 @@ class Scatterers:
                             ("x", "y", "vx", "vy", "amplitude")))
 
 
-SMALL_ARRAY = 16  # up to this many virtual elements the angle DFT is a matrix product, above an FFT
-
-
-def hann(n: int) -> np.ndarray:
-    """Hann window of ``n`` points without the zero end points (matters for an 8-element array)."""
-    return np.hanning(n + 2)[1:-1]
-
-
-@dataclass(frozen=True)
-class ChainConstants:
-    """Windows and scale factors of a profile's FFT chain (cached per profile)."""
-
-    window_range: np.ndarray  # (Ns,)
-    window_doppler: np.ndarray  # (Nc,)
-    window_array: np.ndarray  # (K,)
-    angle_dft: np.ndarray  # (A, K) complex64: windowed, zero-padded, fftshifted angle DFT
-    noise_gain: float  # mean noise power per RAD voxel for unit noise power per ADC sample
-    peak_gain: float  # |peak|^2 of a unit-amplitude scatterer on bin centres
-    adc_noise_std: float  # thermal noise std per ADC sample (complex) for the profile's noise floor
-    radar_constant: float  # G in |alpha| = G sqrt(rcs) / R^2 from the profile's SNR calibration
-
-
-def window(profile: RadarProfile, n: int) -> np.ndarray:
-    """The profile's window over ``n`` points (Hann, or rectangular)."""
-    return hann(n) if profile.window == "hann" else np.ones(n)
-
-
-@lru_cache(maxsize=16)
-def chain_constants(profile: RadarProfile) -> ChainConstants:
-    w_r, w_d, w_a = (window(profile, n) for n in (profile.n_samples, profile.n_chirps, profile.n_virtual))
-    a = np.arange(profile.n_angle)[:, None] - profile.n_angle // 2
-    k = np.arange(profile.n_virtual)[None, :]
-    angle_dft = (np.exp(-2j * np.pi * a * k / profile.n_angle) * w_a[None, :]).astype(np.complex64)
-    noise_gain = float((w_r**2).sum() * (w_d**2).sum() * (w_a**2).sum())
-    peak_gain = float((w_r.sum() * w_d.sum() * w_a.sum()) ** 2)
-    noise_voxel = 10 ** (profile.noise_floor_db / 10)
-    adc_noise_std = float(np.sqrt(noise_voxel / noise_gain))
-    # SNR of a 0 dBsm target at 10 m: G^2 / 10^4 * peak_gain / noise_voxel = 10^(snr/10)
-    radar_constant = float(np.sqrt(10 ** (profile.snr_0dbsm_10m_db / 10) * noise_voxel * 1e4 / peak_gain))
-    return ChainConstants(w_r, w_d, w_a, angle_dft, noise_gain, peak_gain, adc_noise_std, radar_constant)
-
-
 def received_amplitude(profile: RadarProfile, range_m, rcs_dbsm) -> np.ndarray:
     """Radar-equation amplitude ``G sqrt(rcs) / R^2`` (received power falls as 1/R^4)."""
     rng = np.maximum(np.asarray(range_m, dtype=np.float64), 0.1)
@@ -122,13 +80,6 @@ def _phasor_frequencies(profile: RadarProfile, scat: Scatterers) -> tuple[np.nda
     f_range = scat.range_m / profile.range_res / profile.n_range
     f_doppler = scat.radial_velocity / profile.velocity_res / profile.n_doppler
     return f_range, f_doppler, scat.sin_theta
-
-
-def tdm_slots(profile: RadarProfile) -> np.ndarray:
-    """(K,) firing slot within a chirp cycle of each virtual element's TX (element k = tx * n_rx + rx)."""
-    order = tuple(range(profile.n_tx)) if profile.chirp is None else profile.chirp.tdm_order
-    slot_of_tx = np.argsort(np.asarray(order))
-    return slot_of_tx[np.arange(profile.n_virtual) // profile.n_rx]
 
 
 def _element_phasors(profile: RadarProfile, f_doppler, sin_theta, tdm_coupling: bool) -> np.ndarray:
@@ -158,36 +109,6 @@ def synthesize_adc(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: boo
         noise = noise_rng.standard_normal((2, ns, nc, nk), dtype=np.float32) * np.float32(std)
         adc += noise[0] + 1j * noise[1]
     return adc
-
-
-def adc_to_rad(profile: RadarProfile, adc: np.ndarray, *, tdm_compensation: bool = False) -> np.ndarray:
-    """FFT chain: (Ns, Nc, K) ADC samples -> (R, A, D) complex64 RAD cube in the project's frame.
-
-    The profile's window on every axis; range FFT zero-padded to R; Doppler FFT zero-padded to D and
-    fftshifted (zero velocity at D/2); ``tdm_compensation`` removes, per Doppler bin, the phase a TX
-    firing later in the chirp cycle adds (exact for unaliased velocities); angle DFT zero-padded to A
-    and fftshifted (broadside at A/2), as one batched matrix product writing the (R, A, D) layout
-    directly for small arrays, an FFT for large ones.
-    """
-    expected = (profile.n_samples, profile.n_chirps, profile.n_virtual)
-    if adc.shape != expected:
-        raise ValueError(f"ADC block for profile {profile.name!r} must have shape {expected}, got {adc.shape}")
-    cc = chain_constants(profile)
-    x = adc.astype(np.complex64, copy=False)
-    x = x * cc.window_range[:, None, None].astype(np.float32)
-    x = scipy.fft.fft(x, n=profile.n_range, axis=0)  # (R, Nc, K)
-    x = x * cc.window_doppler[None, :, None].astype(np.float32)
-    x = scipy.fft.fftshift(scipy.fft.fft(x, n=profile.n_doppler, axis=1), axes=1)  # (R, D, K)
-    if tdm_compensation and profile.n_tx > 1:
-        f_doppler = (np.arange(profile.n_doppler) - profile.n_doppler // 2) / profile.n_doppler  # cycles/chirp
-        x = x * np.exp(-2j * np.pi * f_doppler[:, None] * tdm_slots(profile)[None, :] / profile.n_tx
-                       ).astype(np.complex64)[None]
-    if profile.n_virtual <= SMALL_ARRAY:
-        # (A, K) @ (R, K, D) -> (R, A, D): window, zero-padding and fftshift are in the DFT matrix.
-        return np.matmul(cc.angle_dft, x.transpose(0, 2, 1))
-    x = x * cc.window_array[None, None, :].astype(np.float32)
-    x = scipy.fft.fftshift(scipy.fft.fft(x, n=profile.n_angle, axis=2), axes=2)  # (R, D, A)
-    return np.ascontiguousarray(x.transpose(0, 2, 1))
 
 
 def axis_kernels(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool = False

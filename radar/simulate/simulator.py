@@ -9,10 +9,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from radar.adc import adc_to_rad
 from radar.frame import ObjectRecord, RadarFrame
 from radar.instances import instance_stats
 from radar.profiles import RadarProfile, get_profile
-from radar.simulate.fmcw import Scatterers, adc_to_rad, received_amplitude, synthesize_adc
+from radar.simulate.fmcw import Scatterers, received_amplitude, synthesize_adc
 from radar.simulate.labels import exact_labels
 from radar.simulate.scene import ObjectState, SceneGenerator, StaticClutter, static_clutter
 from radar.simulate.targets import class_model, object_scatterers

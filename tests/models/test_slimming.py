@@ -11,13 +11,12 @@ import pytest
 import torch
 from torch import nn
 
+from models.channel_surgery import NORM_TYPES, apply_channel_table
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.compute import count_params
 from models.registry import create_model
 from models.segmenter.spvcnn import PointTensor
 from models.slimming import (
-    NORM_TYPES,
-    apply_channel_table,
     prune_checkpoint,
     prune_model,
     select_channels,

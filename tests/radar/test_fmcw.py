@@ -1,9 +1,10 @@
 import numpy as np
 import pytest
 
+from radar.adc import adc_to_rad
 from radar.profiles import PRESETS, get_profile
 from radar.simulate import point_target_cube
-from radar.simulate.fmcw import Scatterers, adc_to_rad, axis_kernels, received_amplitude, synthesize_adc
+from radar.simulate.fmcw import Scatterers, axis_kernels, received_amplitude, synthesize_adc
 
 N_POSITIONS = {"small": 24, "carrada": 10, "nxp": 4}
 

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from pipelines.cli import main
-from radar.adc import process_adc, sck_to_ti, ti_to_sck
+from radar.adc import adc_to_rad, process_adc, sck_to_ti, ti_to_sck
 from radar.profile_files import ProfileError, load_profile_file, profile_from_dict
 from radar.profiles import BUILTIN_PRESETS, get_profile
 from radar.simulate import point_target_cube
-from radar.simulate.fmcw import Scatterers, adc_to_rad, received_amplitude, synthesize_adc
+from radar.simulate.fmcw import Scatterers, received_amplitude, synthesize_adc
 
 PRESET_DIR = Path(__file__).resolve().parents[2] / "radar" / "presets"
 

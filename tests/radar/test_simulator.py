@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 from radar import transforms
+from radar.adc import adc_to_rad
 from radar.simulate import SimulatorConfig, simulate_sequence
-from radar.simulate.fmcw import adc_to_rad, synthesize_adc
+from radar.simulate.fmcw import synthesize_adc
 from radar.simulate.targets import class_model
 
 
