@@ -1,4 +1,4 @@
-"""Pure-PyTorch sparse convolution: sparse tensors, kernel maps by coordinate hashing, conv layers.
+"""Pure-PyTorch sparse convolution: sparse tensors, kernel maps (dense index grids or hashing), conv layers.
 
 No sparse-convolution library trains on CPU here (SPEC section 7), so the project owns this one.
 """
@@ -14,7 +14,7 @@ from models.sparse.conv import (
     apply_kernel_map,
     count_macs,
 )
-from models.sparse.kernel_map import KernelMap, build_kernel_map, downsample_coords, kernel_offsets
+from models.sparse.kernel_map import KernelMap, VoxelIndex, build_kernel_map, downsample_coords, kernel_offsets
 from models.sparse.tensor import KernelMapCache, SparseTensor, cat_features
 
 __all__ = [
@@ -28,6 +28,7 @@ __all__ = [
     "StridedConv3d",
     "SubmanifoldConv3d",
     "TransposedConv3d",
+    "VoxelIndex",
     "apply_kernel_map",
     "build_kernel_map",
     "cat_features",

@@ -12,11 +12,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from models.sparse.kernel_map import KernelMap, build_kernel_map, check_coords, downsample_coords, sort_keys
+from models.sparse.kernel_map import KernelMap, VoxelIndex, build_kernel_map, check_coords, downsample_coords
 
 
 class KernelMapCache:
-    """Coordinates per tensor stride, their sorted keys, and kernel maps, shared by derived tensors.
+    """Coordinates per tensor stride, their voxel indexes, and kernel maps, shared by derived tensors.
 
     The finest coordinates are kept in the order the caller gave them (so outputs line up with the
     caller's voxels); coarser ones are sorted by key.
@@ -30,7 +30,7 @@ class KernelMapCache:
             stride: tensor stride of `coords` (finest voxels per coordinate step).
         """
         self._coords: dict[int, Tensor] = {stride: coords}
-        self._sorted: dict[int, tuple[Tensor, Tensor]] = {}
+        self._index: dict[int, VoxelIndex] = {}
         self._maps: dict[tuple[int, int, int], KernelMap] = {}
 
     def coords(self, stride: int) -> Tensor:
@@ -52,11 +52,15 @@ class KernelMapCache:
             self._coords[stride] = downsample_coords(self.coords(finer), 2)
         return self._coords[stride]
 
+    def index(self, stride: int) -> VoxelIndex:
+        """The voxel index (dense grid, or hashing for huge boxes) of the coordinates at `stride`."""
+        if stride not in self._index:
+            self._index[stride] = VoxelIndex(self.coords(stride))
+        return self._index[stride]
+
     def sorted_keys(self, stride: int) -> tuple[Tensor, Tensor]:
         """Sorted keys (N,) int64 and the row of each, for the coordinates at `stride`."""
-        if stride not in self._sorted:
-            self._sorted[stride] = sort_keys(self.coords(stride))
-        return self._sorted[stride]
+        return self.index(stride).sorted_keys()
 
     def kernel_map(self, tensor_stride: int, kernel_size: int, stride: int) -> KernelMap:
         """The kernel map of a conv reading tensor stride `tensor_stride`, built once and then reused.
@@ -73,10 +77,8 @@ class KernelMapCache:
         """
         key = (tensor_stride, kernel_size, stride)
         if key not in self._maps:
-            in_keys, in_perm = self.sorted_keys(tensor_stride)
             self._maps[key] = build_kernel_map(
-                in_keys,
-                in_perm,
+                self.index(tensor_stride),
                 self.coords(tensor_stride * stride),
                 kernel_size,
                 stride,

@@ -137,7 +137,7 @@ def test_transposed_conv_matches_dense_conv_transpose3d_and_reuses_the_strided_m
     real_build = sparse_tensor_module.build_kernel_map
 
     def counting_build(*args, **kwargs):
-        builds.append((args[3], args[4]))  # (kernel_size, stride)
+        builds.append((args[2], args[3]))  # (kernel_size, stride)
         return real_build(*args, **kwargs)
 
     monkeypatch.setattr(sparse_tensor_module, "build_kernel_map", counting_build)
@@ -244,3 +244,22 @@ def test_bad_coordinates_are_rejected():
         SparseTensor(torch.tensor([[0, 0, 0, 0], [0, 40000, 0, 0]]), feats)
     with pytest.raises(ValueError, match="input channels"):
         SubmanifoldConv3d(2, 1)(SparseTensor(torch.tensor([[0, 0, 0, 0], [1, 0, 0, 0]]), feats))
+
+
+@pytest.mark.parametrize(("kernel_size", "stride"), [(3, 1), (5, 1), (2, 2)])
+def test_grid_index_and_hashing_build_the_same_maps(kernel_size, stride):
+    from models.sparse.kernel_map import VoxelIndex, build_kernel_map, downsample_coords
+
+    generator = torch.Generator().manual_seed(8)
+    coords = random_coords(generator, num_per_sample=150, extent=9, batch_size=3, shared=80)
+    coords = coords + torch.tensor([1, -7, 3, -2])  # batch indices need not start at 0
+    out_coords = coords if stride == 1 else downsample_coords(coords, stride)
+    grid, hashed = VoxelIndex(coords), VoxelIndex(coords, max_cells=0)
+    assert grid.uses_grid and not hashed.uses_grid
+    maps = [build_kernel_map(index, out_coords, kernel_size, stride, same_coords=stride == 1)
+            for index in (grid, hashed)]
+    assert torch.equal(maps[0].neighbours, maps[1].neighbours)
+    assert maps[0].pair_counts == maps[1].pair_counts
+    centred = list(itertools.product(range(-(kernel_size // 2), kernel_size // 2 + 1), repeat=3))
+    offsets = centred if stride == 1 else list(itertools.product(range(stride), repeat=3))
+    assert maps[0].num_pairs == brute_force_pairs(coords, out_coords, offsets, stride)
