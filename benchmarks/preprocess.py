@@ -27,7 +27,8 @@ import torch
 
 from models.detector.targets import build_centre_targets
 from models.registry import create_model
-from pipelines.preprocess import OBJECT_STORE_BYTES, PreprocessConfig, main
+from pipelines.preprocess import PreprocessConfig, main
+from pipelines.sharded_job import OBJECT_STORE_BYTES
 from pipelines.store import OBJECT_FIELDS, StoreDataset
 
 RESULTS = Path(__file__).parent / "results" / "preprocess.json"

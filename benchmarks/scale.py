@@ -41,19 +41,11 @@ import torch  # noqa: E402
 
 from models.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
 from models.registry import create_model  # noqa: E402
-from pipelines.preprocess import (  # noqa: E402
-    OBJECT_STORE_BYTES,
-    PreprocessConfig,
-    ShardJob,
-    check_stats,
-    plan_job,
-    process_shard,
-    reduce_summaries,
-    store_attributes,
-)
+from pipelines.preprocess import PreprocessConfig  # noqa: E402
+from pipelines.preprocess import main as preprocess  # noqa: E402
 from pipelines.segment_batch import SegmentBatchConfig, main  # noqa: E402
 from pipelines.serve_process import free_port  # noqa: E402
-from pipelines.store import create_store, finish_store  # noqa: E402
+from pipelines.sharded_job import OBJECT_STORE_BYTES  # noqa: E402
 from radar.simulate import simulate_sequence  # noqa: E402
 from service.settings import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, resolve_path  # noqa: E402
 
@@ -84,17 +76,10 @@ def checkpoints(tmp: Path) -> dict:
 
 
 def build_store(out: Path, frames: int) -> Path:
-    """A small-preset store, the preprocessing job's shard function run in this process (no Ray)."""
+    """A small-preset store, the preprocessing job run in this process (no Ray)."""
     cfg = PreprocessConfig(source="sim", out=str(out), preset="small", sequences=2, frames=frames // 2, seed=21,
-                           split_fractions=(1.0, 0.0, 0.0), shard_frames=4, progress=False)
-    plan = plan_job(cfg)
-    create_store(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
-    summaries = [process_shard(ShardJob(str(plan.out), plan.layout, plan.source, s, plan.shard_slots(s)))
-                 for s in range(plan.layout.n_shards)]
-    stats = reduce_summaries(*summaries)
-    check_stats(plan, stats)
-    finish_store(plan.out, store_attributes(plan, stats))
-    return plan.out
+                           split_fractions=(1.0, 0.0, 0.0), shard_frames=4, progress=False, in_process=True)
+    return Path(preprocess(cfg)["store"])
 
 
 def batch_run(store: Path, out: Path, ckpt: dict, workers: int) -> dict:

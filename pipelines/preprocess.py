@@ -8,8 +8,10 @@
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \
         python -m pipelines.preprocess ... --out /abs/STORE.zarr
 
-The job is ``parse_args() -> main(cfg) -> dict``. With no ``--address`` (and no ``RAY_ADDRESS``, which
-``ray job submit`` sets for its drivers) it starts an embedded local Ray with a capped object store.
+The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``,
+``format_result``) and runs on :mod:`pipelines.sharded_job`. With no ``--address`` (and no
+``RAY_ADDRESS``, which ``ray job submit`` sets for its drivers) it starts an embedded local Ray with a
+capped object store; ``--in-process`` runs every shard in the calling process without Ray (smoke runs).
 
 How the work is cut: frames are laid out sequence by sequence (sequences sorted by name) in ``N``
 store slots; every array is sharded along the frame axis every ``--shard-frames`` slots; one Ray task
@@ -23,30 +25,27 @@ values with ``valid = 0`` and the frame goes to the quarantine list in the store
 attribute with the reason; the job carries on. A job whose every frame is bad fails.
 
 Each shard task also returns the moments of the train frames' ``input`` per Doppler bin and the
-class voxel counts; a Ray reduction task merges them (Chan's parallel variance, in shard order so the
-result is deterministic) into the store's ``normalisation`` and ``class_voxel_counts`` attributes.
+class voxel counts; :func:`reduce_summaries` merges them (Chan's parallel variance, in shard order so
+the result is deterministic) into the store's ``normalisation`` and ``class_voxel_counts`` attributes.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.metadata
 import json
 import logging
-import os
-import subprocess
 import sys
-import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import ray
-import zarr
-from tqdm import tqdm
 
+from pipelines.jobs import run_module
+from pipelines.sharded_job import Execution, ShardedJob, ShardJob, parse_checked, run_sharded
+from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import (
     FORMAT,
     FRAME_ARRAYS,
@@ -55,13 +54,8 @@ from pipelines.store import (
     SPLIT_CODE,
     SPLITS,
     StoreLayout,
-    check_resumable_out,
     create_store,
-    done_shards,
     encode_frame,
-    finish_store,
-    mark_shard_done,
-    write_shard_arrays,
 )
 from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
@@ -76,7 +70,6 @@ log = logging.getLogger(__name__)
 
 DEFAULT_SPLIT_FRACTIONS = (0.7, 0.15, 0.15)
 DEFAULT_SHARD_FRAMES = 8
-OBJECT_STORE_BYTES = 256 * 2**20  # embedded Ray: task results are small summaries, the data goes to disk
 SOURCE_KINDS = ("sim", "recording", "adc-recording", "carrada")  # adc-recording: raw ADC, processed on read
 
 
@@ -96,6 +89,7 @@ class PreprocessConfig:
     shard_frames: int = DEFAULT_SHARD_FRAMES
     max_objects: int = MAX_OBJECTS
     progress: bool = True
+    in_process: bool = False  # every shard in this process, no Ray
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -145,21 +139,6 @@ class JobPlan:
                 "split_rule": self.split_rule,
                 "slots": [[s.sequence_id, s.index, s.split] for s in self.slots]}
 
-    def shard_slots(self, shard: int) -> tuple[Slot, ...]:
-        start, stop = self.layout.shard_bounds(shard)
-        return self.slots[start:stop]
-
-
-@dataclass(frozen=True)
-class ShardJob:
-    """The payload of one shard task."""
-
-    store: str
-    layout: StoreLayout
-    source: SourceSpec
-    shard: int
-    slots: tuple[Slot, ...]
-
 
 # --------------------------------------------------------------------------- arguments
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -179,6 +158,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--shard-frames", type=int, default=DEFAULT_SHARD_FRAMES, help="frames per shard")
     parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS, help="width of the object table")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    parser.add_argument("--in-process", action="store_true",
+                        help="run every shard in this process, without Ray (smoke runs and tests)")
 
 
 def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
@@ -187,20 +168,13 @@ def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
         sequences=args.sequences, frames=args.frames, seed=args.seed,
         split_fractions=None if args.split_fractions is None else tuple(args.split_fractions),
         address=args.address, tasks=args.tasks, shard_frames=args.shard_frames, max_objects=args.max_objects,
-        progress=args.progress,
+        progress=args.progress, in_process=args.in_process,
     )
 
 
 def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.preprocess") -> PreprocessConfig:
     """Parse and check the command line; wrong arguments exit with status 2 before any work."""
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    cfg = config_from_args(parser.parse_args(argv))
-    try:
-        plan_job(cfg)
-    except (ValueError, DataError) as exc:
-        parser.error(str(exc))
-    return cfg
+    return parse_checked(sys.modules[__name__], argv, prog, plan_job)
 
 
 # --------------------------------------------------------------------------- planning
@@ -345,7 +319,7 @@ def process_shard(job: ShardJob) -> dict[str, Any]:
     class_counts = {name: np.zeros(num_classes, np.int64) for name in SPLITS}
     moments = None
     quarantined = []
-    for slot, frame in _source_frames(job.source, job.slots):
+    for slot, frame in _source_frames(job.source, job.frames):
         k = slot.slot - start
         buffers["frame_index"][k], buffers["sequence_id"][k], buffers["split"][k] = (
             slot.index, slot.sequence_id, slot.split)
@@ -364,14 +338,12 @@ def process_shard(job: ShardJob) -> dict[str, Any]:
         class_counts[SPLITS[slot.split]] += np.bincount(encoded["labels"].ravel(), minlength=num_classes)
         if slot.split == SPLIT_CODE["train"]:
             moments = _merge_moments(moments, _frame_moments(encoded["input"]))
-    # One task = one core: Ray gives each task one CPU, so zarr's codec thread pool stays at one thread.
-    with zarr.config.set({"threading.max_workers": 1}):
-        write_shard_arrays(job.store, layout, job.shard, buffers)
+    write_shard_arrays(job.store, layout, job.shard, buffers)
     summary = {
         "shard": job.shard,
-        "frames": len(job.slots),
+        "frames": len(job.frames),
         "written": int(buffers["valid"].sum()),
-        "train_frames_written": int(sum(1 for s in job.slots
+        "train_frames_written": int(sum(1 for s in job.frames
                                         if s.split == SPLIT_CODE["train"] and buffers["valid"][s.slot - start])),
         "quarantined": quarantined,
         "class_counts": {name: counts.tolist() for name, counts in class_counts.items()},
@@ -382,7 +354,7 @@ def process_shard(job: ShardJob) -> dict[str, Any]:
     return summary
 
 
-def reduce_summaries(*summaries: dict[str, Any]) -> dict[str, Any]:
+def reduce_summaries(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Merge shard summaries (in shard order, so the float result does not depend on task timing)."""
     ordered = sorted(summaries, key=lambda s: s["shard"])
     moments = None
@@ -411,51 +383,11 @@ def reduce_summaries(*summaries: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-_process_shard_task = ray.remote(num_cpus=1)(process_shard)
-_reduce_task = ray.remote(num_cpus=1)(reduce_summaries)
-
-
 # --------------------------------------------------------------------------- the job
-def code_version() -> dict[str, Any]:
-    """Package version and, when run from a git checkout, the commit (and whether the tree is dirty)."""
-    try:
-        package = importlib.metadata.version("radarseg")
-    except importlib.metadata.PackageNotFoundError:
-        package = None
-    repo = Path(__file__).resolve().parent.parent
-    commit = dirty = None
-    if (repo / ".git").exists():
-        try:
-            commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True,
-                                    check=True, timeout=10).stdout.strip()
-            dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
-                                        capture_output=True, text=True, check=True, timeout=10).stdout.strip())
-        except (OSError, subprocess.SubprocessError):
-            commit = dirty = None
-    return {"package": package, "git_commit": commit, "git_dirty": dirty}
-
-
-def init_ray(address: str | None) -> bool:
-    """Connect to Ray unless already connected; returns True when this call connected (so main shuts down).
-
-    ``address`` None and no ``RAY_ADDRESS``: a new embedded local Ray (never a cluster that happens
-    to run on this machine), object store capped, token auth and usage stats off. Under ``ray job
-    submit`` the job's ``RAY_ADDRESS`` names the cluster.
-    """
-    if ray.is_initialized():
-        return False
-    if address is None and not os.environ.get("RAY_ADDRESS"):
-        os.environ.setdefault("RAY_AUTH_MODE", "disabled")
-        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-        ray.init(address="local", object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False,
-                 logging_level=logging.WARNING)
-    else:
-        ray.init(address=address, logging_level=logging.WARNING)
-    return True
-
-
 def store_attributes(plan: JobPlan, stats: dict[str, Any]) -> dict[str, Any]:
-    """The store's final attributes from the plan and the reduced shard summaries."""
+    """The store's final attributes from the plan and the reduced shard summaries (DataError when every
+    frame, or every train frame, was quarantined)."""
+    check_stats(plan, stats)
     profile = plan.layout.profile
     return {
         "preset": profile.name,
@@ -472,7 +404,6 @@ def store_attributes(plan: JobPlan, stats: dict[str, Any]) -> dict[str, Any]:
         "source": plan.source.to_dict(),
         "split_rule": plan.split_rule,
         "job": plan.cfg.to_dict(),
-        "code_version": code_version(),
     }
 
 
@@ -490,74 +421,33 @@ def check_stats(plan: JobPlan, stats: dict[str, Any]) -> None:
 def main(cfg: PreprocessConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, seconds)."""
     plan = plan_job(cfg)  # every argument is checked before Ray starts or anything is written
-    started = time.perf_counter()
-    if (plan.out / "zarr.json").is_file():
-        done = done_shards(plan.out)
-    else:
-        done = {}
-        create_store(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
-    connected = init_ray(cfg.address)
-    try:
-        ray_ready = time.perf_counter()
-        tasks = cfg.tasks or max(1, int(ray.cluster_resources().get("CPU", 1)))
-        todo = [s for s in range(plan.layout.n_shards) if s not in done]
-        log.info("%s: %d shards (%d done before), %d tasks in flight", plan.out, plan.layout.n_shards, len(done), tasks)
-        results: list[Any] = list(done.values())  # summaries of done shards, refs of the new ones
-        pending: list[ray.ObjectRef] = []
-        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
-                  desc=f"preprocess {plan.source.preset}", disable=not cfg.progress) as bar:
-
-            def collect() -> None:
-                nonlocal pending
-                ready, pending = ray.wait(pending, num_returns=1)
-                for ref in ready:
-                    bar.update(ray.get(ref)["frames"])  # a failed task raises here
-
-            for shard in todo:
-                if len(pending) >= tasks:
-                    collect()
-                job = ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_slots(shard))
-                ref = _process_shard_task.remote(job)
-                pending.append(ref)
-                results.append(ref)
-            while pending:
-                collect()
-        processed = time.perf_counter()
-        stats = ray.get(_reduce_task.remote(*results))  # the reduction runs as a Ray task
-    finally:
-        if connected:
-            ray.shutdown()
-    check_stats(plan, stats)
-    finish_store(plan.out, store_attributes(plan, stats))  # `complete` goes last
-    finished = time.perf_counter()
-    n_new = sum(len(plan.shard_slots(s)) for s in todo)
+    job = ShardedJob(out=plan.out, layout=plan.layout, source=plan.source, frames=plan.slots,
+                     create_store=create_store, attributes={"plan": plan.identity(), "job": cfg.to_dict()},
+                     stage=process_shard, reduce=reduce_summaries, finish=partial(store_attributes, plan))
+    run = run_sharded(job, Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.tasks,
+                                     progress=cfg.progress, desc=f"preprocess {plan.source.preset}"))
     return {
         "store": str(plan.out),
-        "frames": stats["frames"],
-        "written": stats["written"],
-        "quarantined": len(stats["quarantined"]),
+        "frames": run.stats["frames"],
+        "written": run.stats["written"],
+        "quarantined": len(run.stats["quarantined"]),
         "shards": plan.layout.n_shards,
-        "shards_run": len(todo),
-        "shards_skipped": len(done),
-        "tasks_in_flight": tasks,
-        "seconds_ray_start": ray_ready - started,
-        "seconds_shards": processed - ray_ready,
-        "seconds_total": finished - started,
-        "frames_per_second": n_new / (processed - ray_ready) if n_new else None,
+        "shards_run": run.shards_run,
+        "shards_skipped": run.shards_skipped,
+        "tasks_in_flight": run.workers,
+        "seconds_ray_start": run.seconds_start,
+        "seconds_shards": run.seconds_shards,
+        "seconds_total": run.seconds_total,
+        "frames_per_second": run.frames_per_second,
     }
 
 
-def _run(argv: Sequence[str] | None = None) -> int:
-    cfg = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        result = main(cfg)
-    except (DataError, ValueError) as exc:
-        print(f"preprocess: error: {exc}", file=sys.stderr)
-        return 2
-    print(json.dumps(result))
-    return 0
+def format_result(result: dict[str, Any]) -> str:
+    """The summary line, then the figures as one JSON line (what drivers of ``ray job submit`` read)."""
+    return (f"store {result['store']}: {result['written']}/{result['frames']} frames written, "
+            f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
+            f"{result['shards_skipped']} already done\n{json.dumps(result)}")
 
 
 if __name__ == "__main__":
-    sys.exit(_run())
+    sys.exit(run_module("pipelines.preprocess"))

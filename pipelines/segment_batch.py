@@ -8,32 +8,19 @@
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \\
         python -m pipelines.segment_batch ... --out /abs/PRED.zarr --workers 4
 
-The job is ``parse_args() -> main(cfg) -> dict`` like :mod:`pipelines.preprocess` (embedded local Ray
-without ``--address``; ``RAY_ADDRESS`` under ``ray job submit``). The work is cut the same way: the
-selected frames take ``N`` slots of the predictions store, every array is cut along the frame axis
-every ``--shard-frames`` slots, and a shard is the unit of work, of writing and of resumption.
+The job follows :mod:`pipelines.jobs` and runs on :mod:`pipelines.sharded_job` like
+:mod:`pipelines.preprocess` (embedded local Ray without ``--address``; ``RAY_ADDRESS`` under ``ray job
+submit``; ``--in-process`` for smoke runs without Ray). The work is cut the same way: the selected frames
+take ``N`` slots of the predictions store (:mod:`pipelines.predictions_store`), every array is cut along
+the frame axis every ``--shard-frames`` slots, and a shard is the unit of work, of writing and of resumption.
 
 Stages are callable classes (Ray's batch-inference pattern): ``--workers`` :class:`ShardSegmenter`
 actors each load both checkpoints once (``__init__``), then each call reads its shard's frames from
 the source, segments them and writes the whole shard of every array, then the shard's progress marker
-(last). Actors are spread over the cluster's nodes; the driver keeps every actor busy (``ray.wait``).
+(last). Actors are spread over the cluster's nodes; the runner keeps every actor busy (``ray.wait``).
 A rerun with the same arguments skips shards whose marker exists; a store written with other
 arguments is refused. Frames that cannot be read or segmented are quarantined (``valid = 0``, reason
 in the ``report`` attribute); the job fails when every frame is bad.
-
-Predictions store (zarr v3, sharding codec and zstd level 1 like the preprocessed store)::
-
-    labels       uint8   (N, R, A, D)  predicted class per RAD voxel (background outside the ROI)
-    ra_mask      uint8   (N, R, A)     RA projection of ``labels``
-    rd_mask      uint8   (N, R, D)     RD projection of ``labels``
-    objects      float32 (N, K, 8)     NaN-padded object table, columns PREDICTION_OBJECT_FIELDS
-    n_objects    int32   (N,)          rows of ``objects`` in use
-    compute      float64 (N, 13)       MACs, seconds per stage, ROI voxels, ... (columns COMPUTE_FIELDS)
-    source_slot  int32   (N,)          slot in the source store (recording: running frame number)
-    sequence_id  int32   (N,)          index into the ``sequences`` attribute
-    frame_index  int32   (N,)          frame index within its sequence
-    valid        uint8   (N,)          1 segmented, 0 quarantined
-    progress/shard_NNNNN               one marker group per finished shard (attributes: its summary)
 
 The figure the job returns (and prints) is ``frames_per_second``: frames segmented over the wall time
 from the first shard submitted to the last shard written, with every actor's model already loaded.
@@ -50,40 +37,33 @@ import sys
 import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import ray
-import zarr
-from tqdm import tqdm
 
-from pipelines.preprocess import code_version, init_ray
-from pipelines.store import (
-    Sharded,
-    check_resumable_out,
-    create_store,
-    done_shards,
-    finish_store,
-    frames_of_split,
-    mark_shard_done,
-    open_store,
+from pipelines.jobs import run_module
+from pipelines.predictions_store import (
+    COMPUTE_FIELDS,
+    DEFAULT_MAX_OBJECTS,
+    FORMAT,
+    PREDICTION_ARRAYS,
+    PREDICTION_OBJECT_FIELDS,
+    PredictionLayout,
+    create_predictions,
+    encode_prediction,
 )
+from pipelines.sharded_job import Execution, ShardedJob, ShardJob, parse_checked, run_sharded
+from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
+from pipelines.store import frames_of_split, open_store
 from radar.io.errors import DataError
 from radar.io.recording import Recording
-from radar.profiles import RadarProfile, get_profile
 
 log = logging.getLogger(__name__)
 
-FORMAT = "radarseg.predictions"
-VERSION = 1
 DEFAULT_SHARD_FRAMES = 8
-DEFAULT_MAX_OBJECTS = 32
 SOURCE_KINDS = ("store", "recording")
-PREDICTION_OBJECT_FIELDS = ("class_id", "score", "range_m", "angle_deg", "velocity_mps", "x", "y", "n_voxels")
-COMPUTE_FIELDS = ("macs_detect", "macs_grow", "macs_segment", "macs_total",
-                  "seconds_transform", "seconds_detect", "seconds_grow", "seconds_segment", "seconds_project",
-                  "seconds_total", "roi_voxels", "visited_points", "detections")
 
 
 @dataclass(frozen=True)
@@ -104,6 +84,7 @@ class SegmentBatchConfig:
     torch_threads: int = 1  # per actor: one core each, so actors scale instead of fighting over cores
     shard_frames: int = DEFAULT_SHARD_FRAMES
     progress: bool = True
+    in_process: bool = False  # every shard in this process (one ShardSegmenter), no Ray
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -118,45 +99,6 @@ class FrameRef:
     sequence_id: int
     sequence: str
     index: int  # frame index within its sequence
-
-
-@dataclass(frozen=True)
-class PredictionLayout(Sharded):
-    """Shapes, dtypes and shard boundaries of a predictions store (duck-compatible with
-    :func:`pipelines.store.write_shard_arrays`)."""
-
-    preset: str
-    n_frames: int
-    shard_frames: int
-    max_objects: int = DEFAULT_MAX_OBJECTS
-
-    @property
-    def profile(self) -> RadarProfile:
-        return get_profile(self.preset)
-
-    def arrays(self) -> dict[str, tuple[tuple[int, ...], str, Any]]:
-        """``name -> (per-frame shape, dtype, fill value)``."""
-        R, A, D = self.profile.shape
-        return {
-            "labels": ((R, A, D), "uint8", 0),
-            "ra_mask": ((R, A), "uint8", 0),
-            "rd_mask": ((R, D), "uint8", 0),
-            "objects": ((self.max_objects, len(PREDICTION_OBJECT_FIELDS)), "float32", float("nan")),
-            "n_objects": ((), "int32", 0),
-            "compute": ((len(COMPUTE_FIELDS),), "float64", float("nan")),
-            "source_slot": ((), "int32", -1),
-            "sequence_id": ((), "int32", -1),
-            "frame_index": ((), "int32", -1),
-            "valid": ((), "uint8", 0),
-        }
-
-    def empty_shard(self, shard: int) -> dict[str, np.ndarray]:
-        start, stop = self.shard_bounds(shard)
-        return {name: np.full((stop - start, *shape), fill, dtype=dtype)
-                for name, (shape, dtype, fill) in self.arrays().items()}
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -190,21 +132,6 @@ class BatchPlan:
                 "checkpoints": self.checkpoints, "score_threshold": self.cfg.score_threshold,
                 "source_slots": [f.source_slot for f in self.frames]}
 
-    def shard_frames(self, shard: int) -> tuple[FrameRef, ...]:
-        start, stop = self.layout.shard_bounds(shard)
-        return self.frames[start:stop]
-
-
-@dataclass(frozen=True)
-class ShardJob:
-    """The payload of one call of a segmenter actor."""
-
-    store: str
-    layout: PredictionLayout
-    source: SourceSpec
-    shard: int
-    frames: tuple[FrameRef, ...]
-
 
 # --------------------------------------------------------------------------- arguments
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -226,6 +153,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
     parser.add_argument("--shard-frames", type=int, default=DEFAULT_SHARD_FRAMES, help="frames per shard")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    parser.add_argument("--in-process", action="store_true",
+                        help="segment every shard in this process, without Ray (smoke runs and tests)")
 
 
 def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
@@ -235,20 +164,14 @@ def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
         split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
         address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
         torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
+        in_process=args.in_process,
     )
 
 
 def parse_args(argv: Sequence[str] | None = None, *,
                prog: str = "python -m pipelines.segment_batch") -> SegmentBatchConfig:
     """Parse and check the command line; wrong arguments exit with status 2 before any work."""
-    parser = argparse.ArgumentParser(prog=prog, description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    cfg = config_from_args(parser.parse_args(argv))
-    try:
-        plan_job(cfg)
-    except (ValueError, DataError) as exc:
-        parser.error(str(exc))
-    return cfg
+    return parse_checked(sys.modules[__name__], argv, prog, plan_job)
 
 
 # --------------------------------------------------------------------------- planning
@@ -322,24 +245,6 @@ def _check_out(plan: BatchPlan) -> None:
     check_resumable_out(plan.out, store_format=FORMAT, identity=plan.identity(), what="radarseg predictions store")
 
 
-def create_predictions(path: str | Path, layout: PredictionLayout, attributes: dict[str, Any]) -> zarr.Group:
-    """Create the predictions store: :func:`pipelines.store.create_store` with this job's format."""
-    return create_store(path, layout, attributes, store_format=FORMAT, version=VERSION)
-
-
-def open_predictions(path: str | Path, *, require_complete: bool = True) -> zarr.Group:
-    """Open a predictions store read-only; DataError when it is not one (or not finished)."""
-    path = Path(path)
-    if not (path / "zarr.json").is_file():
-        raise DataError(path, "not a zarr store (missing zarr.json)")
-    root = zarr.open_group(str(path), mode="r")
-    if root.attrs.get("format") != FORMAT:
-        raise DataError(path, f"expected a store with format {FORMAT!r}, found {root.attrs.get('format')!r}")
-    if require_complete and not root.attrs.get("complete"):
-        raise DataError(path, "predictions store is incomplete (its job was interrupted; rerun it to resume)")
-    return root
-
-
 # --------------------------------------------------------------------------- the segmenter stage
 def _source_cubes(source: SourceSpec, frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError,
                                                                                       bool]]:
@@ -355,21 +260,6 @@ def _source_cubes(source: SourceSpec, frames: Sequence[FrameRef]) -> Iterator[tu
             yield ref, recording.read_frame(ref.sequence, ref.index).cube, False
         except DataError as exc:
             yield ref, exc, False
-
-
-def _object_rows(result: Any, max_objects: int) -> np.ndarray:
-    table = np.full((max_objects, len(PREDICTION_OBJECT_FIELDS)), np.nan, np.float32)
-    for k, obj in enumerate(result.objects[:max_objects]):
-        table[k] = [getattr(obj, name) for name in PREDICTION_OBJECT_FIELDS]
-    return table
-
-
-def _compute_row(compute: dict[str, Any]) -> np.ndarray:
-    macs, seconds = compute["macs"], compute["seconds"]
-    values = {**{f"macs_{k}": v for k, v in macs.items()}, **{f"seconds_{k}": v for k, v in seconds.items()},
-              "roi_voxels": compute["roi_voxels"], "visited_points": compute["visited_points"],
-              "detections": compute["detections"]}
-    return np.array([values[name] for name in COMPUTE_FIELDS], np.float64)
 
 
 class ShardSegmenter:
@@ -424,17 +314,11 @@ class ShardSegmenter:
                 quarantined.append({"frame": ref.slot, "sequence": ref.sequence, "index": ref.index,
                                     "reason": str(exc)})
                 continue
-            buffers["labels"][k], buffers["ra_mask"][k], buffers["rd_mask"][k] = (
-                result.labels, result.ra_mask, result.rd_mask)
-            buffers["objects"][k] = _object_rows(result, layout.max_objects)
-            buffers["n_objects"][k] = min(len(result.objects), layout.max_objects)
-            buffers["compute"][k] = _compute_row(result.compute)
+            encoded = encode_prediction(result, layout)
+            for name in PREDICTION_ARRAYS:
+                buffers[name][k] = encoded[name]
             buffers["valid"][k] = 1
-        with zarr.config.set({"threading.max_workers": 1}):  # one actor = one core
-            root = zarr.open_group(job.store, mode="r+")
-            stop = start + len(job.frames)
-            for name in layout.arrays():
-                root[name][start:stop] = buffers[name]
+        write_shard_arrays(job.store, layout, job.shard, buffers)
         valid = buffers["valid"].astype(bool)
         summary = {
             "shard": job.shard,
@@ -451,6 +335,8 @@ class ShardSegmenter:
 
 
 def _node_id() -> str | None:
+    import ray
+
     if not ray.is_initialized():
         return None
     return ray.get_runtime_context().get_node_id()
@@ -460,65 +346,20 @@ def _node_id() -> str | None:
 def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
-    started = time.perf_counter()
-    if (plan.out / "zarr.json").is_file():
-        done = done_shards(plan.out)
-    else:
-        done = {}
-        create_predictions(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
-    todo = [s for s in range(plan.layout.n_shards) if s not in done]
-    summaries: list[dict[str, Any]] = list(done.values())
-    connected = init_ray(cfg.address)
-    try:
-        cluster_cpus = float(ray.cluster_resources().get("CPU", 1))
-        workers = cfg.workers or max(1, int(cluster_cpus // cfg.cpus_per_worker))
-        workers = max(1, min(workers, len(todo))) if todo else 0
-        actor_class = ray.remote(num_cpus=cfg.cpus_per_worker, scheduling_strategy="SPREAD")(ShardSegmenter)
-        actors = [actor_class.remote(cfg.detector, cfg.segmenter, score_threshold=cfg.score_threshold,
-                                     max_objects=cfg.max_objects, torch_threads=cfg.torch_threads)
-                  for _ in range(workers)]
-        identities = ray.get([a.identity.remote() for a in actors])  # every model loaded before the clock starts
-        ready = time.perf_counter()
-        log.info("%s: %d shards (%d done before), %d segmenter actors on %d node(s)", plan.out,
-                 plan.layout.n_shards, len(done), workers, len({i["node_id"] for i in identities}))
-        queue = list(todo)
-        running: dict[ray.ObjectRef, Any] = {}
-        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
-                  desc="segment", disable=not cfg.progress) as bar:
-            for actor in actors:
-                if queue:
-                    shard = queue.pop(0)
-                    running[actor.__call__.remote(_shard_job(plan, shard))] = actor
-            while running:
-                finished, _ = ray.wait(list(running), num_returns=1)
-                for ref in finished:
-                    actor = running.pop(ref)
-                    summary = ray.get(ref)  # a failed shard raises here
-                    summaries.append(summary)
-                    bar.update(summary["frames"])
-                    if queue:
-                        running[actor.__call__.remote(_shard_job(plan, queue.pop(0)))] = actor
-        processed = time.perf_counter()
-        for actor in actors:
-            ray.kill(actor)
-    finally:
-        if connected:
-            ray.shutdown()
-    stats = _reduce(summaries)
-    where = plan.source.path
-    if stats["written"] == 0:
-        raise DataError(where, f"every one of the {stats['frames']} frames failed to segment "
-                               f"(first: {stats['quarantined'][0]['reason'] if stats['quarantined'] else '?'})")
-    finish_store(plan.out, _attributes(plan, stats))
-    finished = time.perf_counter()
-    new_frames = sum(len(plan.shard_frames(s)) for s in todo)
+    job = ShardedJob(out=plan.out, layout=plan.layout, source=plan.source, frames=plan.frames,
+                     create_store=create_predictions, attributes={"plan": plan.identity(), "job": cfg.to_dict()},
+                     stage=ShardSegmenter, stage_args=(cfg.detector, cfg.segmenter),
+                     stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
+                                   "torch_threads": cfg.torch_threads},
+                     reduce=reduce_summaries, finish=partial(store_attributes, plan))
+    run = run_sharded(job, Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
+                                     cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment"))
     per_worker: dict[int, dict[str, Any]] = {}
-    for s in summaries:
-        if s["shard"] in done:
-            continue
+    for s in run.summaries:
         entry = per_worker.setdefault(s["worker"]["pid"], {**s["worker"], "shards": 0, "frames": 0})
         entry.update(calls=max(entry["calls"], s["worker"]["calls"]), shards=entry["shards"] + 1,
                      frames=entry["frames"] + s["frames"])
+    stats = run.stats
     return {
         "store": str(plan.out),
         "source": plan.source.to_dict(),
@@ -528,34 +369,34 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
         "objects": stats["objects"],
         "macs_total": stats["macs"],
         "shards": plan.layout.n_shards,
-        "shards_run": len(todo),
-        "shards_skipped": len(done),
-        "workers": workers,
+        "shards_run": run.shards_run,
+        "shards_skipped": run.shards_skipped,
+        "workers": run.workers,
         "nodes": len({w["node_id"] for w in per_worker.values()}),
         "worker_stats": sorted(per_worker.values(), key=lambda w: w["pid"]),
-        "seconds_ray_and_models": ready - started,
-        "seconds_segmenting": processed - ready,
-        "seconds_total": finished - started,
-        "frames_per_second": new_frames / (processed - ready) if new_frames else None,
+        "seconds_ray_and_models": run.seconds_start,
+        "seconds_segmenting": run.seconds_shards,
+        "seconds_total": run.seconds_total,
+        "frames_per_second": run.frames_per_second,
     }
 
 
-def _shard_job(plan: BatchPlan, shard: int) -> ShardJob:
-    return ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_frames(shard))
-
-
-def _reduce(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
-    ordered = sorted(summaries, key=lambda s: s["shard"])
+def reduce_summaries(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The job's figures from every shard's summary (given in shard order)."""
     return {
-        "frames": sum(s["frames"] for s in ordered),
-        "written": sum(s["written"] for s in ordered),
-        "objects": sum(s["objects"] for s in ordered),
-        "macs": sum(s["macs"] for s in ordered),
-        "quarantined": sorted((q for s in ordered for q in s["quarantined"]), key=lambda q: q["frame"]),
+        "frames": sum(s["frames"] for s in summaries),
+        "written": sum(s["written"] for s in summaries),
+        "objects": sum(s["objects"] for s in summaries),
+        "macs": sum(s["macs"] for s in summaries),
+        "quarantined": sorted((q for s in summaries for q in s["quarantined"]), key=lambda q: q["frame"]),
     }
 
 
-def _attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
+def store_attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
+    """The predictions store's final attributes (DataError when every frame failed to segment)."""
+    if stats["written"] == 0:
+        raise DataError(plan.source.path, f"every one of the {stats['frames']} frames failed to segment (first: "
+                                          f"{stats['quarantined'][0]['reason'] if stats['quarantined'] else '?'})")
     return {
         "preset": plan.layout.preset,
         "class_names": list(plan.class_names),
@@ -568,23 +409,16 @@ def _attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
         "report": {"frames": stats["frames"], "written": stats["written"], "objects": stats["objects"],
                    "macs": stats["macs"], "quarantined": stats["quarantined"]},
         "job": plan.cfg.to_dict(),
-        "code_version": code_version(),
     }
 
 
-def _run(argv: Sequence[str] | None = None) -> int:
-    cfg = parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        result = main(cfg)
-    except (DataError, ValueError) as exc:
-        print(f"segment_batch: error: {exc}", file=sys.stderr)
-        return 2
-    print(f"segmented {result['written']}/{result['frames']} frames at {result['frames_per_second'] or 0:.2f} "
-          f"frames/s with {result['workers']} worker(s) on {result['nodes']} node(s)", file=sys.stderr)
-    print(json.dumps(result))
-    return 0
+def format_result(result: dict[str, Any]) -> str:
+    """The summary line, then the figures as one JSON line (what drivers of ``ray job submit`` read)."""
+    return (f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
+            f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
+            f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
+            f"{result['workers']} worker(s) on {result['nodes']} node(s)\n{json.dumps(result)}")
 
 
 if __name__ == "__main__":
-    sys.exit(_run())
+    sys.exit(run_module("pipelines.segment_batch"))

@@ -1,4 +1,4 @@
-"""The preprocessed store (SPEC section 4): zarr v3 schema, shard writer helpers, reader, torch Dataset.
+"""The preprocessed store (SPEC section 4): zarr v3 schema, frame encoding, reader, torch Dataset.
 
 Layout of ``STORE.zarr`` (one zarr v3 group; ``N`` frame slots, ``S`` frames per shard)::
 
@@ -16,11 +16,9 @@ Layout of ``STORE.zarr`` (one zarr v3 group; ``N`` frame slots, ``S`` frames per
     valid      uint8   (N,)           1 written, 0 quarantined (data left at the fill value)
     progress/shard_NNNNN              a zarr group per finished shard (attributes: the shard's summary)
 
-Every array is cut along the frame axis at the same shard boundaries (``S`` frames), so the Ray task
-that owns shard ``i`` writes whole shard files (or whole chunks for the small arrays) and nothing
-else: concurrent writes into one shard would lose data. A shard's ``progress`` marker is written
-(atomically) only after all of its arrays, and the root attribute ``complete`` only after every
-shard and the statistics: an interrupted job leaves no marker for a half-written shard.
+Every array is cut along the frame axis at the same shard boundaries (``S`` frames); the Ray task that
+owns a shard writes it whole, then its progress marker, and ``complete`` comes last (the mechanics of
+both of our stores: :mod:`pipelines.sharded_store`).
 
 Objects with no labelled voxel (``n_voxels == 0``) are not in the table: they are not targets.
 Encoding uses zstd level 1 without shuffle (noise-like log power barely compresses; SPEC section 4).
@@ -29,20 +27,19 @@ Encoding uses zstd level 1 without shuffle (noise-like log power barely compress
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 import zarr
-from zarr.codecs import ZstdCodec
 
 from models.detector.targets import OUTPUT_STRIDE, output_grid, render_heatmap
+from pipelines.sharded_store import Sharded, create_sharded_store, done_shards, open_sharded_store
 from radar import transforms
 from radar.frame import RadarFrame
 from radar.io.errors import DataError
@@ -60,8 +57,6 @@ OBJECT_FIELDS = ("instance_id", "class_id", "range_bin", "angle_bin", "doppler_b
                  "offset_range", "offset_angle", "x", "y", "n_voxels")
 _COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
 MAX_OBJECTS = 32
-PROGRESS = "progress"
-ZSTD_LEVEL = 1
 
 # Arrays holding one value per RAD voxel, RA cell, ... (sharded, one inner chunk per frame) and the
 # small per-frame table arrays (plain chunks of one shard's frames).
@@ -70,64 +65,16 @@ TABLE_ARRAYS = ("objects", "n_objects", "frame_index", "sequence_id", "split", "
 FRAME_ARRAYS = VOLUME_ARRAYS + ("objects", "n_objects")  # what encode_frame produces
 
 
-class Sharded:
-    """Shard arithmetic of a layout with ``n_frames`` slots in shards of ``shard_frames`` and at most
-    ``max_objects`` objects per frame (mixed into the frozen layout dataclasses of the jobs' stores)."""
-
-    n_frames: int
-    shard_frames: int
-    max_objects: int
-
-    def __post_init__(self) -> None:
-        if self.n_frames < 1 or self.shard_frames < 1 or self.max_objects < 1:
-            raise ValueError(f"n_frames, shard_frames and max_objects must be >= 1, got {self.n_frames}, "
-                             f"{self.shard_frames}, {self.max_objects}")
-
-    @property
-    def n_shards(self) -> int:
-        return -(-self.n_frames // self.shard_frames)
-
-    def shard_bounds(self, shard: int) -> tuple[int, int]:
-        """Frame slots ``[start, stop)`` of shard ``shard``."""
-        if not 0 <= shard < self.n_shards:
-            raise ValueError(f"shard {shard} out of range [0, {self.n_shards})")
-        start = shard * self.shard_frames
-        return start, min(start + self.shard_frames, self.n_frames)
-
-
-def check_resumable_out(out: Path, *, store_format: str, identity: Any, what: str) -> None:
-    """An existing ``--out`` must be empty, or a store of ``store_format`` written by a job with the same
-    ``identity`` (which is then resumed); anything else is refused before any work starts."""
-    if not out.exists():
-        return
-    if not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a directory")
-    meta = out / "zarr.json"
-    if not meta.is_file():
-        if any(out.iterdir()):
-            raise ValueError(f"--out {out} exists and is not a {what}; choose another path")
-        return
-    try:
-        attrs = json.loads(meta.read_text()).get("attributes", {})
-    except json.JSONDecodeError as exc:
-        raise DataError(meta, f"not valid JSON ({exc})") from None
-    if attrs.get("format") != store_format:
-        raise ValueError(f"--out {out} is a zarr store but not a {what}; choose another path")
-    if attrs.get("plan") != identity:
-        raise ValueError(f"--out {out} holds a {what} written with other arguments (it can only be resumed "
-                         f"with the same ones); choose another path or remove it")
-
-
 @dataclass(frozen=True)
 class StoreLayout(Sharded):
     """Shapes, dtypes and shard boundaries of a store of ``n_frames`` slots of one radar profile."""
 
+    VOLUME_ARRAYS: ClassVar[tuple[str, ...]] = VOLUME_ARRAYS
     profile: RadarProfile
     n_frames: int
     shard_frames: int
     max_objects: int = MAX_OBJECTS
     output_stride: int = OUTPUT_STRIDE
-
 
     @property
     def heatmap_shape(self) -> tuple[int, int]:
@@ -151,36 +98,15 @@ class StoreLayout(Sharded):
             "valid": ((), "uint8", 0),
         }
 
-    def empty_shard(self, shard: int) -> dict[str, np.ndarray]:
-        """Buffers of every array for shard ``shard``, at their fill values."""
-        start, stop = self.shard_bounds(shard)
-        return {name: np.full((stop - start, *shape), fill, dtype=dtype)
-                for name, (shape, dtype, fill) in self.arrays().items()}
-
     def to_dict(self) -> dict[str, Any]:
         return {"preset": self.profile.name, "n_frames": self.n_frames, "shard_frames": self.shard_frames,
                 "max_objects": self.max_objects, "output_stride": self.output_stride}
 
 
 # --------------------------------------------------------------------------- writing
-def create_store(path: str | Path, layout: Sharded, attributes: dict[str, Any], *, store_format: str = FORMAT,
-                 version: int = VERSION) -> zarr.Group:
-    """Create the group, every (empty) array and the progress group; ``complete`` starts False.
-
-    ``layout`` is any sharded layout with ``arrays()`` and ``to_dict()`` (this store's, or the batch
-    segmentation job's predictions, which pass their own ``store_format``)."""
-    root = zarr.open_group(str(path), mode="w", zarr_format=3)
-    for name, (shape, dtype, fill) in layout.arrays().items():
-        if name in VOLUME_ARRAYS:
-            chunks, shards = (1, *shape), (layout.shard_frames, *shape)
-        else:
-            chunks, shards = (layout.shard_frames, *shape), None
-        root.create_array(name, shape=(layout.n_frames, *shape), dtype=dtype, chunks=chunks, shards=shards,
-                          compressors=ZstdCodec(level=ZSTD_LEVEL), fill_value=fill)
-    root.create_group(PROGRESS)
-    root.attrs.update({**attributes, "format": store_format, "version": version, "layout": layout.to_dict(),
-                       "complete": False})
-    return root
+def create_store(path: str | Path, layout: StoreLayout, attributes: dict[str, Any]) -> zarr.Group:
+    """Create an empty store (``complete`` False until the preprocessing job finishes it)."""
+    return create_sharded_store(path, layout, attributes, store_format=FORMAT, version=VERSION)
 
 
 def encode_frame(frame: RadarFrame, layout: StoreLayout) -> dict[str, np.ndarray]:
@@ -224,69 +150,11 @@ def encode_frame(frame: RadarFrame, layout: StoreLayout) -> dict[str, np.ndarray
     }
 
 
-def write_shard_arrays(path: str | Path, layout: StoreLayout, shard: int, buffers: dict[str, np.ndarray]) -> None:
-    """Write the whole of shard ``shard`` of every array from ``buffers`` (see :meth:`StoreLayout.empty_shard`)."""
-    start, stop = layout.shard_bounds(shard)
-    root = zarr.open_group(str(path), mode="r+")
-    for name in layout.arrays():
-        root[name][start:stop] = buffers[name]
-
-
-def finish_store(path: str | Path, attributes: dict[str, Any]) -> None:
-    """Write the store's final attributes, then (a separate, last write) ``complete = True``."""
-    root = zarr.open_group(str(path), mode="r+")
-    root.attrs.update({**attributes, "complete": False})
-    root.attrs.update({"complete": True})
-
-
-def _marker_dir(path: str | Path, shard: int) -> Path:
-    return Path(path) / PROGRESS / f"shard_{shard:05d}"
-
-
-def mark_shard_done(path: str | Path, shard: int, summary: dict[str, Any]) -> None:
-    """Write shard ``shard``'s progress marker, a zarr v3 group whose attributes hold ``summary``.
-
-    The metadata file is written to a temporary name and renamed, so a marker is either absent or
-    complete; it is the last thing a shard task writes.
-    """
-    marker = _marker_dir(path, shard)
-    marker.mkdir(parents=True, exist_ok=True)
-    payload = json.dumps({"zarr_format": 3, "node_type": "group", "attributes": summary}, allow_nan=False)
-    tmp = marker / ".zarr.json.tmp"
-    tmp.write_text(payload)
-    os.replace(tmp, marker / "zarr.json")
-
-
-def done_shards(path: str | Path) -> dict[int, dict[str, Any]]:
-    """Summaries of the shards whose markers exist, by shard number (unreadable markers count as not done)."""
-    done: dict[int, dict[str, Any]] = {}
-    progress = Path(path) / PROGRESS
-    if not progress.is_dir():
-        return done
-    for marker in sorted(progress.glob("shard_*/zarr.json")):
-        try:
-            shard = int(marker.parent.name.removeprefix("shard_"))
-            done[shard] = json.loads(marker.read_text())["attributes"]
-        except (ValueError, KeyError, json.JSONDecodeError) as exc:
-            log.warning("ignoring unreadable progress marker %s (%s)", marker, exc)
-    return done
-
-
 # --------------------------------------------------------------------------- reading
 def open_store(path: str | Path, *, require_complete: bool = True) -> zarr.Group:
     """Open a store read-only; raise DataError when it is not a (finished) radarseg store."""
-    path = Path(path)
-    if not (path / "zarr.json").is_file():
-        raise DataError(path, "not a zarr store (missing zarr.json)")
-    root = zarr.open_group(str(path), mode="r")
-    attrs = root.attrs.asdict()
-    if attrs.get("format") != FORMAT:
-        raise DataError(path, f"expected a store with format {FORMAT!r}, found {attrs.get('format')!r}")
-    if attrs.get("version") != VERSION:
-        raise DataError(path, f"unsupported store version {attrs.get('version')!r}, expected {VERSION}")
-    if require_complete and not attrs.get("complete"):
-        raise DataError(path, "store is incomplete (its preprocessing job was interrupted; rerun it to resume)")
-    return root
+    return open_sharded_store(path, store_format=FORMAT, version=VERSION, require_complete=require_complete,
+                              what="store", writer="preprocessing job")
 
 
 def frames_of_split(root: zarr.Group, split: str | None) -> np.ndarray:

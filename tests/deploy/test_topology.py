@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines.segment_batch import COMPUTE_FIELDS, open_predictions
+from pipelines.predictions_store import COMPUTE_FIELDS, open_predictions
 from pipelines.store import open_store
 from service.ledger import Ledger
 from tests.deploy.conftest import radarseg_serve_command, submit_job, uvicorn_command

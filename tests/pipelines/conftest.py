@@ -135,26 +135,13 @@ def ray_head(tmp_path_factory):
 
 
 def build_store_inline(cfg):
-    """The job's work without Ray (shard tasks run in this process, in order): fast stores for tests
-    of the store and the Dataset. The Ray paths are tested in test_preprocess.py."""
-    from pipelines.preprocess import (
-        ShardJob,
-        check_stats,
-        plan_job,
-        process_shard,
-        reduce_summaries,
-        store_attributes,
-    )
-    from pipelines.store import create_store, finish_store
+    """The job run in-process (no Ray: shards in this process, in order): fast stores for tests of the
+    store and the Dataset. The Ray paths are tested in test_preprocess.py."""
+    from dataclasses import replace
 
-    plan = plan_job(cfg)
-    create_store(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
-    summaries = [process_shard(ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_slots(shard)))
-                 for shard in range(plan.layout.n_shards)]
-    stats = reduce_summaries(*summaries)
-    check_stats(plan, stats)
-    finish_store(plan.out, store_attributes(plan, stats))
-    return plan.out
+    from pipelines.preprocess import main
+
+    return Path(main(replace(cfg, in_process=True))["store"])
 
 
 TINY_CLASSES = ("background", "pedestrian", "cyclist", "car")

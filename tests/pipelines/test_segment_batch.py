@@ -1,6 +1,6 @@
-"""The batch segmentation job without Ray: its plan and argument checks, and the segmenter stage run in this
-process (predictions equal ERASE-Net's own, quarantine of bad frames). The Ray paths (job submission to a
-two-node cluster, resume) are in test_topology.py."""
+"""The batch segmentation job without Ray: its plan and argument checks, and the job run in-process (predictions
+equal ERASE-Net's own, quarantine of bad frames, resume). The Ray paths (job submission to a two-node cluster,
+resume) are in tests/deploy/test_topology.py."""
 
 from __future__ import annotations
 
@@ -10,49 +10,46 @@ import numpy as np
 import pytest
 
 from models.erasenet import EraseNet
-from pipelines.segment_batch import (
+from pipelines.predictions_store import (
     COMPUTE_FIELDS,
     PREDICTION_OBJECT_FIELDS,
-    SegmentBatchConfig,
-    ShardSegmenter,
     create_predictions,
-    parse_args,
-    plan_job,
+    open_predictions,
 )
-from pipelines.store import done_shards, open_store
+from pipelines.segment_batch import SegmentBatchConfig, format_result, main, parse_args, plan_job
+from pipelines.sharded_store import done_shards
+from pipelines.store import open_store
+from tests.pipelines.conftest import save_tiny_checkpoints
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoints(small_store, tmp_path_factory):
+    """Untrained tiny detector and segmenter for the small preset."""
+    made = save_tiny_checkpoints(small_store, tmp_path_factory.mktemp("ckpt"))
+    return made["detector"], made["segmenter"]
 
 
 def _config(source: str, tiny_checkpoints, out, **overrides) -> SegmentBatchConfig:
     det, seg = tiny_checkpoints
     values = {"source": source, "detector": str(det), "segmenter": str(seg), "out": str(out),
-              "score_threshold": 0.0, "max_objects": 2, "shard_frames": 2, "progress": False}
+              "score_threshold": 0.0, "max_objects": 2, "shard_frames": 2, "progress": False, "in_process": True}
     values.update(overrides)
     return SegmentBatchConfig(**values)
 
 
-def _run_inline(cfg: SegmentBatchConfig):
-    """Every shard through one in-process ShardSegmenter (what each Ray actor does)."""
-    from pipelines.segment_batch import ShardJob
-
-    plan = plan_job(cfg)
-    create_predictions(plan.out, plan.layout, {"plan": plan.identity(), "job": cfg.to_dict()})
-    stage = ShardSegmenter(cfg.detector, cfg.segmenter, score_threshold=cfg.score_threshold,
-                           max_objects=cfg.max_objects)
-    summaries = [stage(ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.shard_frames(shard)))
-                 for shard in range(plan.layout.n_shards)]
-    return plan, stage, summaries
-
-
-def test_segmenter_stage_writes_what_erasenet_predicts(small_store, tiny_checkpoints, tmp_path):
-    import zarr
-
+def test_job_in_process_writes_what_erasenet_predicts(small_store, tiny_checkpoints, tmp_path):
     cfg = _config(f"store:{small_store}", tiny_checkpoints, tmp_path / "pred.zarr", split="train")
-    plan, stage, summaries = _run_inline(cfg)
-    assert stage.model_loads == 1 and stage.calls == plan.layout.n_shards == len(summaries)
-    assert set(done_shards(plan.out)) == set(range(plan.layout.n_shards))
+    result = main(cfg)
+    (stage,) = result["worker_stats"]  # one ShardSegmenter in this process: the model loaded once
+    assert stage["model_loads"] == 1 and stage["calls"] == stage["shards"] == result["shards"] == result["shards_run"]
+    assert result["workers"] == 1 and result["frames_per_second"] > 0
+    assert format_result(result).startswith(f"predictions {cfg.out}: 3/3 frames segmented, 0 quarantined, 2 shards")
+    summaries = done_shards(cfg.out)
+    assert set(summaries) == set(range(result["shards"]))
     source = open_store(small_store)
     train_slots = np.flatnonzero(source["split"][:] == 0)
-    root = zarr.open_group(str(plan.out), mode="r")
+    root = open_predictions(cfg.out)
+    assert root.attrs["report"]["written"] == 3 and root.attrs["code_version"]["package"] == "0.1.0"
     assert root["source_slot"][:].tolist() == train_slots.tolist()
     net = EraseNet.from_checkpoints(cfg.detector, cfg.segmenter, score_threshold=0.0, max_objects=2)
     for k, slot in enumerate(train_slots):
@@ -67,7 +64,10 @@ def test_segmenter_stage_writes_what_erasenet_predicts(small_store, tiny_checkpo
         assert compute["macs_total"] == expected.compute["macs"]["total"] > 0
         assert compute["roi_voxels"] == expected.compute["roi_voxels"]
         assert root["frame_index"][k] == source["frame_index"][slot]
-    assert sum(s["macs"] for s in summaries) == int(root["compute"][:, COMPUTE_FIELDS.index("macs_total")].sum())
+    assert result["macs_total"] == int(root["compute"][:, COMPUTE_FIELDS.index("macs_total")].sum())
+    assert sum(s["macs"] for s in summaries.values()) == result["macs_total"]
+    again = main(cfg)  # a rerun of a finished store does no work
+    assert (again["shards_run"], again["shards_skipped"], again["written"]) == (0, 2, 3)
 
 
 def test_bad_recording_frames_are_quarantined(small_recording, tiny_checkpoints, tmp_path):
@@ -76,12 +76,12 @@ def test_bad_recording_frames_are_quarantined(small_recording, tiny_checkpoints,
     bad = sorted((recording / "seq_000" / "cubes").glob("*.npy"))[1]
     bad.write_bytes(b"not a numpy file")
     cfg = _config(f"recording:{recording}", tiny_checkpoints, tmp_path / "pred.zarr", limit=4)
-    plan, _, summaries = _run_inline(cfg)
-    assert plan.layout.n_frames == 4
-    quarantined = [q for s in summaries for q in s["quarantined"]]
+    result = main(cfg)
+    assert (result["frames"], result["written"], result["quarantined"]) == (4, 3, 1)
+    quarantined = open_predictions(cfg.out).attrs["report"]["quarantined"]
     assert [(q["sequence"], q["index"]) for q in quarantined] == [("seq_000", 1)]
     assert bad.name in quarantined[0]["reason"]
-    assert sum(s["written"] for s in summaries) == 3
+    assert open_predictions(cfg.out)["valid"][:].tolist() == [1, 0, 1, 1]
 
 
 def test_arguments_are_checked_before_any_work(small_store, small_recording, tiny_checkpoints, tmp_path, capsys):
