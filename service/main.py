@@ -21,7 +21,7 @@ from service.errors import DeclaredBodyLimit, install_error_handlers
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import MetricsMiddleware, ServiceMetrics
-from service.routes import health, metrics, models, segment, usage
+from service.routes import examples, health, metrics, models, segment, usage, viewer
 from service.settings import Settings
 from service.tenants import Authenticator
 
@@ -67,7 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_error_handlers(app)
     # FastAPI's body limit on the one route that reads a body (GET routes never read one).
     app.include_router(segment.router, max_body_size=settings.max_body_bytes)
-    for router in (models.router, usage.router, health.router, metrics.router):
+    for router in (models.router, usage.router, examples.router, viewer.router, health.router, metrics.router):
         app.include_router(router)
     app.add_middleware(DeclaredBodyLimit, max_body_size=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=state.metrics)  # added last: outermost, it sees every answer

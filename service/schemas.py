@@ -209,3 +209,30 @@ class TenantUsage(BaseModel):
 
 class UsageResponse(BaseModel):
     tenants: list[TenantUsage]
+
+
+class ExampleObject(BaseModel):
+    """An object the simulator placed in an example cube (its truth), in the units of ``ObjectOut``."""
+
+    class_name: str
+    range_m: float
+    angle_deg: float
+    velocity_mps: float
+    n_voxels: int = Field(description="labelled RAD voxels of the object")
+
+
+class ExampleInfo(BaseModel):
+    """One example cube: ``GET url`` answers its .npy bytes (complex64 RAD cube)."""
+
+    n: int
+    seed: int
+    preset: str
+    shape: list[int]
+    dtype: str
+    url: str
+    objects: list[ExampleObject]
+
+
+class ExamplesResponse(BaseModel):
+    model: str
+    examples: list[ExampleInfo]

@@ -1,0 +1,115 @@
+"""GET /viewer: the page served by the API, in a real browser (Debian's ``chromium``, headless) against a real
+``radarseg serve`` on loopback: example 1 drawn on both views with its objects and MACs, and a bad file
+answered with the service's own message. The browser and the server are stopped by pid."""
+
+from __future__ import annotations
+
+import base64
+import os
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+from urllib.parse import quote
+
+import httpx
+import numpy as np
+import pytest
+
+from service.encoding import decode_array
+from tests.service.conftest import NPY
+
+# .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails the test.
+CHROMIUM = shutil.which("chromium")
+REQUIRED = os.environ.get("RADARSEG_REQUIRE_BROWSER") == "1"
+
+
+class Dom(HTMLParser):
+    """The rendered page: attributes and text of every element with an id, and the objects table's rows."""
+
+    def __init__(self, html: str) -> None:
+        super().__init__()
+        self.attrs: dict[str, dict[str, str]] = {}
+        self.text: dict[str, str] = {}
+        self.rows: list[dict[str, str]] = []
+        self._open: list[tuple[str, str | None]] = []
+        self.feed(html)
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        values = {name: value or "" for name, value in attrs}
+        if tag == "body":
+            self.attrs["body"] = values
+        if "id" in values:
+            self.attrs[values["id"]] = values
+            self.text.setdefault(values["id"], "")
+        if tag == "tr" and "data-index" in values:
+            self.rows.append(values)
+        if tag not in ("br", "img", "input", "link", "meta"):
+            self._open.append((tag, values.get("id")))
+
+    def handle_endtag(self, tag: str) -> None:
+        while self._open:
+            if self._open.pop()[0] == tag:
+                break
+
+    def handle_data(self, data: str) -> None:
+        for _, element_id in self._open:
+            if element_id is not None:
+                self.text[element_id] += data
+
+
+def rendered(url: str, profile: Path) -> Dom:
+    """The DOM after the page's scripts ran (virtual time waits for the page's requests to the service)."""
+    browser = subprocess.Popen(
+        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
+         "--disable-extensions", "--disable-background-networking", f"--user-data-dir={profile}",
+         "--window-size=1400,1050", "--virtual-time-budget=120000", "--dump-dom", url],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        html, _ = browser.communicate(timeout=180)
+    finally:
+        if browser.poll() is None:
+            browser.kill()  # by pid
+            browser.wait()
+    assert browser.returncode == 0, f"chromium exited with {browser.returncode}"
+    return Dom(html)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium is not installed (.ci/run installs it)")
+def test_viewer_draws_an_example_and_shows_the_services_error_messages(serve, tmp_path):
+    assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
+    # The shipped model (the default settings): the tiny random one finds no object to list.
+    env = {"RADARSEG_DATA_DIR": str(tmp_path / "data")}
+    with serve(env) as (server,):
+        page = rendered(f"{server.url}/viewer?example=1", tmp_path / "browser")
+        # What the API answers for the same cube: the page must show exactly this.
+        with httpx.Client(base_url=server.url, timeout=120) as http:
+            cube = http.get("/v1/examples/1").content
+            answer = http.post("/v1/segment?outputs=objects,masks,views&encoding=zlib", content=cube,
+                               headers=NPY).json()
+            bad = b"this is not a .npy file"
+            refusal = http.post("/v1/segment", content=bad, headers=NPY)
+        bad_url = "data:application/octet-stream;base64," + base64.b64encode(bad).decode()
+        bad_page = rendered(f"{server.url}/viewer?cube={quote(bad_url, safe='')}", tmp_path / "browser")
+        missing_page = rendered(f"{server.url}/viewer?example=9", tmp_path / "browser")
+
+    assert page.attrs["body"]["data-state"] == "done", page.text.get("message")
+    assert answer["objects"], "the shipped model found no object in example 1: the test would check nothing"
+    for view, mask in (("ra-view", "ra_mask"), ("rd-view", "rd_mask")):
+        canvas = page.attrs[view]
+        assert canvas["data-drawn"] == "true"
+        assert int(canvas["data-mask-cells"]) == np.count_nonzero(decode_array(answer[mask])) > 0
+        assert int(canvas["data-markers"]) == len(answer["objects"])
+    assert [row["data-class"] for row in page.rows] == [o["class_name"] for o in answer["objects"]]
+    assert page.attrs["macs-total"]["title"] == f"{answer['compute']['macs']['total']} MACs"
+    assert "MACs" in page.text["macs-total"] and "MACs" in page.text["compute"]
+    assert page.text["roi-voxels"].replace(",", "") == str(answer["compute"]["roi_voxels"])
+    assert "anonymous" in page.text["usage"]
+
+    assert refusal.status_code == 400
+    assert (bad_page.attrs["body"]["data-state"], bad_page.attrs["body"]["data-status"]) == ("error", "400")
+    assert refusal.json()["detail"] in bad_page.text["message"]
+    assert bad_page.attrs["ra-view"]["data-drawn"] == "false"
+    assert (missing_page.attrs["body"]["data-state"], missing_page.attrs["body"]["data-status"]) == ("error", "404")
+    assert "no example 9" in missing_page.text["message"]
