@@ -8,22 +8,27 @@ from typing import Annotated
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
+from service.billing import Billing
+from service.errors import ApiError
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import ServiceMetrics
 from service.settings import Settings
 from service.tenants import Authenticator, Principal
+from service.upload import UploadGate
 
 
 @dataclass
 class ServiceState:
-    """Everything one app owns: settings, models, ledger, metrics, authenticator."""
+    """Everything one app owns: settings, models, ledger and billing, metrics, authenticator, upload gate."""
 
     settings: Settings
     pool: ModelPool
     ledger: Ledger
+    billing: Billing
     metrics: ServiceMetrics
     auth: Authenticator
+    uploads: UploadGate
     ledger_error: str | None = field(default="not opened yet")
 
 
@@ -40,10 +45,25 @@ def get_principal(
     bearer: Annotated[HTTPAuthorizationCredentials | None, Security(_bearer)],
     api_key: Annotated[str | None, Security(_api_key)],
 ) -> Principal:
-    """The calling tenant (401 for a missing or unknown key when keys are configured)."""
+    """The calling tenant: 401 for a missing or unknown key when keys are configured, 400 for ambiguous
+    credentials (two keys, or a key beside another kind of ``Authorization``), whichever key would win."""
+    api_keys = request.headers.getlist("x-api-key")
+    authorizations = request.headers.getlist("authorization")
+    if len(api_keys) > 1 or len(authorizations) > 1 or (api_keys and authorizations):
+        raise ApiError(400, f"ambiguous credentials: {len(api_keys)} X-API-Key and {len(authorizations)} "
+                            "Authorization headers; send exactly one of 'Authorization: Bearer KEY' or "
+                            "'X-API-Key: KEY'", error="ambiguous_credentials")
     key = bearer.credentials if bearer is not None else api_key
     return get_state(request).auth.authenticate(key)
 
 
+def get_admin(request: Request, caller: Annotated[Principal, Depends(get_principal)]) -> Principal:
+    """A caller who may read every tenant's figures: 403 otherwise (anyone when no keys are configured)."""
+    if get_state(request).auth.enabled and not caller.admin:
+        raise ApiError(403, f"tenant {caller.tenant!r} may not read service-wide figures (an admin key is needed)")
+    return caller
+
+
 State = Annotated[ServiceState, Depends(get_state)]
 Caller = Annotated[Principal, Depends(get_principal)]
+Admin = Annotated[Principal, Depends(get_admin)]

@@ -2,9 +2,14 @@
 per replica, behind a bounded queue.
 
 ``EraseNet.segment`` is not safe to run concurrently on one instance (per-call MAC counters), so each
-replica is used by one worker thread at a time. A request holds a slot of its model from admission
-(before its body is read) until its inference has finished; when ``replicas + max_queue`` slots are
-taken the request is refused at once (503 with Retry-After) instead of piling up.
+replica is used by one inference thread at a time. Each replica has its own long-lived inference thread,
+which sets its torch intra-op threads itself (``Settings.inference_threads``) and runs the warm-up too, so
+that torch's OpenMP thread team is built once, on the thread that uses it. (Inference on a fresh worker
+thread with torch's default threads was measured 4x slower than on the main thread: issue 16.)
+
+A request takes a slot of its model once its body has been read (a slow upload holds no slot) and
+keeps it until its inference has finished; when ``replicas + max_queue`` slots are taken the request is
+refused at once (503 with Retry-After) instead of piling up.
 """
 
 from __future__ import annotations
@@ -66,8 +71,9 @@ class ServedModel:
         """Slots taken: requests running or waiting."""
         return self._held
 
-    def load(self, replicas: int, warmup: bool) -> None:
-        """Build the replicas from the checkpoints; on failure record why (the service stays up, not ready)."""
+    def load(self, replicas: int, warmup: bool, threads: int = 1) -> None:
+        """Build the replicas from the checkpoints and start one inference thread per replica, each with
+        ``threads`` torch threads; on failure record why (the service stays up, not ready)."""
         detector, segmenter = resolve_path(self.spec.detector), resolve_path(self.spec.segmenter)
         try:
             nets = [EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
@@ -76,24 +82,28 @@ class ServedModel:
             self.error = str(exc)
             log.error("model %s not loaded: %s", self.spec.name, exc)
             return
-        if warmup:
-            for net in nets:
-                self._warm(net)
+        self._executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}",
+                                            initializer=_set_torch_threads, initargs=(threads,))
+        if warmup:  # on the inference threads themselves, one replica each
+            for done in [self._executor.submit(self._warm, net) for net in nets]:
+                done.result()
         for net in nets:
             self._free.put(net)
         self.nets = nets
-        self._executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}")
         self.error = None
         log.info("model %s ready: preset %s, %d replica(s)", self.spec.name, nets[0].profile.name, replicas)
 
     def _warm(self, net: EraseNet) -> None:
-        """One inference on a simulated point target: the first torch call of a process is slow."""
-        from radar.simulate import point_target_cube
+        """Inference on a simulated point target (the first torch call of a thread is slow) and on a simulated
+        scene of the preset, whose segmenter MACs start the quota reservation's estimate."""
+        from radar.simulate import point_target_cube, simulate_sequence
 
         profile = net.profile
-        cube = point_target_cube(profile.name, profile.max_range / 3, 0.0, 1.0, rcs_dbsm=20.0, noise=True, seed=0)
-        result = net.segment(cube)
-        self.segment_macs_high = max(self.segment_macs_high, result.compute["macs"]["segment"])
+        cubes = [point_target_cube(profile, profile.max_range / 3, 0.0, 1.0, rcs_dbsm=20.0, noise=True, seed=0)]
+        cubes += [frame.cube for frame in simulate_sequence(profile, 2, seed=0)]
+        for cube in cubes:
+            result = net.segment(cube)
+            self.segment_macs_high = max(self.segment_macs_high, result.compute["macs"]["segment"])
 
     def acquire(self) -> None:
         """Take a slot or raise Saturated."""
@@ -105,11 +115,6 @@ class ServedModel:
     def release(self) -> None:
         with self._lock:
             self._held -= 1
-
-    def reservation_macs(self) -> int:
-        """MACs to reserve against a quota before running: exact for the detector, the largest segmenter
-        figure seen so far for the rest."""
-        return self.net.detector_macs() + self.segment_macs_high
 
     async def run(self, cube: np.ndarray, *, is_log_power: bool, adc_compensation: bool | None = None
                   ) -> SegmentationResult:
@@ -146,6 +151,13 @@ class ServedModel:
             self._executor = None
 
 
+def _set_torch_threads(threads: int) -> None:
+    """Initializer of an inference thread: torch's intra-op thread count applies per calling thread."""
+    import torch
+
+    torch.set_num_threads(threads)
+
+
 class ModelPool:
     """Every model of the settings, by name."""
 
@@ -157,12 +169,8 @@ class ModelPool:
 
     def load(self) -> None:
         """Load every model (blocking: call from a thread or at start-up)."""
-        if self.settings.torch_threads:
-            import torch
-
-            torch.set_num_threads(self.settings.torch_threads)
         for model in self.models.values():
-            model.load(self.settings.replicas, self.settings.warmup)
+            model.load(self.settings.replicas, self.settings.warmup, self.settings.inference_threads)
 
     def get(self, name: str | None) -> ServedModel:
         """The model called ``name`` (the default when None); KeyError names the served ones."""

@@ -8,14 +8,17 @@ concurrent requests from any number of processes add up exactly.
 Daily MAC quotas are enforced in two atomic steps, so that concurrent requests cannot overrun them:
 
 1. ``reserve``: before inference, a conditional update adds an estimate of the request's MACs to
-   ``reserved_macs`` only if ``macs + reserved_macs + estimate <= limit``; otherwise 429 at once.
+   ``reserved_macs`` only if ``macs + reserved_macs + estimate <= limit``; otherwise 429 at once. The
+   reservation is a *lease*: a row in ``{prefix}leases`` with a deadline, written in the same transaction.
 2. ``settle``: after inference, a conditional update moves the request from ``reserved_macs`` to the
    counters only if ``macs + actual <= limit``, and writes the request's row in the same transaction.
    If the actual MACs (which depend on the ROI) no longer fit, the reservation is released, nothing is
    billed and the request is answered 429: the billed total never exceeds the limit.
 
-A process that dies between the two steps leaves its reservation for the rest of that UTC day (the
-quota errs on the strict side); the billed counters stay exact.
+A process that dies between the two steps leaves its lease behind. Expired leases are reclaimed at
+start-up (``reclaim_expired``) and by the tenant's next reservation: each lease row is deleted by exactly
+one transaction (``DELETE ... RETURNING``), which alone gives its MACs back, so a lease settled, released
+or reclaimed concurrently is never given back twice. The billed counters stay exact throughout.
 """
 
 from __future__ import annotations
@@ -64,6 +67,27 @@ class DayTotals:
 
 
 @dataclass(frozen=True)
+class Lease:
+    """A held reservation: ``macs`` of ``tenant``'s quota for ``day`` until ``expires_at``."""
+
+    id: str
+    tenant: str
+    day: dt.date
+    macs: int
+    expires_at: dt.datetime
+
+
+@dataclass(frozen=True)
+class Held:
+    """Reservations held now for one tenant and day: leases in force and expired (not yet reclaimed)."""
+
+    leases: int
+    macs: int
+    expired_leases: int
+    expired_macs: int
+
+
+@dataclass(frozen=True)
 class QuotaExceeded:
     """Why a reservation or a settlement was refused."""
 
@@ -77,6 +101,10 @@ class QuotaExceeded:
 
 def utc_today() -> dt.date:
     return dt.datetime.now(dt.UTC).date()
+
+
+def utc_now() -> dt.datetime:
+    return dt.datetime.now(dt.UTC)
 
 
 def _sqlite_engine(url: str) -> Engine:
@@ -143,6 +171,14 @@ class Ledger:
             Column("roi_voxels", Integer, nullable=False),
             Column("created_at", DateTime(timezone=True), nullable=False),
         )
+        self.leases = Table(
+            f"{table_prefix}leases", self.metadata,
+            Column("id", String(32), primary_key=True),
+            Column("tenant", String(64), nullable=False, index=True),
+            Column("day", Date, nullable=False),
+            Column("macs", BigInteger, nullable=False),
+            Column("expires_at", DateTime(timezone=True), nullable=False, index=True),
+        )
 
     def create(self) -> None:
         """Create the tables when missing (idempotent; safe from several processes at once).
@@ -176,12 +212,17 @@ class Ledger:
     def _totals(self, row) -> DayTotals:  # noqa: ANN001
         return DayTotals(row.tenant, row.day, row.requests, row.macs, row.compute_us, row.reserved_macs)
 
-    def reserve(self, tenant: str, macs: int, limit: int, *, day: dt.date | None = None) -> QuotaExceeded | None:
-        """Hold ``macs`` of ``tenant``'s daily ``limit`` for a request about to run; None when held."""
+    def reserve(self, tenant: str, macs: int, limit: int, *, lease_s: float = 300.0, day: dt.date | None = None,
+                now: dt.datetime | None = None) -> Lease | QuotaExceeded:
+        """Hold ``macs`` of ``tenant``'s daily ``limit`` for a request about to run, as a lease that expires
+        ``lease_s`` from now; QuotaExceeded when it does not fit. The tenant's expired leases are reclaimed
+        first, in the same transaction."""
         day = day or utc_today()
+        now = now or utc_now()
         u = self.usage.c
         with self.engine.begin() as conn:
             self._ensure_day(conn, tenant, day)
+            self._reclaim(conn, now, tenant)
             held = conn.execute(
                 update(self.usage)
                 .where(u.tenant == tenant, u.day == day, u.macs + u.reserved_macs + macs <= limit)
@@ -189,47 +230,91 @@ class Ledger:
                 .returning(u.tenant)
             ).first()
             if held is not None:
-                return None
+                lease = Lease(uuid.uuid4().hex, tenant, day, macs, now + dt.timedelta(seconds=lease_s))
+                conn.execute(self.leases.insert().values(id=lease.id, tenant=tenant, day=day, macs=macs,
+                                                         expires_at=lease.expires_at))
+                return lease
             row = conn.execute(select(self.usage).where(u.tenant == tenant, u.day == day)).one()
         return QuotaExceeded(tenant, day, row.macs, row.reserved_macs, macs, limit)
 
-    def release(self, tenant: str, macs: int, *, day: dt.date) -> None:
-        """Give back a reservation of a request that did not run (bad input, saturation)."""
+    def _give_back(self, conn, leases: list) -> int:  # noqa: ANN001
+        """Subtract deleted lease rows (tenant, day, macs) from ``reserved_macs``; the MACs given back."""
         u = self.usage.c
+        for row in leases:
+            conn.execute(update(self.usage).where(u.tenant == row.tenant, u.day == row.day)
+                         .values(reserved_macs=u.reserved_macs - row.macs))
+        return sum(row.macs for row in leases)
+
+    def _end_lease(self, conn, lease: Lease) -> int:  # noqa: ANN001
+        """Delete ``lease`` and give its MACs back, unless it was already reclaimed; the MACs given back."""
+        gone = conn.execute(self.leases.delete().where(self.leases.c.id == lease.id)
+                            .returning(self.leases.c.tenant, self.leases.c.day, self.leases.c.macs)).all()
+        return self._give_back(conn, gone)
+
+    def _reclaim(self, conn, now: dt.datetime, tenant: str | None) -> int:  # noqa: ANN001
+        condition = [self.leases.c.expires_at < now]
+        if tenant is not None:
+            condition.append(self.leases.c.tenant == tenant)
+        gone = conn.execute(self.leases.delete().where(*condition)
+                            .returning(self.leases.c.tenant, self.leases.c.day, self.leases.c.macs)).all()
+        return self._give_back(conn, gone)
+
+    def reclaim_expired(self, *, now: dt.datetime | None = None, tenant: str | None = None) -> int:
+        """Give back every expired lease (of ``tenant``, or of all tenants); the MACs given back."""
         with self.engine.begin() as conn:
-            conn.execute(update(self.usage).where(u.tenant == tenant, u.day == day)
-                         .values(reserved_macs=u.reserved_macs - macs))
+            return self._reclaim(conn, now or utc_now(), tenant)
+
+    def release(self, lease: Lease) -> None:
+        """Give back the reservation of a request that was not billed (bad input, saturation, failure)."""
+        with self.engine.begin() as conn:
+            self._end_lease(conn, lease)
+
+    def held(self, tenant: str, day: dt.date | None = None, *, now: dt.datetime | None = None) -> Held:
+        """``tenant``'s leases for ``day``: in force and expired (reclaimed by its next reservation)."""
+        day, now = day or utc_today(), now or utc_now()
+        c = self.leases.c
+        expired = (c.expires_at < now)
+        query = select(func.count(), func.coalesce(func.sum(c.macs), 0)).where(c.tenant == tenant, c.day == day)
+        with self.engine.connect() as conn:
+            live = conn.execute(query.where(~expired)).one()
+            old = conn.execute(query.where(expired)).one()
+        return Held(int(live[0]), int(live[1]), int(old[0]), int(old[1]))
+
+    def recent_max_macs(self, model: str, *, last: int = 200) -> int:
+        """The largest MACs billed for ``model`` among its ``last`` billed requests (0 when none)."""
+        r = self.requests.c
+        recent = select(r.macs).where(r.model == model).order_by(r.created_at.desc()).limit(last).subquery()
+        with self.engine.connect() as conn:
+            return int(conn.execute(select(func.coalesce(func.max(recent.c.macs), 0))).scalar_one())
 
     def settle(self, tenant: str, *, model: str, macs: int, compute_us: int, roi_voxels: int = 0,
-               reserved: int = 0, limit: int | None = None, day: dt.date | None = None,
+               lease: Lease | None = None, limit: int | None = None, day: dt.date | None = None,
                request_id: str | None = None) -> DayTotals | QuotaExceeded:
-        """Bill one request (and release its reservation) in one transaction; the day's totals after it.
-
+        """Bill one request and end its ``lease`` in one transaction; the day's totals after it.
         With a ``limit``, the request is billed only if the day's billed MACs stay within it; otherwise
-        the reservation is released, nothing is billed and QuotaExceeded is returned.
+        the lease is ended, nothing is billed and QuotaExceeded is returned.
         """
-        day = day or utc_today()
+        day = lease.day if lease is not None else (day or utc_today())
         u = self.usage.c
         with self.engine.begin() as conn:
             self._ensure_day(conn, tenant, day)
+            if lease is not None:
+                self._end_lease(conn, lease)
             condition = [u.tenant == tenant, u.day == day]
             if limit is not None:
                 condition.append(u.macs + macs <= limit)
             row = conn.execute(
                 update(self.usage).where(*condition)
-                .values(requests=u.requests + 1, macs=u.macs + macs, compute_us=u.compute_us + compute_us,
-                        reserved_macs=u.reserved_macs - reserved)
+                .values(requests=u.requests + 1, macs=u.macs + macs, compute_us=u.compute_us + compute_us)
                 .returning(*self.usage.c)
             ).first()
             if row is None:
-                conn.execute(update(self.usage).where(u.tenant == tenant, u.day == day)
-                             .values(reserved_macs=u.reserved_macs - reserved))
                 now = conn.execute(select(self.usage).where(u.tenant == tenant, u.day == day)).one()
                 assert limit is not None
                 return QuotaExceeded(tenant, day, now.macs, now.reserved_macs, macs, limit)
             conn.execute(self.requests.insert().values(
                 id=request_id or uuid.uuid4().hex, tenant=tenant, day=day, model=model, macs=macs,
-                compute_us=compute_us, roi_voxels=roi_voxels, created_at=dt.datetime.now(dt.UTC)))
+                compute_us=compute_us, roi_voxels=roi_voxels, created_at=utc_now()))
         return self._totals(row)
 
     def day_totals(self, tenant: str, day: dt.date | None = None) -> DayTotals:

@@ -3,7 +3,9 @@ ledger and metrics registry. ``uvicorn --factory service.main:create_app`` (or `
 
 Models load and the ledger opens in the lifespan, so importing this module does no work; when a
 checkpoint is missing or the database is unreachable the app still starts: ``/healthz`` answers 200,
-``/readyz`` and ``/v1/segment`` answer 503 with the reason.
+``/readyz`` and ``/v1/segment`` answer 503 with the reason. At start-up, quota leases left expired by a
+process that died are given back. ``python -m service.server`` runs the app with the HTTP limits of the
+settings (header size and count, port checked before the models load).
 """
 
 from __future__ import annotations
@@ -11,19 +13,24 @@ from __future__ import annotations
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import FastAPI
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
+from service.billing import Billing
 from service.deps import ServiceState
 from service.errors import DeclaredBodyLimit, install_error_handlers
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import MetricsMiddleware, ServiceMetrics
 from service.routes import examples, health, metrics, models, segment, usage, viewer
+from service.routes.docs import install_docs
+from service.schemas import ErrorBody
 from service.settings import Settings
 from service.tenants import Authenticator
+from service.upload import UploadGate
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +44,7 @@ def _open_ledger(state: ServiceState) -> None:
     try:
         state.ledger.create()
         state.ledger.ping()
+        state.billing.start(state.settings.model_names)
         state.ledger_error = None
     except SQLAlchemyError as exc:
         state.ledger_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
@@ -46,9 +54,11 @@ def _open_ledger(state: ServiceState) -> None:
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app (nothing loads until it starts: the lifespan loads models and opens the ledger)."""
     settings = settings or Settings()
-    state = ServiceState(settings=settings, pool=ModelPool(settings),
-                         ledger=Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix),
-                         metrics=ServiceMetrics(), auth=Authenticator(settings))
+    ledger = Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix)
+    metrics_ = ServiceMetrics()
+    state = ServiceState(settings=settings, pool=ModelPool(settings), ledger=ledger,
+                         billing=Billing(ledger, settings, metrics_), metrics=metrics_, auth=Authenticator(settings),
+                         uploads=UploadGate(settings))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -62,13 +72,39 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             state.pool.close()
             state.ledger.dispose()
 
-    app = FastAPI(title="radarseg", version="0.1.0", description=DESCRIPTION, lifespan=lifespan)
+    app = FastAPI(title="radarseg", version="0.1.0", description=DESCRIPTION, lifespan=lifespan, docs_url=None,
+                  redoc_url=None)
     app.state.service = state
     install_error_handlers(app)
+    install_docs(app)
     # FastAPI's body limit on the one route that reads a body (GET routes never read one).
     app.include_router(segment.router, max_body_size=settings.max_body_bytes)
     for router in (models.router, usage.router, examples.router, viewer.router, health.router, metrics.router):
         app.include_router(router)
     app.add_middleware(DeclaredBodyLimit, max_body_size=settings.max_body_bytes)
     app.add_middleware(MetricsMiddleware, metrics=state.metrics)  # added last: outermost, it sees every answer
+    _document_errors_as_sent(app)
     return app
+
+
+def _document_errors_as_sent(app: FastAPI) -> None:
+    """Parameter validation errors are answered in the ErrorBody shape (service.errors), so the OpenAPI
+    document says so instead of FastAPI's default HTTPValidationError."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            spec = build()
+            ref = {"$ref": "#/components/schemas/ErrorBody"}
+            spec["components"]["schemas"].setdefault("ErrorBody", ErrorBody.model_json_schema())
+            for operations in spec["paths"].values():
+                for operation in operations.values():
+                    answer = operation.get("responses", {}).get("422")
+                    if answer is not None:
+                        answer["content"] = {"application/json": {"schema": ref}}
+            for unused in ("HTTPValidationError", "ValidationError"):
+                spec["components"]["schemas"].pop(unused, None)
+            app.openapi_schema = spec
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]

@@ -199,10 +199,22 @@ class Readiness(BaseModel):
     ledger: str | None = Field(description="null when the ledger is reachable, else why not")
 
 
+class HeldQuota(BaseModel):
+    """Today's quota reservations (leases) of requests in flight; expired ones were left by requests cut off
+    by a crash and are given back at the tenant's next reservation or the next start-up."""
+
+    leases: int
+    macs: int
+    expired_leases: int
+    expired_macs: int
+    lease_seconds: float = Field(description="how long a lease is held before it expires")
+
+
 class TenantUsage(BaseModel):
     tenant: str
     quota_macs: int | None
     today: DayUsage
+    held: HeldQuota
     total: UsageTotals
     days: list[DayUsage]
 

@@ -12,6 +12,7 @@ Relative checkpoint paths are resolved against the repository root (the director
 from __future__ import annotations
 
 import ipaddress
+import os
 import re
 from pathlib import Path
 from typing import Annotated
@@ -64,9 +65,21 @@ class Settings(BaseSettings):
     max_queue: Annotated[int, Field(ge=0, le=1024)] = 8  # requests waiting per model beyond the running ones
     retry_after_s: Annotated[int, Field(ge=1, le=3600)] = 1
     warmup: bool = True  # run each model once at start-up (the first torch call of a process is slow)
+    # torch intra-op threads of each replica's inference thread; None: the CPUs divided among the replicas
     torch_threads: Annotated[int | None, Field(ge=1, le=256)] = None
     # a complex128 carrada cube (256 x 256 x 64) and its header; the header check refuses other shapes early
     max_body_bytes: Annotated[int, Field(ge=1024, le=MAX_BODY_LIMIT)] = 64 * 2**20 + 65536
+
+    # Uploads are read before a request takes a model slot; these bound slow and numerous uploaders.
+    body_min_rate: Annotated[int, Field(ge=1, le=2**30)] = 65536  # bytes/s a body must average after the grace
+    body_grace_s: Annotated[float, Field(ge=0.1, le=600)] = 5.0  # seconds before the minimum rate applies
+    body_timeout_s: Annotated[float, Field(ge=1, le=3600)] = 120.0  # a whole body within this, whatever its rate
+    max_uploads: Annotated[int, Field(ge=1, le=4096)] = 64  # bodies being received at once (503 beyond)
+    max_upload_bytes: Annotated[int, Field(ge=1024, le=16 * 2**30)] = 512 * 2**20  # their announced bytes
+    # HTTP head limits (the `service.server` runner enforces them before the app sees a request): 431 beyond
+    max_header_bytes: Annotated[int, Field(ge=1024, le=2**20)] = 65536  # request line and headers together
+    max_headers: Annotated[int, Field(ge=8, le=1000)] = 100
+    max_json_depth: Annotated[int, Field(ge=2, le=64)] = 16  # nesting of a JSON header (X-Cube-Schema)
 
     api_keys: dict[SecretStr, str] = {}  # key -> tenant; none configured = one anonymous tenant
     admin_tenants: list[str] = []  # tenants whose keys may read every tenant's usage
@@ -74,6 +87,9 @@ class Settings(BaseSettings):
 
     daily_mac_quota: Annotated[int | None, Field(ge=0)] = None  # per tenant and UTC day; None: unlimited
     tenant_quotas: dict[str, Annotated[int, Field(ge=0)]] = {}  # per-tenant overrides of daily_mac_quota
+    # a reservation is a lease: one left by a crashed process is given back after this many seconds
+    lease_s: Annotated[float, Field(ge=1, le=86400)] = 300.0
+    reservation_headroom: Annotated[float, Field(ge=1.0, le=100.0)] = 1.5  # times the largest segmenter MACs known
 
     data_dir: Path = Path("data/service")  # relative to the working directory
     ledger_url: str | None = None  # None: SQLite (WAL) file ledger.sqlite3 under data_dir
@@ -117,6 +133,11 @@ class Settings(BaseSettings):
             raise ValueError(f"admin_tenants {unknown} have no API key")
         if unknown := sorted(set(self.tenant_quotas) - (tenants or {ANONYMOUS_TENANT})):
             raise ValueError(f"tenant_quotas name unknown tenants {unknown}")
+        if self.body_timeout_s <= self.body_grace_s:
+            raise ValueError(f"body_timeout_s ({self.body_timeout_s}) must exceed body_grace_s ({self.body_grace_s})")
+        if self.max_upload_bytes < self.max_body_bytes:
+            raise ValueError(f"max_upload_bytes ({self.max_upload_bytes}) must hold at least one body of "
+                             f"max_body_bytes ({self.max_body_bytes})")
         if not self.api_keys and not self.allow_anonymous_remote and not _is_loopback(self.host):
             raise ValueError(f"refusing to serve on {self.host!r} without API keys: configure api_keys, bind "
                              "127.0.0.1, or set allow_anonymous_remote explicitly")
@@ -133,6 +154,11 @@ class Settings(BaseSettings):
     def tenant_for_key(self) -> dict[str, str]:
         """Plain key -> tenant (used once, to build the authenticator)."""
         return {key.get_secret_value(): tenant for key, tenant in self.api_keys.items()}
+
+    @property
+    def inference_threads(self) -> int:
+        """torch threads per replica: ``torch_threads``, else the CPUs shared among the replicas."""
+        return self.torch_threads or max(1, (os.cpu_count() or 1) // self.replicas)
 
     @property
     def tenants(self) -> list[str]:

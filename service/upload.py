@@ -3,26 +3,33 @@
 The header is parsed and checked (dtype kind, shape, byte count against ``Content-Length``) as soon
 as its bytes have arrived, before the array is allocated; the array is then filled chunk by chunk
 (no second copy of a 32 MiB body). Pickled/object arrays are refused by the header parser.
+
+Uploads are bounded before any model is involved: :class:`UploadGate` admits at most ``max_uploads``
+bodies, announcing at most ``max_upload_bytes`` together, at once (503 + Retry-After beyond), and
+:func:`paced` cuts off a body that falls behind ``body_min_rate`` bytes/s after ``body_grace_s`` seconds,
+or is not complete within ``body_timeout_s`` (408, connection closed).
 """
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import asyncio
+from collections.abc import AsyncIterator, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
 
 from radar.io.errors import DataError
-from radar.io.npy import MAGIC, NpyHeader, parse_npy_header
+from radar.io.npy import MAGIC, MAX_HEADER_LEN, NpyHeader, parse_npy_header
 from service.errors import ApiError
 from service.schemas import InputKind
+from service.settings import Settings
 
 ACCEPTED_DTYPES = {
     InputKind.complex: (np.complex64, np.complex128),
     InputKind.log_power: (np.float16, np.float32, np.float64),
     InputKind.adc: (np.complex64, np.complex128),
 }
-MAX_HEADER_BYTES = 65536 + 12
 
 
 @dataclass(frozen=True)
@@ -38,6 +45,59 @@ class ExpectedCube:
         return f"a {self.shape} {names} .npy cube"
 
 
+class UploadGate:
+    """Bounds the request bodies being received at once: their number and the bytes they announce (what
+    the cubes will occupy once allocated; a chunked body counts as ``max_body_bytes``)."""
+
+    def __init__(self, settings: Settings) -> None:
+        self.settings = settings
+        self.uploads = 0
+        self.bytes = 0
+
+    @contextmanager
+    def admit(self, content_length: int | None) -> Iterator[None]:
+        """Hold a place for one body while it is read; ApiError 503 when the bound is reached."""
+        s = self.settings
+        size = content_length if content_length is not None else s.max_body_bytes
+        if self.uploads >= s.max_uploads or self.bytes + size > s.max_upload_bytes:
+            raise ApiError(503, f"{self.uploads} uploads of {self.bytes} bytes in progress (limits: {s.max_uploads} "
+                                f"uploads, {s.max_upload_bytes} bytes); try again later", error="uploads_saturated",
+                           headers={"Retry-After": str(s.retry_after_s)})
+        self.uploads += 1
+        self.bytes += size
+        try:
+            yield
+        finally:
+            self.uploads -= 1
+            self.bytes -= size
+
+
+async def paced(chunks: AsyncIterator[bytes], settings: Settings) -> AsyncIterator[bytes]:
+    """``chunks`` as they arrive, or ApiError 408 when the body falls behind ``body_min_rate`` after
+    ``body_grace_s`` (the next bytes are due by ``start + grace + received / rate``) or is not complete
+    within ``body_timeout_s``."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    deadline = start + settings.body_timeout_s
+    received = 0
+    iterator = aiter(chunks)
+    while True:
+        due = min(deadline, start + settings.body_grace_s + received / settings.body_min_rate)
+        try:
+            async with asyncio.timeout_at(due):
+                chunk = await anext(iterator)
+        except StopAsyncIteration:
+            return
+        except TimeoutError:
+            elapsed = loop.time() - start
+            why = (f"not complete within {settings.body_timeout_s:g} s" if due >= deadline else
+                   f"below the minimum rate of {settings.body_min_rate} bytes/s after {settings.body_grace_s:g} s")
+            raise ApiError(408, f"request body {why}: {received} bytes in {elapsed:.1f} s", error="body_timeout",
+                           headers={"Connection": "close"}) from None
+        received += len(chunk)
+        yield chunk
+
+
 def _header_length(head: bytes | bytearray) -> int | None:
     """Bytes needed for the whole header, or None until the length field has arrived."""
     if len(head) >= len(MAGIC) and not bytes(head[:len(MAGIC)]) == MAGIC:
@@ -46,10 +106,15 @@ def _header_length(head: bytes | bytearray) -> int | None:
         return None
     major = head[6]
     if major == 1:
-        return 10 + int.from_bytes(head[8:10], "little")
-    if major in (2, 3):
-        return 12 + int.from_bytes(head[8:12], "little")
-    raise ApiError(400, f"unsupported .npy format version {major}", error="malformed_npy")
+        start, length = 10, int.from_bytes(head[8:10], "little")
+    elif major in (2, 3):
+        start, length = 12, int.from_bytes(head[8:12], "little")
+    else:
+        raise ApiError(400, f"unsupported .npy format version {major}", error="malformed_npy")
+    if length > MAX_HEADER_LEN:  # refused before waiting for (and buffering) its bytes
+        raise ApiError(400, f"oversized .npy header: {length} bytes, at most {MAX_HEADER_LEN} accepted",
+                       error="malformed_npy")
+    return start + length
 
 
 def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int | None) -> None:
@@ -95,8 +160,6 @@ async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, con
             head += chunk
             needed = _header_length(head)
             if needed is None or len(head) < needed:
-                if len(head) > MAX_HEADER_BYTES:
-                    raise ApiError(400, "oversized .npy header", error="malformed_npy")
                 continue
             try:
                 header = parse_npy_header(bytes(head[:needed]))

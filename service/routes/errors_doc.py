@@ -7,18 +7,21 @@ from typing import Any
 from service.schemas import ErrorBody, QuotaErrorBody
 
 ERROR_DESCRIPTIONS: dict[int, tuple[type, str]] = {
-    400: (ErrorBody, "Malformed body: not a .npy file, a pickled/object array, or a byte count that does not "
-                     "match its header"),
+    400: (ErrorBody, "Malformed request: a body that is not a .npy file, a pickled/object array, a byte count "
+                     "that does not match its header; a header that is not valid JSON or nested too deep; "
+                     "ambiguous credentials (two keys, or a key beside another Authorization)"),
     401: (ErrorBody, "Missing or unknown API key (when keys are configured)"),
     403: (ErrorBody, "The key is valid but not allowed to do this (another tenant's usage needs an admin key)"),
+    408: (ErrorBody, "The body fell behind the minimum upload rate or missed the upload deadline (the "
+                     "connection is closed)"),
     413: (ErrorBody, "Body larger than the configured limit (max_body_bytes)"),
     415: (ErrorBody, "Content type is not application/x-npy or application/octet-stream"),
     422: (ErrorBody, "Valid .npy but not what the model takes (shape, dtype, NaN/Inf; the message says what it "
                      "expects), an unknown model, or invalid query parameters"),
     429: (QuotaErrorBody, "The tenant's daily MAC quota does not cover the request (Retry-After: seconds until "
                           "the next UTC day)"),
-    503: (ErrorBody, "Not ready (model or ledger unavailable) or saturated (every slot of the model is taken); "
-                     "Retry-After says when to try again"),
+    503: (ErrorBody, "Not ready (model or ledger unavailable), saturated (every slot of the model is taken) or "
+                     "too many uploads in progress; Retry-After says when to try again"),
 }
 
 

@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import datetime as dt
-import json
 import time
 import uuid
 from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
-from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
@@ -22,18 +19,17 @@ from service.encoding import encode_array
 from service.errors import ApiError
 from service.inference import NotReady, Saturated, ServedModel
 from service.input_views import input_views
-from service.ledger import DayTotals, QuotaExceeded, utc_today
+from service.json_header import load_json_header
 from service.routes.errors_doc import error_responses
 from service.schemas import (
     Compute,
     InputKind,
     MaskEncoding,
     ObjectOut,
-    RequestUsage,
     SegmentResponse,
     VoxelsOut,
 )
-from service.upload import ExpectedCube, read_cube
+from service.upload import ExpectedCube, paced, read_cube
 
 router = APIRouter(tags=["segmentation"])
 
@@ -48,32 +44,6 @@ REQUEST_BODY = {
         "content": {content_type: _BINARY for content_type in CONTENT_TYPES},
     }
 }
-
-
-def _seconds_to_utc_midnight() -> int:
-    now = dt.datetime.now(dt.UTC)
-    tomorrow = dt.datetime.combine(now.date() + dt.timedelta(days=1), dt.time(), tzinfo=dt.UTC)
-    return max(1, int((tomorrow - now).total_seconds()) + 1)
-
-
-def _quota_error(exc: QuotaExceeded) -> ApiError:
-    return ApiError(
-        429, f"daily MAC quota of tenant {exc.tenant!r} exhausted: {exc.used_macs} of {exc.limit_macs} MACs used on "
-             f"{exc.day.isoformat()} ({exc.reserved_macs} held by requests in flight), this request needs about "
-             f"{exc.requested_macs}",
-        headers={"Retry-After": str(_seconds_to_utc_midnight())}, tenant=exc.tenant, day=exc.day.isoformat(),
-        used_macs=exc.used_macs, limit_macs=exc.limit_macs, reserved_macs=exc.reserved_macs,
-        requested_macs=exc.requested_macs)
-
-
-async def _ledger_call(state: ServiceState, fn, *args, **kwargs):  # noqa: ANN001, ANN202 (a Ledger method)
-    """Run a ledger method on a worker thread; a database failure is a 503, never a 500."""
-    try:
-        return await run_in_threadpool(fn, *args, **kwargs)
-    except SQLAlchemyError as exc:
-        raise ApiError(503, f"usage ledger unavailable ({type(exc).__name__}); the request was not billed",
-                       error="ledger_unavailable",
-                       headers={"Retry-After": str(state.settings.retry_after_s)}) from None
 
 
 def _parse_outputs(outputs: str) -> set[str]:
@@ -124,23 +94,15 @@ def _compute(result: SegmentationResult, decode_s: float) -> tuple[Compute, int]
                    visited_points=c["visited_points"], detections=c["detections"]), compute_us
 
 
-def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind) -> None:
-    """422 naming every difference between the client's cube schema and the model's (radar.schema)."""
-    try:
-        given = json.loads(header)
-    except json.JSONDecodeError as exc:
-        raise ApiError(400, f"X-Cube-Schema is not valid JSON ({exc})") from None
+def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind, max_depth: int) -> None:
+    """400 for JSON nested too deep or invalid, 422 naming every difference between the client's cube schema and
+    the model's (radar.schema)."""
+    given = load_json_header("X-Cube-Schema", header, max_depth=max_depth)
     content = {InputKind.log_power: "log_power_db"}.get(input_kind, "complex")
     try:
         check_schema(served.net.schema(content), given, what="cube")
     except SchemaMismatch as exc:
         raise ApiError(422, str(exc), error="schema_mismatch") from None
-
-
-def _usage(totals: DayTotals, quota: int | None) -> RequestUsage:
-    return RequestUsage(tenant=totals.tenant, day=totals.day.isoformat(), requests=totals.requests, macs=totals.macs,
-                        compute_seconds=totals.compute_seconds, quota_macs=quota,
-                        remaining_macs=None if quota is None else max(0, quota - totals.macs))
 
 
 def _encode(body: SegmentResponse, result: SegmentationResult, outputs: set[str], encoding: MaskEncoding) -> bytes:
@@ -173,13 +135,47 @@ def _headers(request_id: str, model: str, tenant: str, compute: Compute, encode_
     }
 
 
-@router.post(
-    "/v1/segment",
-    summary="Segment one RAD cube",
+async def _read_body(request: Request, state: ServiceState, expected: ExpectedCube,
+                     content_length: int | None) -> tuple[np.ndarray, float]:
+    """The checked cube and the seconds spent receiving and decoding it (before any model slot is taken)."""
+    start = time.perf_counter()
+    with state.uploads.admit(content_length):
+        try:
+            cube = await read_cube(paced(request.stream(), state.settings), expected, content_length=content_length)
+        except ClientDisconnect:
+            raise ApiError(400, "client disconnected before sending the whole body") from None
+    return cube, time.perf_counter() - start
+
+
+async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, tdm_compensation: bool,
+                 state: ServiceState) -> SegmentationResult:
+    """Inference in a model slot (taken here, released by the model when inference ends); 503 when saturated."""
+    retry = {"Retry-After": str(state.settings.retry_after_s)}
+    try:
+        served.acquire()
+    except Saturated as exc:
+        state.metrics.rejected.labels(served.spec.name, "saturated").inc()
+        raise ApiError(503, f"{exc}; try again later", error="saturated", headers=retry) from None
+    state.metrics.queue.labels(served.spec.name).set(served.held)
+    try:
+        return await served.run(cube, is_log_power=input_kind is InputKind.log_power,
+                                adc_compensation=tdm_compensation if input_kind is InputKind.adc else None)
+    except NotReady as exc:
+        raise ApiError(503, str(exc), error="not_ready", headers=retry) from None
+    finally:
+        state.metrics.queue.labels(served.spec.name).set(served.held)
+
+
+SEGMENT_DOC = dict(
     response_model=SegmentResponse,
-    responses=error_responses(400, 401, 413, 415, 422, 429, 503),
+    responses=error_responses(400, 401, 408, 413, 415, 422, 429, 503),
     openapi_extra=REQUEST_BODY,
 )
+
+
+@router.post("/v1/segment", summary="Segment one RAD cube", **SEGMENT_DOC)
+@router.post("/segment", summary="Segment one RAD cube (alias of POST /v1/segment, the product card's path)",
+             operation_id="segment_alias", **SEGMENT_DOC)
 async def segment(
     request: Request,
     state: State,
@@ -198,64 +194,33 @@ async def segment(
 ) -> Response:
     """Objects, RA/RD masks and optionally the labelled RAD voxels of one cube, with the request's MACs per
     stage, parameters, latency per stage, ROI voxels and visited points (also in ``X-Compute-*`` and
-    ``Server-Timing`` headers), and the tenant's running totals for the day."""
+    ``Server-Timing`` headers), and the tenant's running totals for the day.
+
+    The body is read first (a slow upload holds no model slot), then the request takes a model slot and a
+    lease on the tenant's quota, runs, and is billed."""
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
     content_length = _content_length(request)
     served = _served_model(state, model)
     if cube_schema is not None:
-        _check_cube_schema(cube_schema, served, input_kind)
-    name, metrics, settings = served.spec.name, state.metrics, state.settings
-    quota = settings.quota_for(caller.tenant)
+        _check_cube_schema(cube_schema, served, input_kind, state.settings.max_json_depth)
+    name, metrics = served.spec.name, state.metrics
+    shape = adc_shape(served.net.profile) if input_kind is InputKind.adc else served.net.profile.shape
+    cube, decode_s = await _read_body(request, state, ExpectedCube(name, shape, input_kind), content_length)
+
+    lease = await state.billing.reserve(caller.tenant, served)
     try:
-        served.acquire()
-    except Saturated as exc:
-        metrics.rejected.labels(name, "saturated").inc()
-        raise ApiError(503, f"{exc}; try again later", error="saturated",
-                       headers={"Retry-After": str(settings.retry_after_s)}) from None
-    submitted, reserved, day = False, 0, utc_today()
-    metrics.queue.labels(name).set(served.held)
-    try:
-        if quota is not None:
-            reserved = served.reservation_macs()
-            refused = await _ledger_call(state, state.ledger.reserve, caller.tenant, reserved, quota, day=day)
-            if refused is not None:
-                reserved = 0
-                metrics.rejected.labels(name, "quota").inc()
-                raise _quota_error(refused)
-        start = time.perf_counter()
-        shape = adc_shape(served.net.profile) if input_kind is InputKind.adc else served.net.profile.shape
-        expected = ExpectedCube(name, shape, input_kind)
-        try:
-            cube = await read_cube(request.stream(), expected, content_length=content_length)
-        except ClientDisconnect:
-            raise ApiError(400, "client disconnected before sending the whole body") from None
-        decode_s = time.perf_counter() - start
-        submitted = True
-        try:
-            result = await served.run(cube, is_log_power=input_kind is InputKind.log_power,
-                                      adc_compensation=tdm_compensation if input_kind is InputKind.adc else None)
-        except NotReady as exc:
-            raise ApiError(503, str(exc), error="not_ready",
-                           headers={"Retry-After": str(settings.retry_after_s)}) from None
-        views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
-                                         tdm_compensation=tdm_compensation) if "views" in chosen else None)
-        del cube
-        compute, compute_us = _compute(result, decode_s)
-        request_id = uuid.uuid4().hex
-        billed = await _ledger_call(
-            state, state.ledger.settle, caller.tenant, model=name, macs=compute.macs.total, compute_us=compute_us,
-            roi_voxels=compute.roi_voxels, reserved=reserved, limit=quota, day=day, request_id=request_id)
-        reserved = 0  # settled (or released by settle)
-        if isinstance(billed, QuotaExceeded):
-            metrics.rejected.labels(name, "quota").inc()
-            raise _quota_error(billed)
-    finally:
-        if not submitted:
-            served.release()
-        if reserved:
-            await _ledger_call(state, state.ledger.release, caller.tenant, reserved, day=day)
-        metrics.queue.labels(name).set(served.held)
+        result = await _infer(served, cube, input_kind, tdm_compensation, state)
+    except BaseException:
+        await state.billing.release(lease)
+        raise
+    views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
+                                     tdm_compensation=tdm_compensation) if "views" in chosen else None)
+    del cube
+    compute, compute_us = _compute(result, decode_s)
+    request_id = uuid.uuid4().hex
+    usage = await state.billing.settle(caller.tenant, lease, model=name, compute=compute, compute_us=compute_us,
+                                       request_id=request_id)
 
     metrics.segmentations.labels(name, caller.tenant).inc()
     metrics.macs.labels(name, caller.tenant).inc(compute.macs.total)
@@ -266,8 +231,7 @@ async def segment(
 
     net = served.net
     body = SegmentResponse(request_id=request_id, model=name, preset=net.profile.name, shape=list(net.profile.shape),
-                           class_names=list(net.class_names), views=views, compute=compute,
-                           usage=_usage(billed, quota))
+                           class_names=list(net.class_names), views=views, compute=compute, usage=usage)
     start = time.perf_counter()
     payload = await run_in_threadpool(_encode, body, result, chosen, encoding)
     encode_s = time.perf_counter() - start

@@ -11,7 +11,7 @@ from service.deps import Caller, State
 from service.errors import ApiError
 from service.ledger import DayTotals, utc_today
 from service.routes.errors_doc import error_responses
-from service.schemas import DayUsage, TenantUsage, UsageResponse, UsageTotals
+from service.schemas import DayUsage, HeldQuota, TenantUsage, UsageResponse, UsageTotals
 
 router = APIRouter(tags=["usage"])
 
@@ -21,7 +21,7 @@ def _day(totals: DayTotals) -> DayUsage:
                     compute_seconds=totals.compute_seconds)
 
 
-@router.get("/v1/usage", response_model=UsageResponse, responses=error_responses(401, 403, 503))
+@router.get("/v1/usage", response_model=UsageResponse, responses=error_responses(400, 401, 403, 422, 503))
 async def usage(
     state: State,
     caller: Caller,
@@ -29,7 +29,8 @@ async def usage(
                                        max_length=64)] = None,
     days: Annotated[int, Query(ge=1, le=366, description="days listed per tenant, newest first")] = 31,
 ) -> UsageResponse:
-    """Requests, MACs and compute seconds per UTC day and in total, with the daily MAC quota."""
+    """Requests, MACs and compute seconds per UTC day and in total, with the daily MAC quota and today's
+    quota reservations held by requests in flight (or left by requests a crash cut off, until they expire)."""
     if tenant is None or tenant == caller.tenant:
         tenants: list[str] | None = [caller.tenant]
     elif not caller.admin:
@@ -43,6 +44,7 @@ async def usage(
     all_time = await run_in_threadpool(state.ledger.all_time, tenants)
     names = sorted(set(by_tenant) | set(tenants or state.settings.tenants))
     today = utc_today()
+    held = await run_in_threadpool(lambda: {name: state.ledger.held(name, today) for name in names})
     out = []
     for name in names:
         listed = by_tenant.get(name, [])
@@ -50,6 +52,7 @@ async def usage(
         total = all_time.get(name, DayTotals(name, today, 0, 0, 0))
         out.append(TenantUsage(
             tenant=name, quota_macs=state.settings.quota_for(name), today=_day(today_totals),
+            held=HeldQuota(**vars(held[name]), lease_seconds=state.settings.lease_s),
             total=UsageTotals(requests=total.requests, macs=total.macs, compute_seconds=total.compute_seconds),
             days=[_day(d) for d in listed]))
     return UsageResponse(tenants=out)

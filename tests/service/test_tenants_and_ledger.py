@@ -72,17 +72,34 @@ def test_quota_holds_under_concurrent_requests(make_settings, client_for, cube_b
     with ThreadPoolExecutor(8) as pool:
         answers = list(pool.map(lambda _: client.post("/v1/segment", content=cube_body, headers=_auth(ACME)),
                                 range(8)))
-    codes = sorted(r.status_code for r in answers)
-    assert codes == [200] * 3 + [429] * 5, codes
+    billed = sum(r.status_code == 200 for r in answers)
+    # Reservations are conservative (headroom over the largest cost known), so a burst may be admitted a little
+    # below the quota, but every admitted request is billed: none is refused after running.
+    assert 2 <= billed <= 3 and all(r.status_code in (200, 429) for r in answers), [r.status_code for r in answers]
     for r in answers:
         if r.status_code == 429:
             body = r.json()
             assert body["tenant"] == "acme" and body["limit_macs"] == 3 * per_request + per_request // 2
-            assert body["used_macs"] <= body["limit_macs"]
+            assert body["used_macs"] <= body["limit_macs"] and body["requested_macs"] >= per_request
+    state = client.app.state.service
+    wasted = state.metrics.registry.get_sample_value("radarseg_rejected_requests_total",
+                                                     {"model": "tiny", "reason": "quota_at_settlement"})
+    assert wasted is None
     usage = client.get("/v1/usage", headers={"authorization": ACME}).json()["tenants"][0]
-    assert usage["today"]["macs"] == 3 * per_request <= usage["quota_macs"] and usage["today"]["requests"] == 3
-    ledger = client.app.state.service.ledger
-    assert ledger.day_totals("acme").reserved_macs == 0  # every reservation settled or released
+    assert usage["today"]["macs"] == billed * per_request <= usage["quota_macs"]
+    assert usage["today"]["requests"] == billed
+    assert usage["held"] == {"leases": 0, "macs": 0, "expired_leases": 0, "expired_macs": 0, "lease_seconds": 300.0}
+    assert state.ledger.day_totals("acme").reserved_macs == 0  # every reservation settled or released
+
+
+def test_first_reservation_covers_the_first_request(make_settings, client_for, cube_body):
+    """Issue 17 item 5: the estimate from the warm-up alone (no billed request yet) is not below a request's cost."""
+    client = client_for(make_settings())
+    state = client.app.state.service
+    served = state.pool.get("tiny")
+    estimate = state.billing.estimate(served)
+    r = client.post("/v1/segment", content=cube_body, headers=NPY)
+    assert r.status_code == 200 and estimate >= r.json()["compute"]["macs"]["total"]
 
 
 def test_ledger_equals_the_responses_after_concurrency_and_restart(make_settings, client_for, cube_body):
@@ -150,10 +167,11 @@ def test_reservations_never_let_the_billed_total_pass_the_limit(ledger_url_and_p
 
     def attempt(i: int) -> bool:
         estimate, actual = 900, 800 + 30 * (i % 7)  # some requests cost more than their reservation
-        if ledger.reserve("acme", estimate, limit, day=day) is not None:
+        lease = ledger.reserve("acme", estimate, limit, day=day)
+        if isinstance(lease, QuotaExceeded):
             return False
-        return not isinstance(ledger.settle("acme", model="m", macs=actual, compute_us=1, reserved=estimate,
-                                            limit=limit, day=day), QuotaExceeded)
+        return not isinstance(ledger.settle("acme", model="m", macs=actual, compute_us=1, lease=lease,
+                                            limit=limit), QuotaExceeded)
 
     with ThreadPoolExecutor(8) as pool:
         billed = sum(pool.map(attempt, range(60)))
