@@ -8,6 +8,7 @@ architecture, so it loads without the original.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,3 +80,14 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         preset=data["preset"], class_names=tuple(data["class_names"]),
         normalisation=dict(data["normalisation"]), extra=dict(data["extra"]),
     )
+
+
+def export_checkpoint(source: str | Path, target: str | Path, *, float16: bool = True) -> Path:
+    """Write a shippable copy of a training checkpoint: weights only (no optimiser state), floating
+    tensors in float16 when ``float16`` (half the size; :meth:`Checkpoint.build` loads them back into the
+    float32 model). Returns ``target``."""
+    checkpoint = load_checkpoint(source)
+    state = {k: (v.half() if float16 and v.is_floating_point() else v) for k, v in checkpoint.state_dict.items()}
+    extra = {k: v for k, v in checkpoint.extra.items() if k not in ("optimizer", "scheduler")}
+    extra["stored_dtype"] = "float16" if float16 else "float32"
+    return save_checkpoint(dataclasses.replace(checkpoint, state_dict=state, extra=extra), target)

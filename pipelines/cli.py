@@ -7,8 +7,23 @@ import json
 import logging
 import sys
 
-from radar.io.errors import DataError
-from radar.profiles import PRESETS, UnknownPresetError
+from pipelines.jobs import USER_ERRORS, report_error, run_job
+from radar.profiles import BUILTIN_PRESETS
+
+# The jobs (pipelines.jobs' contract): command -> (module, help). A job module loads only when its command runs.
+JOBS: dict[str, tuple[str, str]] = {
+    "preprocess": ("pipelines.preprocess", "Ray job: cubes into the zarr store of inputs and targets"),
+    "segment-batch": ("pipelines.segment_batch", "Ray job: segment a store split or a recording into a "
+                                                 "predictions store"),
+    "train": ("pipelines.train", "train the detector or the segmenter from a store, or export a checkpoint"),
+    "train-baseline": ("pipelines.train_baselines", "train a 2-D baseline (unet, tmvanet, smvanet) from a store"),
+    "evaluate": ("pipelines.evaluate", "evaluate both stages on a split of a store: metrics.json, report.md, "
+                                       "pictures"),
+    "compare": ("pipelines.compare", "ERASE-Net and the 2-D baselines on the same frames: compare.json, "
+                                     "compare.md, compare_frames.png"),
+    "slim-sweep": ("pipelines.slim_sweep", "compression sweep: prune (and fine-tune) at several ratios, "
+                                           "reports/slimming.md and .png"),
+}
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -47,50 +62,11 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_preprocess(args: argparse.Namespace) -> int:
-    from pipelines.preprocess import main, parse_args
-
-    result = main(parse_args(args.job_args, prog="radarseg preprocess"))
-    print(f"store {result['store']}: {result['written']}/{result['frames']} frames written, "
-          f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
-          f"{result['shards_skipped']} already done")
-    return 0
-
-
-def _cmd_segment_batch(args: argparse.Namespace) -> int:
-    from pipelines.segment_batch import main, parse_args
-
-    result = main(parse_args(args.job_args, prog="radarseg segment-batch"))
-    print(f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
-          f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
-          f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
-          f"{result['workers']} worker(s) on {result['nodes']} node(s)")
-    return 0
-
-
 def _cmd_store_info(args: argparse.Namespace) -> int:
     from pipelines.store import format_summary, summarise
 
     summary = summarise(args.store)
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
-    return 0
-
-
-def _cmd_train_baseline(args: argparse.Namespace) -> int:
-    from pipelines.train_baselines import build_parser as baseline_parser
-    from pipelines.train_baselines import config_from_args
-    from pipelines.train_baselines import main as train_baseline
-
-    cfg = config_from_args(baseline_parser("radarseg train-baseline").parse_args(args.job_args))
-    print(json.dumps(train_baseline(cfg), indent=2, default=str))
-    return 0
-
-
-def _cmd_train(args: argparse.Namespace) -> int:
-    from pipelines.train import run_cli
-
-    result = run_cli(args.job_args, prog="radarseg train")
-    print(json.dumps(result, indent=2, default=str))
     return 0
 
 
@@ -106,33 +82,6 @@ def _cmd_prune(args: argparse.Namespace) -> int:
     print(f"{args.out}: ratio {report.ratio:.3f}, {report.removed_channels}/{report.candidate_channels} channels "
           f"removed (threshold {report.threshold:.3g}), params {report.params_before:,} -> {report.params_after:,}"
           f"{macs}")
-    return 0
-
-
-def _cmd_slim_sweep(args: argparse.Namespace) -> int:
-    from pipelines.slim_sweep import main, parse_args
-
-    result = main(parse_args(args.job_args, prog="radarseg slim-sweep"))
-    print(f"table: {result['table']}\nplot: {result['plot']}")
-    return 0
-
-
-def _cmd_evaluate(args: argparse.Namespace) -> int:
-    from pipelines.evaluate import build_parser as evaluate_parser
-    from pipelines.evaluate import config_from_args, evaluate, format_summary
-
-    cfg = config_from_args(evaluate_parser("radarseg evaluate").parse_args(args.job_args))
-    print(format_summary(evaluate(cfg)))
-    print(f"report: {cfg.out}/report.md")
-    return 0
-
-
-def _cmd_compare(args: argparse.Namespace) -> int:
-    from pipelines.compare import format_summary, main, parse_args
-
-    result = main(parse_args(args.job_args, prog="radarseg compare"))
-    print(format_summary(result))
-    print(f"report: {result['out']}/compare.md")
     return 0
 
 
@@ -225,31 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--adc", action="store_true", help="store raw ADC samples instead of RAD cubes")
     sim.set_defaults(func=_cmd_simulate)
 
-    # The job's own parser (pipelines.preprocess.parse_args) reads the arguments, so they are exactly
-    # those of `python -m pipelines.preprocess`, and Ray and torch load only when this command runs.
-    pre = sub.add_parser("preprocess", add_help=False, help="Ray job: cubes into the zarr store of inputs and "
-                                                            "targets (arguments: radarseg preprocess --help)")
-    pre.set_defaults(job_args=[])
-    pre.set_defaults(func=_cmd_preprocess)
-    batch = sub.add_parser("segment-batch", add_help=False, help="Ray job: segment a store split or a recording "
-                                                                 "into a predictions store (arguments: radarseg "
-                                                                 "segment-batch --help)")
-    batch.set_defaults(job_args=[], func=_cmd_segment_batch)
-
-    # Like preprocess: the jobs' own parsers read the arguments (radarseg train --help, radarseg evaluate --help).
-    train = sub.add_parser("train", add_help=False, help="train the detector or the segmenter from a store "
-                                                         "(arguments: radarseg train --help)")
-    train.set_defaults(job_args=[], func=_cmd_train)
-    baseline = sub.add_parser("train-baseline", add_help=False, help="train a 2-D baseline (unet, tmvanet, smvanet) "
-                                                                      "from a store (radarseg train-baseline --help)")
-    baseline.set_defaults(job_args=[], func=_cmd_train_baseline)
-    evaluate = sub.add_parser("evaluate", add_help=False, help="evaluate both stages on a split of a store: "
-                                                               "metrics.json, report.md, pictures")
-    evaluate.set_defaults(job_args=[], func=_cmd_evaluate)
-    compare = sub.add_parser("compare", add_help=False, help="ERASE-Net and the 2-D baselines on the same frames: "
-                                                             "compare.json, compare.md, compare_frames.png "
-                                                             "(arguments: radarseg compare --help)")
-    compare.set_defaults(job_args=[], func=_cmd_compare)
+    for name, (_, help_text) in JOBS.items():  # parsed by the job's own parser (see main)
+        sub.add_parser(name, add_help=False, help=help_text)
 
     prune = sub.add_parser("prune", help="network slimming: remove the channels with the smallest BatchNorm "
                                          "scales, save a genuinely narrower checkpoint")
@@ -261,11 +187,6 @@ def build_parser() -> argparse.ArgumentParser:
     prune.add_argument("--min-channels", type=int, default=1, help="channels every layer keeps at least")
     prune.add_argument("--out", required=True, help="pruned checkpoint")
     prune.set_defaults(func=_cmd_prune)
-    sweep = sub.add_parser("slim-sweep", add_help=False, help="compression sweep: prune (and fine-tune) at several "
-                                                              "ratios, reports/slimming.md and .png "
-                                                              "(arguments: radarseg slim-sweep --help)")
-    sweep.set_defaults(job_args=[], func=_cmd_slim_sweep)
-
     store = sub.add_parser("store", help="inspect a preprocessed store")
     store_sub = store.add_subparsers(dest="store_command", required=True)
     info = store_sub.add_parser("info", help="frames per split, class counts, statistics, quarantined frames")
@@ -301,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     models = sub.add_parser("models", help="describe the models")
     models_sub = models.add_subparsers(dest="models_command", required=True)
     summary = models_sub.add_parser("summary", help="params and MACs per model and preset")
-    summary.add_argument("--preset", action="append", choices=sorted(PRESETS), help="repeat for several")
+    summary.add_argument("--preset", action="append", choices=sorted(BUILTIN_PRESETS), help="repeat for several")
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(func=_cmd_models_summary)
 
@@ -317,20 +238,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _command_index(argv: list[str]) -> int | None:
+    """Position of the command in ``argv`` (the first word that is not a top-level option)."""
+    return next((i for i, word in enumerate(argv) if not word.startswith("-")), None)
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args, extra = parser.parse_known_args(argv)
-    if getattr(args, "job_args", None) is not None:  # a job with its own parser (preprocess, train, ...)
-        args.job_args = extra  # read by the job's own parser
-    elif extra:
-        parser.error(f"unrecognized arguments: {' '.join(extra)}")
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+    argv = list(sys.argv[1:] if argv is None else argv)
+    at = _command_index(argv)
+    command = argv[at] if at is not None else None
+    verbose = "-v" in argv[:at] or "--verbose" in argv[:at]
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    if command in JOBS:  # a job: its own parser reads the rest (pipelines.jobs)
+        try:
+            _, summary = run_job(JOBS[command][0], argv[at + 1:], prog=f"radarseg {command}")
+        except USER_ERRORS as exc:
+            return report_error(f"radarseg {command}", exc)
+        print(summary)
+        return 0
+    args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (DataError, ValueError, FileExistsError, UnknownPresetError) as exc:
-        print(f"radarseg {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+    except USER_ERRORS as exc:
+        return report_error(f"radarseg {args.command}", exc)
 
 
 if __name__ == "__main__":

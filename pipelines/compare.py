@@ -1,6 +1,6 @@
 """ERASE-Net and the 2-D baselines side by side on the same frames (issue 8; SPEC sections 9, 10 and 12).
 
-The job is ``parse_args() -> main(cfg) -> dict``::
+The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``)::
 
     radarseg compare --store S.zarr --split test --out DIR \\
         --erasenet "ERASE-Net (M)=checkpoints/detector.pt,checkpoints/segmenter.pt" \\
@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import shlex
 import sys
 import time
 from collections.abc import Sequence
@@ -51,14 +50,16 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet import EraseNet
 from models.slimming import dense_input_shapes
-from pipelines.evaluate import spread, view_summary
+from pipelines.jobs import run_module
 from pipelines.report import fmt_num, fmt_pct, md_table
+from pipelines.scoring import ViewConfusion, predicted_views, view_summary
+from pipelines.spread import spread
 from pipelines.store import open_store
-from pipelines.train import StoreInfo
-from pipelines.train_baselines import load_baseline, predicted_views
+from pipelines.store_info import StoreInfo
+from pipelines.training.baselines import load_baseline
 from pipelines.views import ViewDataset, ViewStats, collate_views, model_inputs, scored_frames, split_windows
 from radar.cfar import cfar_centres
-from radar.metrics import confusion_matrix
+from radar.metrics import consistency, consistency_counts
 from radar.profiles import resolve_profile
 
 log = logging.getLogger(__name__)
@@ -133,37 +134,6 @@ class CompareConfig:
         if self.max_frames < 0 or self.pictures < 0 or self.threads < 1:
             raise ValueError(f"max_frames and pictures must be >= 0 and threads >= 1, got {self.max_frames}, "
                              f"{self.pictures}, {self.threads}")
-
-
-# --------------------------------------------------------------------------- the metric
-def consistency_counts(ra_mask: np.ndarray, rd_mask: np.ndarray, num_classes: int) -> tuple[int, int]:
-    """``(inconsistent, present)`` (range bin, class) pairs of one frame's RA (R, A) and RD (R, D) masks.
-
-    For every range bin r and non-background class c: c is *present in a view* at r when some cell of
-    that view's row r has class c. The pair (r, c) counts in ``present`` when c is present in either
-    view, and in ``inconsistent`` when it is present in exactly one. Summed over frames,
-    consistency = 1 - inconsistent / present (:func:`consistency`): the share of the (frame, range,
-    class) triples predicted somewhere on which both views agree.
-
-    *Occupancy* consistency is the same with every object class merged into one,
-    ``consistency_counts(ra_mask > 0, rd_mask > 0, 2)``: RA row r holds an object iff RD row r does.
-
-    The RA and RD masks of one RAD labelling (:func:`radar.transforms.project_ra` / ``project_rd``, ERASE-Net's
-    and the ground truth's) always have occupancy consistency 1: both rows r are background only where the
-    cube's range slice r is. Per class they agree too when each range bin holds at most one object class;
-    when two classes share a range bin, the majority vote of a projection can drop one of them in one
-    view and keep it in the other (a few voxels of one class inside an object of another, or two objects
-    at the same range and Doppler), so class consistency can be below 1 even for ERASE-Net.
-    """
-    classes = np.arange(1, num_classes)
-    ra_has = (np.asarray(ra_mask)[:, :, None] == classes).any(axis=1)  # (R, C - 1)
-    rd_has = (np.asarray(rd_mask)[:, :, None] == classes).any(axis=1)
-    return int((ra_has ^ rd_has).sum()), int((ra_has | rd_has).sum())
-
-
-def consistency(inconsistent: int, present: int) -> float:
-    """1 - inconsistent / present; NaN when no class was predicted anywhere (nothing to agree on)."""
-    return 1.0 - inconsistent / present if present else float("nan")
 
 
 # --------------------------------------------------------------------------- predictors
@@ -289,7 +259,7 @@ class _Tally:
     """One model's sums over the frames."""
 
     num_classes: int
-    confusion: dict[str, np.ndarray] = field(init=False)
+    confusion: ViewConfusion = field(init=False)
     inconsistent: int = 0  # (range, class) pairs present in one view only, summed over frames
     present: int = 0  # ... present in either view
     occupancy_inconsistent: int = 0  # the same with all object classes merged
@@ -299,11 +269,10 @@ class _Tally:
     macs_paper: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        self.confusion = {view: np.zeros((self.num_classes, self.num_classes), np.int64) for view in VIEWS}
+        self.confusion = ViewConfusion(self.num_classes)
 
     def add(self, truth: dict[str, np.ndarray], ra_mask: np.ndarray, rd_mask: np.ndarray) -> None:
-        self.confusion["RA"] += confusion_matrix(truth["RA"], ra_mask, self.num_classes)
-        self.confusion["RD"] += confusion_matrix(truth["RD"], rd_mask, self.num_classes)
+        self.confusion.add_masks(truth, ra_mask, rd_mask)
         inconsistent, present = consistency_counts(ra_mask, rd_mask, self.num_classes)
         self.inconsistent += inconsistent
         self.present += present
@@ -344,11 +313,11 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
     truth_tally = _Tally(num_classes)
     for slot in tqdm(targets.tolist(), desc=f"compare {split_name}", unit="frame", disable=not cfg.progress):
         log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
-        truth = {"RA": arrays["ra_mask"][slot], "RD": arrays["rd_mask"][slot]}
-        truth_tally.add(truth, truth["RA"], truth["RD"])
+        truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
+        truth_tally.add(truth, truth["ra"], truth["rd"])
         keep = slot in picture_slots
         if keep:
-            pictures[slot] = {"log_power": log_power, "ground truth": (truth["RA"], truth["RD"])}
+            pictures[slot] = {"log_power": log_power, "ground truth": (truth["ra"], truth["rd"])}
         for predictor in predictors:
             prediction = predictor(slot, log_power)
             tally = tallies[predictor.spec.name]
@@ -374,7 +343,7 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
             "name": predictor.spec.name, "kind": predictor.spec.kind, "checkpoints": list(predictor.spec.checkpoints),
             "n_frames": predictor.n_frames, "frames_scored": len(targets),
             "frames_usable_alone": scored_frames(cfg.store, cfg.split, predictor.n_frames),
-            **{view: view_summary(tally.confusion[view], class_names) for view in VIEWS},
+            **{view: view_summary(tally.confusion.matrices[view.lower()], class_names) for view in VIEWS},
             "params": int(predictor.params),
             "macs": float(np.mean(tally.macs)), "macs_paper": float(np.mean(tally.macs_paper)),
             "macs_note": predictor.macs_note,
@@ -456,8 +425,7 @@ def render_compare(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def build_parser(prog: str = "python -m pipelines.compare") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description="ERASE-Net and the 2-D baselines on the same frames")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True)
     parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (compare.json, compare.md, compare_frames.png)")
@@ -473,12 +441,9 @@ def build_parser(prog: str = "python -m pipelines.compare") -> argparse.Argument
     parser.add_argument("--threads", type=int, default=1, help="torch threads (timings are taken with these)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--no-progress", action="store_true")
-    return parser
 
 
-def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.compare") -> CompareConfig:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser(prog).parse_args(argv)
+def config_from_args(args: argparse.Namespace) -> CompareConfig:
     models = [parse_model(text, "erasenet") for text in args.erasenet]
     models += [parse_model(text, "baseline") for text in args.baseline]
     if args.cfar_segmenter:
@@ -486,13 +451,18 @@ def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipe
     return CompareConfig(store=args.store, out=args.out, models=tuple(models),
                          split=None if args.split == "all" else args.split, max_frames=args.max_frames,
                          pictures=args.pictures, score_threshold=args.score_threshold, threads=args.threads,
-                         device=args.device, progress=not args.no_progress, command=shlex.join([*prog.split(), *argv]))
+                         device=args.device, progress=not args.no_progress,
+                         command=getattr(args, "command_line", ""))
 
 
 def main(cfg: CompareConfig) -> dict[str, Any]:
     """Run the job with ``cfg.threads`` torch threads; returns :func:`compare`'s result."""
     torch.set_num_threads(cfg.threads)
     return compare(cfg)
+
+
+def format_result(result: dict[str, Any]) -> str:
+    return f"{format_summary(result)}\nreport: {result['out']}/compare.md"
 
 
 def format_summary(result: dict[str, Any]) -> str:
@@ -508,6 +478,4 @@ def format_summary(result: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    summary = main(parse_args())
-    print(format_summary(summary))
+    sys.exit(run_module("pipelines.compare"))

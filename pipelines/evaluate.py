@@ -24,8 +24,8 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import time
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -36,9 +36,11 @@ from tqdm import tqdm
 
 from models.checkpoint import load_checkpoint
 from models.erasenet import EraseNet
+from pipelines.jobs import run_module
+from pipelines.scoring import DetectionScorer, ViewConfusion
+from pipelines.spread import spread
 from pipelines.store import OBJECT_FIELDS, frames_of_split, open_store
 from radar.detections import Centres
-from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, mean_iou
 from radar.region_growing import RegionGrowingConfig, grow_regions
 
 log = logging.getLogger(__name__)
@@ -91,18 +93,6 @@ class _RecallCounter:
                 "visited_mean": self.visited / frames, "roi_voxels_mean": self.roi / frames, "frames": self.frames}
 
 
-def spread(n: int, k: int) -> list[int]:
-    if k <= 0 or n == 0:
-        return []
-    return sorted({int(i) for i in np.linspace(0, n - 1, min(k, n))})
-
-
-def view_summary(confusion: np.ndarray, class_names: Sequence[str]) -> dict[str, Any]:
-    iou = iou_per_class(confusion)
-    return {"iou": {name: (None if np.isnan(v) else float(v)) for name, v in zip(class_names, iou, strict=True)},
-            "mIoU": mean_iou(confusion), "confusion": confusion.tolist()}
-
-
 def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     """Run the evaluation; writes ``metrics.json``, ``report.md`` and pictures into ``cfg.out``; returns the metrics."""
     from pipelines.figures import plot_confusion, plot_pr_curves, plot_truth_vs_prediction
@@ -129,9 +119,8 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     picture_frames = {int(frames[i]) for i in spread(len(frames), cfg.pictures)}
     sweep_frames = {int(frames[i]) for i in spread(len(frames), cfg.sweep_frames)}
 
-    detection = DetectionEvaluator()
-    confusion = {view: np.zeros((num_classes, num_classes), np.int64) for view in ("RA", "RD")}
-    oracle_confusion = {view: np.zeros((num_classes, num_classes), np.int64) for view in ("RA", "RD")}
+    detection = DetectionScorer(profile)
+    confusion, oracle_confusion = ViewConfusion(num_classes), ViewConfusion(num_classes)
     predicted_seeds, truth_seeds = _RecallCounter(), _RecallCounter()
     sweep = {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in cfg.sweep}
     macs: dict[str, list[float]] = {}
@@ -142,7 +131,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         slot = int(slot)
         log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
         instances = arrays["instances"][slot]
-        truth_ra, truth_rd = arrays["ra_mask"][slot], arrays["rd_mask"][slot]
+        truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
         table = arrays["objects"][slot][: int(arrays["n_objects"][slot])].astype(np.float64)
         truth_bins = table[:, [COL["range_bin"], COL["angle_bin"], COL["doppler_bin"]]]
 
@@ -151,14 +140,11 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         with torch.no_grad():
             decoded = net.detector.decode(net.detector(x[None].to(net.device)), k=net.max_objects,
                                           score_threshold=AP_SCORE_THRESHOLD)[0]
-        scored = Centres.from_mapping(decoded)
-        detection.add(np.stack(profile.xy(scored.range_bin, scored.angle_bin), axis=1), scored.doppler_bin,
-                      scored.score, table[:, [COL["x"], COL["y"]]], table[:, COL["doppler_bin"]])
+        detection.add(Centres.from_mapping(decoded), table)
 
         # the whole chain at the operating threshold
         result = net.segment(log_power, is_log_power=True)
-        confusion["RA"] += confusion_matrix(truth_ra, result.ra_mask, num_classes)
-        confusion["RD"] += confusion_matrix(truth_rd, result.rd_mask, num_classes)
+        confusion.add_masks(truth, result.ra_mask, result.rd_mask)
         predicted_seeds.add(result.regions, instances)
         for name, value in result.compute["macs"].items():
             macs.setdefault(name, []).append(value)
@@ -170,8 +156,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         truth_seeds.add(truth_regions, instances)
         if cfg.oracle:
             oracle = net.segment(log_power, is_log_power=True, centres=truth_centres)
-            oracle_confusion["RA"] += confusion_matrix(truth_ra, oracle.ra_mask, num_classes)
-            oracle_confusion["RD"] += confusion_matrix(truth_rd, oracle.rd_mask, num_classes)
+            oracle_confusion.add_masks(truth, oracle.ra_mask, oracle.rd_mask)
         if slot in sweep_frames:
             for (seeds, distance), counter in sweep.items():
                 config = RegionGrowingConfig(**{**asdict(net.region_config), "distance_m": distance})
@@ -182,7 +167,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
                             float(profile.velocity_mps(row[COL["doppler_bin"]]))) for row in table]
             pred_notes = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in result.objects]
             path = plot_truth_vs_prediction(
-                log_power, profile, (truth_ra, truth_rd), (result.ra_mask, result.rd_mask),
+                log_power, profile, (truth["ra"], truth["rd"]), (result.ra_mask, result.rd_mask),
                 out / f"frame_{slot:05d}.png", truth_objects=truth_notes, predicted_objects=pred_notes,
                 title=f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)")
             pictures.append(path.name)
@@ -190,13 +175,15 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     curves = detection.curves()
     summary_pictures = [plot_pr_curves({f"k = {k:g}": (c.recall, c.precision, c.ap) for k, c in curves.items()},
                                        out / "pr_curves.png").name]
-    for view in ("RA", "RD"):
-        summary_pictures.append(plot_confusion(confusion[view], class_names, out / f"confusion_{view.lower()}.png",
-                                               title=f"{view} confusion ({split_name}, {len(frames)} frames)").name)
+    for view, matrix in confusion.matrices.items():
+        summary_pictures.append(plot_confusion(matrix, class_names, out / f"confusion_{view}.png",
+                                               title=f"{view.upper()} confusion ({split_name}, {len(frames)} frames)"
+                                               ).name)
     pictures = summary_pictures + pictures
     summary = detection.summary()
     metrics: dict[str, Any] = {
-        "store": str(cfg.store), "split": split_name, "frames": len(frames), "preset": profile.name,
+        "store": str(cfg.store), "out": str(cfg.out), "split": split_name, "frames": len(frames),
+        "preset": profile.name,
         "detector": str(cfg.detector), "segmenter": str(cfg.segmenter),
         "models": {"detector": det_ckpt.model_name, "segmenter": seg_ckpt.model_name},
         "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
@@ -209,7 +196,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
             "predicted_seeds": predicted_seeds.summary(), "truth_seeds": truth_seeds.summary(),
             "sweep": [{"seeds": seeds, "distance_m": d, **counter.summary()} for (seeds, d), counter in sweep.items()],
         },
-        "segmentation": {view: view_summary(confusion[view], class_names) for view in ("RA", "RD")},
+        "segmentation": {view.upper(): summary for view, summary in confusion.summary(class_names).items()},
         "cost": {"params": net.params | {"total": sum(net.params.values())},
                  "macs_mean": {k: float(np.mean(v)) for k, v in macs.items()},
                  "seconds_mean": {k: float(np.mean(v)) for k, v in seconds.items()}},
@@ -217,8 +204,8 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         "pictures": pictures,
     }
     if cfg.oracle:
-        metrics["segmentation_truth_seeds"] = {view: view_summary(oracle_confusion[view], class_names)
-                                               for view in ("RA", "RD")}
+        metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
+                                               in oracle_confusion.summary(class_names).items()}
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     write_report(metrics, out / "report.md")
     return metrics
@@ -232,8 +219,7 @@ def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
             **{k: v for k, v in metrics.items() if k.startswith("val_")}}
 
 
-def build_parser(prog: str = "python -m pipelines.evaluate") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description="evaluate ERASE-Net on a split of a store")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", required=True, help="detector checkpoint")
     parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
     parser.add_argument("--store", required=True)
@@ -249,7 +235,6 @@ def build_parser(prog: str = "python -m pipelines.evaluate") -> argparse.Argumen
     parser.add_argument("--threads", type=int, default=0,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
     parser.add_argument("--no-progress", action="store_true")
-    return parser
 
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
@@ -261,11 +246,13 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           threads=args.threads, progress=not args.no_progress)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    metrics = evaluate(config_from_args(build_parser().parse_args(argv)))
-    print(format_summary(metrics))
-    return 0
+def main(cfg: EvaluateConfig) -> dict[str, Any]:
+    """Run the evaluation (:func:`evaluate`); returns its metrics."""
+    return evaluate(cfg)
+
+
+def format_result(metrics: dict[str, Any]) -> str:
+    return f"{format_summary(metrics)}\nreport: {metrics['out']}/report.md"
 
 
 def format_summary(metrics: dict[str, Any]) -> str:
@@ -281,4 +268,4 @@ def format_summary(metrics: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_module("pipelines.evaluate"))

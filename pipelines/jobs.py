@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import shlex
 import sys
 from collections.abc import Sequence
 from types import ModuleType
@@ -41,8 +42,12 @@ def job_parser(module: ModuleType, prog: str, description: str | None = None) ->
 
 
 def parse_config(module: ModuleType, argv: Sequence[str] | None, prog: str) -> Any:
-    """The job's config from command-line arguments (exits with argparse's message on bad ones)."""
-    return module.config_from_args(job_parser(module, prog).parse_args(argv))
+    """The job's config from command-line arguments (exits with argparse's message on bad ones). The
+    namespace also carries ``command_line``, the command as typed, for jobs that record it in their report."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = job_parser(module, prog).parse_args(argv)
+    args.command_line = shlex.join([*prog.split(), *argv])
+    return module.config_from_args(args)
 
 
 def run_job(name: str, argv: Sequence[str] | None, prog: str) -> tuple[dict[str, Any], str]:

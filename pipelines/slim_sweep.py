@@ -1,6 +1,6 @@
 """Compression sweep of network slimming (issue 9; SPEC section 11): prune, optionally fine-tune, score.
 
-The job is ``parse_args() -> main(cfg) -> dict``::
+The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``)::
 
     python -m pipelines.slim_sweep --store STORE.zarr --detector DET.pt --minkunet SEG_M.pt --spvcnn SEG_S.pt \\
         --smvanet SMVA.pt [--ratios 0.1 0.3 0.4 0.6 0.7] [--split test] [--max-frames N] [--finetune-steps S]
@@ -11,7 +11,7 @@ with :func:`models.slimming.prune_checkpoint` (one global BatchNorm-scale thresh
 ``--finetune-steps`` optimiser steps with ``--init`` (0: prune only; the paper fine-tunes 50 epochs at
 lr 1e-3 for ERASE-Net and 1e-5 for the baselines, the defaults of ``--lr-*``), then scored on ``--split``:
 
-- detector: AP at 1/3/5 m and mAP (the trainer's validation: :meth:`pipelines.train.DetectorTask.validate`);
+- detector: AP at 1/3/5 m and mAP (the trainer's validation: :func:`pipelines.scoring.score_detector`);
 - ERASE-Net (M) / (S): the pruned MinkUNet / SPVCNN behind the *unpruned* detector, end to end with
   :func:`pipelines.evaluate.evaluate` (RA and RD mIoU, background included; segmenter params and mean
   segmenter MACs per frame, which depend on the ROI);
@@ -32,7 +32,6 @@ import shlex
 import shutil
 import sys
 import time
-from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -42,7 +41,15 @@ import torch
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.compute import count_macs
 from models.slimming import dense_input_shapes, prune_checkpoint
+from pipelines.evaluate import EvaluateConfig, evaluate
+from pipelines.jobs import run_module
 from pipelines.report import fmt_pct
+from pipelines.scoring import score_baseline, score_detector
+from pipelines.store_info import StoreInfo
+from pipelines.training.baselines import load_baseline
+from pipelines.training.config import TrainConfig
+from pipelines.training.loop import train
+from pipelines.views import ViewDataset
 
 log = logging.getLogger(__name__)
 
@@ -89,21 +96,16 @@ class SweepConfig:
 
 
 # --------------------------------------------------------------------------- scoring
-def score_detector(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
+def score_detector_checkpoint(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
     """AP@1/3/5 and mAP of a detector checkpoint on ``cfg.split`` (up to ``cfg.max_frames`` frames)."""
-    from pipelines.train import DetectorTask, StoreInfo, TrainConfig
-
-    train_cfg = TrainConfig(stage="detector", store=cfg.store, out=cfg.work, val_split=cfg.split, progress=False)
-    hyper = dataclasses.replace(train_cfg.hyper(), val_frames=cfg.max_frames)
-    task = DetectorTask(train_cfg, hyper, StoreInfo.read(cfg.store), Path(cfg.work))
-    metrics = task.validate(load_checkpoint(path).build(), torch.device("cpu"))
-    return {k.removeprefix("val_"): float(v) for k, v in metrics.items() if k.startswith("val_AP") or k == "val_mAP"}
+    store = StoreInfo.read(cfg.store)
+    scores = score_detector(load_checkpoint(path).build(), cfg.store, cfg.split, store.profile, store.normalisation,
+                            max_frames=cfg.max_frames)
+    return {k: float(v) for k, v in scores.items() if k.startswith("AP") or k == "mAP"}
 
 
 def score_segmenter(path: str | Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
     """RA/RD mIoU of ERASE-Net with this segmenter behind the unpruned detector, and the segmenter's cost."""
-    from pipelines.evaluate import EvaluateConfig, evaluate
-
     metrics = evaluate(EvaluateConfig(detector=cfg.detector, segmenter=str(path), store=cfg.store,
                                       out=str(Path(cfg.work) / f"eval-{tag}"), split=cfg.split,
                                       max_frames=cfg.max_frames, pictures=0, sweep=(), sweep_frames=0,
@@ -115,9 +117,6 @@ def score_segmenter(path: str | Path, cfg: SweepConfig, tag: str) -> dict[str, f
 
 def score_smvanet(path: str | Path, cfg: SweepConfig) -> dict[str, float]:
     """RA/RD mIoU of a multi-view baseline and its analytic MACs (both counting conventions)."""
-    from pipelines.train_baselines import load_baseline, score_baseline
-    from pipelines.views import ViewDataset
-
     model, checkpoint, stats = load_baseline(path)
     dataset = ViewDataset(cfg.store, cfg.split, n_frames=model.n_frames, stats=stats, limit=cfg.max_frames)
     scores = score_baseline(model, dataset, num_classes=len(checkpoint.class_names))
@@ -132,30 +131,20 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
 
     ``run`` belongs to the sweep: a run left there by an earlier sweep is replaced."""
     shutil.rmtree(run, ignore_errors=True)
-    if kind == "smvanet":
-        from pipelines.train_baselines import BaselineConfig
-        from pipelines.train_baselines import main as train_baseline
-
-        train_baseline(BaselineConfig(model=load_checkpoint(pruned).model_name, store=cfg.store, out=str(run),
-                                      init=str(pruned), lr=cfg.lr_baseline, epochs=10_000,
-                                      batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None,
-                                      seed=cfg.seed, progress=False))
-    else:
-        from pipelines.train import TrainConfig
-        from pipelines.train import main as train
-
-        stage = "detector" if kind == "detector" else "segmenter"
-        train(TrainConfig(stage=stage, store=cfg.store, out=str(run), init=str(pruned), lr=cfg.lr_erasenet,
-                          epochs=10_000, batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None,
-                          seed=cfg.seed, threads=cfg.threads, progress=False,
-                          jitter_std=None if stage == "detector" else (1.0, 1.0, 0.5)))
+    stage = {"detector": "detector", "smvanet": "baseline"}.get(kind, "segmenter")
+    train(TrainConfig(stage=stage, model=load_checkpoint(pruned).model_name if stage == "baseline" else None,
+                      store=cfg.store, out=str(run), init=str(pruned),
+                      lr=cfg.lr_baseline if stage == "baseline" else cfg.lr_erasenet, epochs=10_000,
+                      batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None, seed=cfg.seed,
+                      threads=cfg.threads, progress=False,
+                      jitter_std=(1.0, 1.0, 0.5) if stage == "segmenter" else None))
     return run / "model.pt"  # without validation model.pt holds the latest weights
 
 
 # --------------------------------------------------------------------------- the sweep
 def _score(kind: str, path: Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
     if kind == "detector":
-        return score_detector(path, cfg)
+        return score_detector_checkpoint(path, cfg)
     if kind == "smvanet":
         return score_smvanet(path, cfg)
     return score_segmenter(path, cfg, tag)
@@ -297,8 +286,7 @@ def main(cfg: SweepConfig, command: str | None = None) -> dict[str, Any]:
     return {"table": str(table), "plot": str(plot(rows, out / "slimming.png")), "rows": rows, "seconds": seconds}
 
 
-def build_parser(prog: str = "python -m pipelines.slim_sweep") -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description="network slimming sweep: prune, fine-tune, score")
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True, help="preprocessed store (zarr) to score (and fine-tune) on")
     parser.add_argument("--out", default="reports", help="where slimming.md/.png/.json go")
     parser.add_argument("--work", default="out/slim-sweep", help="pruned checkpoints and fine-tune runs")
@@ -315,11 +303,9 @@ def build_parser(prog: str = "python -m pipelines.slim_sweep") -> argparse.Argum
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--notes-file", help="markdown file saying how the checkpoints were made (goes in the report)")
-    return parser
 
 
-def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.slim_sweep") -> SweepConfig:
-    args = build_parser(prog).parse_args(argv)
+def config_from_args(args: argparse.Namespace) -> SweepConfig:
     return SweepConfig(store=args.store, out=args.out, work=args.work, detector=args.detector,
                        minkunet=args.minkunet, spvcnn=args.spvcnn, smvanet=args.smvanet, ratios=tuple(args.ratios),
                        split=args.split, max_frames=args.max_frames, finetune_steps=args.finetune_steps,
@@ -329,7 +315,9 @@ def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipe
                        notes=Path(args.notes_file).read_text().strip() if args.notes_file else "")
 
 
+def format_result(result: dict[str, Any]) -> str:
+    return f"table: {result['table']}\nplot: {result['plot']}"
+
+
 if __name__ == "__main__":
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    result = main(parse_args())
-    print(json.dumps({k: v for k, v in result.items() if k != "rows"}, indent=2))
+    sys.exit(run_module("pipelines.slim_sweep"))

@@ -29,6 +29,7 @@ import torch
 import zarr
 from torch.utils.data import Dataset
 
+from pipelines.spread import spread
 from pipelines.store import frames_of_split, open_store
 from radar import transforms
 
@@ -140,7 +141,7 @@ class ViewStats:
         slots = frames_of_split(root, split)
         if not len(slots):
             raise ValueError(f"store {path}: split {split!r} has no valid frames to take view statistics from")
-        picked = slots[np.unique(np.linspace(0, len(slots) - 1, min(max_frames, len(slots))).round().astype(int))]
+        picked = slots[spread(len(slots), max_frames)]
         low = {view: np.inf for view in VIEWS}
         high = {view: -np.inf for view in VIEWS}
         for slot in picked:
@@ -182,7 +183,7 @@ class ViewDataset(Dataset):
         if targets is not None:  # only these target slots (models compared on the same frames)
             self.windows = self.windows[np.isin(self.windows[:, -1], np.asarray(targets, np.int64))]
         if limit and limit < len(self.windows):  # evenly spread subset (validation on a budget)
-            self.windows = self.windows[np.unique(np.linspace(0, len(self.windows) - 1, limit).round().astype(int))]
+            self.windows = self.windows[spread(len(self.windows), limit)]
         self.stats = stats if stats is not None else ViewStats.from_store(path)
         self.flip_prob = flip_prob
         self.seed = seed

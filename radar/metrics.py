@@ -165,3 +165,34 @@ def mean_iou(confusion: np.ndarray) -> float:
     """Plain mean of :func:`iou_per_class` over the classes that occur (background included)."""
     iou = iou_per_class(confusion)
     return float(np.nanmean(iou)) if np.isfinite(iou).any() else float("nan")
+
+
+# --------------------------------------------------------------------------- RA/RD consistency
+def consistency_counts(ra_mask: np.ndarray, rd_mask: np.ndarray, num_classes: int) -> tuple[int, int]:
+    """``(inconsistent, present)`` (range bin, class) pairs of one frame's RA (R, A) and RD (R, D) masks.
+
+    For every range bin r and non-background class c: c is *present in a view* at r when some cell of
+    that view's row r has class c. The pair (r, c) counts in ``present`` when c is present in either
+    view, and in ``inconsistent`` when it is present in exactly one. Summed over frames,
+    consistency = 1 - inconsistent / present (:func:`consistency`): the share of the (frame, range,
+    class) triples predicted somewhere on which both views agree.
+
+    *Occupancy* consistency is the same with every object class merged into one,
+    ``consistency_counts(ra_mask > 0, rd_mask > 0, 2)``: RA row r holds an object iff RD row r does.
+
+    The RA and RD masks of one RAD labelling (:func:`radar.transforms.project_ra` / ``project_rd``, ERASE-Net's
+    and the ground truth's) always have occupancy consistency 1: both rows r are background only where the
+    cube's range slice r is. Per class they agree too when each range bin holds at most one object class;
+    when two classes share a range bin, the majority vote of a projection can drop one of them in one
+    view and keep it in the other (a few voxels of one class inside an object of another, or two objects
+    at the same range and Doppler), so class consistency can be below 1 even for ERASE-Net.
+    """
+    classes = np.arange(1, num_classes)
+    ra_has = (np.asarray(ra_mask)[:, :, None] == classes).any(axis=1)  # (R, C - 1)
+    rd_has = (np.asarray(rd_mask)[:, :, None] == classes).any(axis=1)
+    return int((ra_has ^ rd_has).sum()), int((ra_has | rd_has).sum())
+
+
+def consistency(inconsistent: int, present: int) -> float:
+    """1 - inconsistent / present; NaN when no class was predicted anywhere (nothing to agree on)."""
+    return 1.0 - inconsistent / present if present else float("nan")

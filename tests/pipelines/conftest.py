@@ -239,3 +239,14 @@ def assert_store_matches_simulator(path, *, preset: str, sequences: int, frames:
             expected = render_heatmap(np.array(centres).reshape(-1, 3), frame.cube.shape[:2])
             np.testing.assert_array_equal(root["heatmap"][slot], expected.astype(np.float16))
             slot += 1
+
+
+@pytest.fixture(scope="session")
+def seq_store(tmp_path_factory):
+    """small preset, 3 sequences x 6 frames (one per split), built without Ray."""
+    from pipelines.preprocess import PreprocessConfig
+
+    out = tmp_path_factory.mktemp("views") / "seq.zarr"
+    cfg = PreprocessConfig(source="sim", out=str(out), preset="small", sequences=3, frames=6, seed=3,
+                           split_fractions=(0.34, 0.33, 0.33), shard_frames=6, progress=False)
+    return build_store_inline(cfg)

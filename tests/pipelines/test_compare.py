@@ -9,18 +9,14 @@ import numpy as np
 import pytest
 
 from models.checkpoint import load_checkpoint, save_checkpoint
-from pipelines.compare import (
-    CompareConfig,
-    ModelSpec,
-    compare,
-    consistency,
-    consistency_counts,
-    parse_args,
-    parse_model,
-)
-from pipelines.train_baselines import load_baseline, score_baseline
+from pipelines import compare as compare_job
+from pipelines.compare import CompareConfig, ModelSpec, compare, parse_model
+from pipelines.jobs import parse_config
+from pipelines.scoring import score_baseline
+from pipelines.training.baselines import load_baseline
 from pipelines.views import ViewDataset
 from radar import transforms
+from radar.metrics import consistency, consistency_counts
 from tests.pipelines.conftest import build_store_inline, save_tiny_checkpoints
 
 
@@ -121,8 +117,8 @@ def test_model_arguments_and_bad_inputs(seq_store, checkpoints, tmp_path):
             parse_model(text, "baseline")
     with pytest.raises(ValueError, match="takes 2 checkpoint"):
         parse_model("E=det.pt", "erasenet")
-    cfg = parse_args(["--store", "S", "--out", "O", "--erasenet", "E (M)=d.pt,s.pt", "--baseline", "T=t.pt",
-                      "--cfar-segmenter", "s.pt"], prog="radarseg compare")
+    cfg = parse_config(compare_job, ["--store", "S", "--out", "O", "--erasenet", "E (M)=d.pt,s.pt", "--baseline",
+                                     "T=t.pt", "--cfar-segmenter", "s.pt"], prog="radarseg compare")
     assert [m.kind for m in cfg.models] == ["erasenet", "baseline", "cfar"]
     assert cfg.command.startswith("radarseg compare --store S") and "'E (M)=d.pt,s.pt'" in cfg.command
 

@@ -11,7 +11,8 @@ import pytest
 import torch
 
 from pipelines.evaluate import EvaluateConfig, evaluate
-from pipelines.train import TrainConfig, train_loop
+from pipelines.training.config import TrainConfig
+from pipelines.training.loop import train_loop
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "checkpoints"

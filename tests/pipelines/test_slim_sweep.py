@@ -8,7 +8,9 @@ import json
 import pytest
 
 from models.checkpoint import load_checkpoint
-from pipelines.slim_sweep import SweepConfig, main, parse_args
+from pipelines import slim_sweep
+from pipelines.jobs import parse_config
+from pipelines.slim_sweep import SweepConfig, main
 from tests.pipelines.conftest import build_store_inline, save_tiny_checkpoints
 
 
@@ -51,4 +53,4 @@ def test_sweep_refuses_bad_settings(tmp_path):
     with pytest.raises(ValueError, match="--detector"):
         SweepConfig(store="s.zarr", minkunet="m.pt")
     with pytest.raises(ValueError, match="at least one checkpoint"):
-        main(parse_args(["--store", "s.zarr", "--out", str(tmp_path)]))
+        main(parse_config(slim_sweep, ["--store", "s.zarr", "--out", str(tmp_path)], "radarseg slim-sweep"))

@@ -6,10 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from models.checkpoint import load_checkpoint
 from pipelines.store import open_store
-from pipelines.train import Budget
-from pipelines.train_baselines import BaselineConfig, load_baseline, score_baseline, train_baseline
 from pipelines.views import (
     ViewDataset,
     ViewStats,
@@ -21,18 +18,6 @@ from pipelines.views import (
     view_class_counts,
 )
 from radar import transforms
-from tests.pipelines.conftest import build_store_inline
-
-
-@pytest.fixture(scope="module")
-def seq_store(tmp_path_factory):
-    """small preset, 3 sequences x 6 frames (one per split), built without Ray."""
-    from pipelines.preprocess import PreprocessConfig
-
-    out = tmp_path_factory.mktemp("views") / "seq.zarr"
-    cfg = PreprocessConfig(source="sim", out=str(out), preset="small", sequences=3, frames=6, seed=3,
-                           split_fractions=(0.34, 0.33, 0.33), shard_frames=6, progress=False)
-    return build_store_inline(cfg)
 
 
 def test_windows_stay_in_their_sequence_and_look_back_only():
@@ -104,49 +89,3 @@ def test_class_counts_are_mask_pixels(seq_store):
     val = root["split"][:] == 1
     np.testing.assert_array_equal(counts["ra"], np.bincount(root["ra_mask"][:][val].ravel(), minlength=4))
     np.testing.assert_array_equal(counts["rd"], np.bincount(root["rd_mask"][:][val].ravel(), minlength=4))
-
-
-def test_training_job_writes_a_run_that_resumes_and_rebuilds(seq_store, tmp_path):
-    out = tmp_path / "tmva"
-    cfg = BaselineConfig(model="tmvanet_tiny", store=str(seq_store), out=str(out), epochs=2, batch_size=2,
-                         progress=False)
-    metrics = train_baseline(cfg)
-    assert metrics["epoch"] == 2 and np.isfinite(metrics["train_total"]) and metrics["val_frames"] == 2
-    assert {p.name for p in out.iterdir()} >= {"config.json", "metrics.jsonl", "last.pt", "model.pt"}
-    assert len((out / "metrics.jsonl").read_text().splitlines()) == 2
-    with pytest.raises(FileExistsError):
-        train_baseline(cfg)
-    resumed = train_baseline(BaselineConfig(**{**cfg.to_dict(), "epochs": 3, "resume": True}))
-    assert resumed["epoch"] == 3 and resumed["step"] == 3
-    model, checkpoint, stats = load_baseline(out / "model.pt")
-    assert checkpoint.extra["n_frames"] == 5 and checkpoint.extra["views"] == ["rd", "ra"]
-    assert load_checkpoint(out / "last.pt").extra["epoch"] == 3
-    scores = score_baseline(model, ViewDataset(seq_store, "test", n_frames=5, stats=stats), num_classes=4)
-    assert scores["frames"] == 2 and 0.0 <= scores["mIoU"] <= 1.0
-    assert np.asarray(scores["confusion_ra"]).sum() == 2 * 128 * 128
-
-
-def test_unet_job_needs_a_view(seq_store, tmp_path):
-    with pytest.raises(ValueError, match="one view"):
-        BaselineConfig(model="unet_tiny", store=str(seq_store), out=str(tmp_path))
-    with pytest.raises(ValueError, match="give no view"):
-        BaselineConfig(model="smvanet", store=str(seq_store), out=str(tmp_path), view="ra")
-    metrics = train_baseline(BaselineConfig(model="unet_tiny", view="rd", store=str(seq_store), out=str(tmp_path / "u"),
-                                            epochs=1, batch_size=2, max_steps=2, val_split=None, progress=False))
-    assert metrics["step"] == 2 and "train_coherence" not in metrics and "train_rd_ce" in metrics
-
-
-def test_time_budget_stops_a_run_after_its_first_step(seq_store, tmp_path):
-    cfg = BaselineConfig(model="unet_tiny", view="ra", store=str(seq_store), out=str(tmp_path / "u"), epochs=3,
-                         batch_size=1, max_minutes=1e-6, threads=1, val_split=None, progress=False)
-    metrics = train_baseline(cfg)
-    assert metrics["epoch"] == 1 and metrics["step"] == 1 and metrics["elapsed_s"] > 0
-    with pytest.raises(ValueError, match="max_minutes"):
-        BaselineConfig(**{**cfg.to_dict(), "max_minutes": 0.0})
-
-
-def test_budget_counts_steps_minutes_and_time_already_spent():
-    assert Budget(2, None).spent(2) and not Budget(2, None).spent(1)
-    assert not Budget(None, 10.0).spent(10**6)
-    assert Budget(None, 10.0, spent_s=600.0).spent(0)  # a resumed run that had used its 10 minutes
-    assert not Budget(None, None).spent(10**6)

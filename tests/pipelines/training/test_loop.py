@@ -9,19 +9,18 @@ import numpy as np
 import pytest
 import torch
 
-from models.checkpoint import load_checkpoint
-from pipelines.train import (
-    PROFILES,
-    RoiDataset,
-    SeedJitter,
-    StoreInfo,
-    TrainConfig,
-    collate_roi,
-    main,
-    make_optimizer,
-    parse_args,
-    train_loop,
-)
+from models.checkpoint import export_checkpoint, load_checkpoint
+from pipelines import train as train_job
+from pipelines.jobs import parse_config
+from pipelines.store_info import StoreInfo
+from pipelines.training.config import PROFILES, TrainConfig, make_optimizer
+from pipelines.training.jitter import SeedJitter
+from pipelines.training.loop import Budget, train, train_loop
+from pipelines.training.segmenter import RoiDataset, collate_roi
+
+
+def parse_args(argv):
+    return parse_config(train_job, argv, "radarseg train")
 
 
 def _detector_cfg(store, out, **kw) -> TrainConfig:
@@ -54,8 +53,6 @@ def test_detector_trains_resumes_and_rebuilds(small_store, tmp_path):
     assert out["heatmap"].shape == (1, 1, 32, 32)
 
     # the shippable copy: float16 weights, no optimiser, same outputs to float16 precision
-    from pipelines.train import export_checkpoint
-
     shipped = load_checkpoint(export_checkpoint(run / "last.pt", run / "shipped.pt"))
     assert "optimizer" not in shipped.extra and shipped.extra["stored_dtype"] == "float16"
     assert (run / "shipped.pt").stat().st_size < 0.6 * (run / "model.pt").stat().st_size
@@ -131,6 +128,8 @@ def test_profiles_and_arguments(small_store, tmp_path):
     assert hyper.model == "spvcnn" and hyper.model_config == {"ratio": 0.2} and hyper.epochs == 3
     assert hyper.jitter_std == (1.0, 2.0, 0.5) and hyper.lr == PROFILES["segmenter"]["quick"].lr
     with pytest.raises(ValueError, match="stage"):
+        TrainConfig(stage="tracker", store="s", out="o")
+    with pytest.raises(ValueError, match="names its model"):
         TrainConfig(stage="baseline", store="s", out="o")
     with pytest.raises(ValueError, match="either jitter_from"):
         TrainConfig(stage="segmenter", store="s", out="o", jitter_from="d.pt", jitter_std=(1, 1, 1))
@@ -154,7 +153,7 @@ def test_ray_train_two_workers(small_store, tmp_path):
     cfg = TrainConfig(stage="segmenter", store=str(small_store), out=str(run), model="minkunet_tiny",
                       model_config={}, batch_size=1, epochs=2, max_steps=2, jitter_std=(1.0, 1.0, 0.5),
                       val_split=None, ray_workers=2, progress=False)
-    result = main(cfg)
+    result = train(cfg)
     lines = _lines(run / "metrics.jsonl")
     assert [line["epoch"] for line in lines] == [1, 2] and lines[-1]["step"] == 2
     assert lines[-1]["frames_per_second"] > 0 and result["metrics"]["step"] == 2
@@ -164,12 +163,41 @@ def test_ray_train_two_workers(small_store, tmp_path):
 def test_optimizer_override_for_sparsity_training():
     params = [torch.nn.Parameter(torch.ones(3))]
     segmenter = TrainConfig(stage="segmenter", store="s.zarr", out="o")
-    assert isinstance(make_optimizer(segmenter.hyper(), params, default="sgd"), torch.optim.SGD)
+    assert isinstance(make_optimizer(segmenter.hyper(), params), torch.optim.SGD)
     adam = TrainConfig(stage="segmenter", store="s.zarr", out="o", optimizer="adam")
     assert adam.hyper().optimizer == "adam" and adam.identity()["optimizer"] == "adam"
-    assert isinstance(make_optimizer(adam.hyper(), params, default="sgd"), torch.optim.Adam)
+    assert isinstance(make_optimizer(adam.hyper(), params), torch.optim.Adam)
     detector = TrainConfig(stage="detector", store="s.zarr", out="o", optimizer="sgd")
-    assert isinstance(make_optimizer(detector.hyper(), params, default="adam"), torch.optim.SGD)
+    assert isinstance(make_optimizer(detector.hyper(), params), torch.optim.SGD)
     with pytest.raises(ValueError, match="optimizer"):
         TrainConfig(stage="segmenter", store="s.zarr", out="o", optimizer="lbfgs")
     assert parse_args(["segmenter", "--store", "s.zarr", "--out", "o", "--optimizer", "adam"]).optimizer == "adam"
+
+
+def test_budget_counts_steps_minutes_and_time_already_spent():
+    assert Budget(2, None).spent(2) and not Budget(2, None).spent(1)
+    assert not Budget(None, 10.0).spent(10**6)
+    assert Budget(None, 10.0, spent_s=600.0).spent(0)  # a resumed run that had used its 10 minutes
+    assert not Budget(None, None).spent(10**6)
+
+
+def test_empty_validation_split_is_refused_and_leaves_no_run_directory(small_store, tmp_path):
+    run = tmp_path / "det"
+    with pytest.raises(ValueError, match="--val-split none"):
+        train_loop(_detector_cfg(_empty_val_store(small_store, tmp_path), run))
+    assert not run.exists()  # a failed command leaves no half-written run directory
+
+
+def _empty_val_store(small_store, tmp_path):
+    """A copy of the tiny store whose validation frames are all marked invalid."""
+    import shutil
+
+    import zarr
+
+    copy = tmp_path / "noval.zarr"
+    shutil.copytree(small_store, copy)
+    root = zarr.open_group(str(copy), mode="r+")
+    split, valid = root["split"][:], root["valid"][:]
+    valid[split == 1] = 0
+    root["valid"][:] = valid
+    return copy

@@ -1,0 +1,56 @@
+"""The command-line options every trainer shares (``radarseg train`` and ``radarseg train-baseline``), and the
+config fields they set."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Any
+
+from pipelines.training.config import OPTIMIZERS
+
+
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--store", required=True, help="preprocessed store (zarr)")
+    parser.add_argument("--out", required=True, help="run directory (keep it outside the repository, or under "
+                                                     "runs/, which git and ray job submit ignore)")
+    parser.add_argument("--profile", choices=("quick", "paper"), default="quick")
+    parser.add_argument("--model-config", type=json.loads, help="builder keyword arguments as JSON")
+    parser.add_argument("--epochs", type=int)
+    parser.add_argument("--batch-size", type=int)
+    parser.add_argument("--lr", type=float)
+    parser.add_argument("--optimizer", choices=OPTIMIZERS,
+                        help="instead of the profile's (detector and baselines Adam, segmenter SGD), e.g. Adam for "
+                             "sparsity training")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N")
+    parser.add_argument("--train-split", default="train")
+    parser.add_argument("--val-split", default="val", help="'none' to skip validation (model.pt = last epoch)")
+    parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
+    parser.add_argument("--max-minutes", type=float,
+                        help="stop after this many minutes of training (validation included; equal budgets)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
+    parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
+    parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
+    parser.add_argument("--address", help="Ray address for --ray-workers (default: embedded local Ray)")
+    parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
+                        help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
+    parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
+    parser.add_argument("--no-progress", action="store_true")
+
+
+def common_config(args: argparse.Namespace) -> dict[str, Any]:
+    """The :class:`~pipelines.training.config.TrainConfig` fields of :func:`add_common_arguments`' options."""
+    return dict(store=args.store, out=args.out, profile=args.profile, model_config=args.model_config,
+                epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, optimizer=args.optimizer, seed=args.seed,
+                device=args.device, train_split=args.train_split,
+                val_split=None if args.val_split.lower() == "none" else args.val_split,
+                max_steps=args.max_steps, max_minutes=args.max_minutes, threads=args.threads, resume=args.resume,
+                workers=args.workers, ray_workers=args.ray_workers, address=args.address,
+                progress=not args.no_progress, slim_lambda=args.slim_lambda, init=args.init)
+
+
+def format_training(result: dict[str, Any]) -> str:
+    """What a trainer prints: the run, its checkpoint and the last epoch's figures."""
+    return json.dumps(result, indent=2, default=str)

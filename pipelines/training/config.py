@@ -1,0 +1,201 @@
+"""One training config for every stage, the profiles' hyperparameters as data, and one override rule:
+a config field that is not None replaces the profile's value.
+
+Profiles (:data:`PROFILES`): ``paper`` is the paper's recipe (detector: Adam 1e-4 divided by 10 every
+10 epochs, 300 epochs; segmenter: SGD from 0.24 with cosine decay, 300 epochs; baselines: the
+reference's Adam 1e-4 x0.9 every 20 epochs, batch 6); ``quick`` converges on a 2-core CPU on the
+``small`` preset (detector 12 epochs, segmenter MinkUNet ratio 0.25 for 3 epochs, baselines 8 epochs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from models.registry import get_builder
+
+STAGES = ("detector", "segmenter", "baseline")
+OPTIMIZERS = ("adam", "sgd")
+SCHEDULES = ("step", "cosine")  # step: per epoch (step_every or milestones); cosine: per optimiser step
+
+
+@dataclass(frozen=True)
+class Hyper:
+    """Hyperparameters of one stage under one profile (every field may be overridden)."""
+
+    model: str  # registered model name ("" for the baselines: the command names it)
+    model_config: dict[str, Any]
+    epochs: int
+    batch_size: int
+    lr: float
+    optimizer: str = "adam"  # "adam", or "sgd" (Nesterov momentum)
+    weight_decay: float = 0.0
+    momentum: float = 0.9  # SGD only
+    schedule: str = "step"
+    milestones: tuple[float, ...] = ()  # step: fractions of the epochs where the lr is multiplied by gamma
+    step_every: int = 0  # step: or every this many epochs (0 = use milestones)
+    gamma: float = 0.1
+    flip_prob: float = 0.5
+    val_frames: int = 0  # frames (windows) of the validation split scored per epoch, evenly spread (0 = all)
+    jitter_std: tuple[float, float, float] = (1.0, 1.0, 0.5)  # segmenter, bins, when no detector is given
+
+
+PROFILES: dict[str, dict[str, Hyper]] = {
+    "detector": {
+        # The paper: Adam, 1e-4, divided by 10 every 10 epochs, 300 epochs (read literally).
+        "paper": Hyper("centre_detector", {}, epochs=300, batch_size=16, lr=1e-4, step_every=10),
+        "quick": Hyper("centre_detector", {}, epochs=12, batch_size=8, lr=2e-3, milestones=(0.67, 0.88),
+                       val_frames=96),
+    },
+    "segmenter": {
+        "paper": Hyper("minkunet", {"ratio": 0.37}, epochs=300, batch_size=8, lr=0.24, optimizer="sgd",
+                       weight_decay=1e-4, schedule="cosine"),
+        "quick": Hyper("minkunet", {"ratio": 0.25}, epochs=3, batch_size=2, lr=0.05, optimizer="sgd",
+                       weight_decay=1e-4, schedule="cosine", val_frames=48),
+    },
+    "baseline": {
+        "paper": Hyper("", {}, epochs=300, batch_size=6, lr=1e-4, step_every=20, gamma=0.9),
+        "quick": Hyper("", {}, epochs=8, batch_size=4, lr=3e-4, step_every=4, gamma=0.5, val_frames=48),
+    },
+}
+
+
+def check_budget(max_minutes: float | None) -> None:
+    if max_minutes is not None and not max_minutes > 0:
+        raise ValueError(f"max_minutes must be > 0, got {max_minutes}")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training job of any stage. ``None`` hyperparameters come from the profile (:data:`PROFILES`)."""
+
+    stage: str
+    store: str
+    out: str
+    profile: str = "quick"
+    model: str | None = None
+    view: str | None = None  # one-view models (U-Net): "ra" or "rd"
+    model_config: dict[str, Any] | None = None  # extra builder keyword arguments
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    optimizer: str | None = None  # "adam" or "sgd" instead of the profile's (e.g. Adam for sparsity training)
+    seed: int = 0
+    device: str = "auto"
+    train_split: str = "train"
+    val_split: str | None = "val"
+    max_steps: int | None = None  # stop after this many optimiser steps in all (smoke tests)
+    max_minutes: float | None = None  # stop after this much training time in all (equal budgets)
+    resume: bool = False
+    workers: int = 0  # DataLoader worker processes
+    jitter_from: str | None = None  # segmenter: detector checkpoint whose errors are measured
+    jitter_std: tuple[float, float, float] | None = None  # segmenter: Gaussian errors in bins instead
+    ray_workers: int = 0  # 0 = single process without Ray
+    address: str | None = None  # Ray address for --ray-workers (None = embedded local Ray)
+    threads: int = 0  # torch intra-op threads (0 = torch's default)
+    progress: bool = True
+    slim_lambda: float = 0.0  # network slimming: weight of the L1 penalty on every BatchNorm scale
+    init: str | None = None  # start from this checkpoint's architecture and weights (fine-tuning)
+
+    def __post_init__(self) -> None:
+        if self.stage not in STAGES:
+            raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
+        if self.profile not in PROFILES[self.stage]:
+            raise ValueError(f"profile must be one of {sorted(PROFILES[self.stage])}, got {self.profile!r}")
+        for name in ("epochs", "batch_size", "max_steps"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be >= 1, got {value}")
+        if self.lr is not None and not self.lr > 0:
+            raise ValueError(f"lr must be > 0, got {self.lr}")
+        check_budget(self.max_minutes)
+        if self.optimizer is not None and self.optimizer not in OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}")
+        if self.max_minutes is not None and self.ray_workers:
+            raise ValueError("--max-minutes is for single-process runs: Ray Train workers would stop at different "
+                             "steps; use --max-steps with --ray-workers")
+        if not self.slim_lambda >= 0:
+            raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
+        if self.ray_workers < 0 or self.workers < 0:
+            raise ValueError(f"ray_workers and workers must be >= 0, got {self.ray_workers}, {self.workers}")
+        if self.jitter_from and self.jitter_std:
+            raise ValueError("give either jitter_from (a detector checkpoint) or jitter_std, not both")
+        if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
+            raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
+        if self.stage == "baseline" and not self.model:
+            raise ValueError("a baseline run names its model (unet, tmvanet, smvanet, or a _tiny twin)")
+        self._check_view()
+
+    def _check_view(self) -> None:
+        """A one-view model (its builder takes ``view``) needs a view; a multi-view one takes none."""
+        name = self.hyper().model
+        takes_view = "view" in inspect.signature(get_builder(name)).parameters
+        if takes_view and self.view not in ("ra", "rd"):
+            raise ValueError(f"{name} is trained on one view: view must be 'ra' or 'rd', got {self.view!r}")
+        if not takes_view and self.view is not None:
+            raise ValueError(f"{name} takes no view (it predicts what it predicts), got {self.view!r}")
+
+    def hyper(self) -> Hyper:
+        """The profile's hyperparameters with every override that is not None."""
+        base = PROFILES[self.stage][self.profile]
+        overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr", "optimizer")
+                     if getattr(self, name) is not None}
+        if self.model_config is not None:
+            overrides["model_config"] = dict(self.model_config)
+        if self.jitter_std is not None:
+            overrides["jitter_std"] = tuple(self.jitter_std)
+        return dataclasses.replace(base, **overrides)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
+        if unknown:
+            raise ValueError(f"unknown training config keys {sorted(unknown)}")
+        data = dict(data)
+        if data.get("jitter_std") is not None:
+            data["jitter_std"] = tuple(data["jitter_std"])
+        return cls(**data)
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the run it continues."""
+        keep = ("stage", "store", "profile", "model", "view", "model_config", "batch_size", "lr", "seed",
+                "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer")
+        return {k: v for k, v in self.to_dict().items() if k in keep}
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> CUDA when available, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def make_optimizer(hyper: Hyper, params) -> torch.optim.Optimizer:
+    """Adam, or SGD with Nesterov momentum. Adam drives unneeded BatchNorm scales to zero under the
+    slimming penalty within a short run; SGD's steps of lr x lambda barely move them (reports/slimming.md)."""
+    if hyper.optimizer == "adam":
+        return torch.optim.Adam(params, lr=hyper.lr, weight_decay=hyper.weight_decay)
+    return torch.optim.SGD(params, lr=hyper.lr, momentum=hyper.momentum, weight_decay=hyper.weight_decay,
+                           nesterov=True)
+
+
+def make_scheduler(hyper: Hyper, optimizer: torch.optim.Optimizer,
+                   steps_per_epoch: int) -> torch.optim.lr_scheduler.LRScheduler:
+    """``step``: stepped once per epoch (every ``step_every`` epochs, or at the ``milestones``);
+    ``cosine``: stepped once per optimiser step, from lr down to 0 over the run."""
+    if hyper.schedule == "cosine":
+        total = max(1, hyper.epochs * steps_per_epoch)
+        return torch.optim.lr_scheduler.LambdaLR(
+            optimizer, lambda step: 0.5 * (1 + math.cos(math.pi * min(step, total) / total)))
+    if hyper.step_every:
+        return torch.optim.lr_scheduler.StepLR(optimizer, hyper.step_every, gamma=hyper.gamma)
+    milestones = sorted({max(1, round(f * hyper.epochs)) for f in hyper.milestones})
+    return torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, gamma=hyper.gamma)

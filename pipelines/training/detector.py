@@ -1,0 +1,50 @@
+"""The detector stage: the centre detector on normalised log power ``(B, D, R, A)``; targets built from
+the store's object table (:func:`models.detector.targets.build_centre_targets`); SPEC section 5 losses
+(focal + L1 offset + L1 Doppler); random left-right flips from the Dataset (angle bin ``a -> (A - a) mod A``,
+offsets and heatmap recomputed, range never flipped). Validation: loss and detection AP at 1/3/5 m."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from models.detector.targets import build_centre_targets
+from pipelines.scoring import frame_centres, score_detector
+from pipelines.store import StoreDataset
+from pipelines.training.task import Task, unwrap
+
+
+class DetectorTask(Task):
+    stage = "detector"
+    monitor = "val_mAP"
+
+    def train_dataset(self) -> Dataset:
+        """Training frames with their log power in dB (normalised in :meth:`collate`)."""
+        return StoreDataset(self.store.path, self.cfg.train_split, fields=("input", "objects"), normalise=False,
+                            flip_prob=self.hyper.flip_prob, seed=self.cfg.seed)
+
+    def collate(self, samples: list[dict[str, Any]]) -> dict[str, Any]:
+        """Input ``(B, D, R, A)`` normalised with the store's global mean and std (dB), exactly what
+        :class:`models.erasenet.EraseNet` does at inference, and the centre targets."""
+        grid = (self.store.profile.n_range, self.store.profile.n_angle)
+        log_power = torch.stack([s["input"] for s in samples])
+        stats = self.store.normalisation
+        return {"input": (log_power - stats["mean"]) / stats["std"],
+                "targets": build_centre_targets([frame_centres(s) for s in samples], grid)}
+
+    def loss(self, model: nn.Module, batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
+        outputs = model(batch["input"].to(device))
+        targets = {k: v.to(device) for k, v in batch["targets"].items()}
+        return unwrap(model).compute_loss(outputs, targets)
+
+    def validate(self, model: nn.Module, device: torch.device) -> dict[str, float]:
+        if not self.cfg.val_split:
+            return {}
+        scores = score_detector(model, self.store.path, self.cfg.val_split, self.store.profile,
+                                self.store.normalisation, max_frames=self.hyper.val_frames, device=device,
+                                with_loss=True)
+        model.train()
+        return {f"val_{k}": v for k, v in scores.items()}

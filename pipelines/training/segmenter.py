@@ -1,0 +1,176 @@
+"""The segmenter stage: MinkUNet or SPVCNN on ROI points. Each sample's ROI is grown
+(:func:`radar.region_growing.grow_regions`) from the ground-truth centres moved by errors like the
+detector's (:mod:`pipelines.training.jitter`: ``--jitter-from DETECTOR_CKPT`` measures them on the
+validation split, ``--jitter-std R A D`` gives Gaussian errors instead, stated in the run's ``jitter.json``).
+Loss: class-weighted cross entropy (``1 / sqrt(frequency)`` of the classes among ROI voxels of up to 64
+training frames, normalised to mean 1; ``class_weights.json``). Validation: voxel mIoU over the ROI."""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from models.segmenter.spvcnn import SPVCNN, PointTensor
+from models.sparse import SparseTensor
+from pipelines.scoring import ViewConfusion, frame_centres
+from pipelines.spread import subset
+from pipelines.store import StoreDataset, open_store
+from pipelines.store_info import StoreInfo
+from pipelines.training.jitter import SeedJitter, measure_detector_errors
+from pipelines.training.task import Task, unwrap
+from radar.region_growing import grow_regions
+from radar.roi import roi_points
+
+log = logging.getLogger(__name__)
+
+JITTER_FRAMES = 96  # validation frames on which --jitter-from measures the detector's errors
+WEIGHT_FRAMES = 64  # training frames whose ROI voxels give the class weights
+
+
+def sparse_input(model: nn.Module, batch: dict[str, Any], device: torch.device) -> SparseTensor | PointTensor:
+    """The segmenter's input for a collated ROI batch: a SparseTensor, or a PointTensor for SPVCNN."""
+    coords = batch["coords"].to(device)  # (N, 4) int64: batch, range, angle, Doppler bins
+    feats = batch["features"].to(device)  # (N, 4)
+    if isinstance(unwrap(model), SPVCNN):
+        return PointTensor(coords[:, 0].contiguous(), coords[:, 1:].to(feats.dtype) + 0.5, feats)
+    return SparseTensor(coords, feats)
+
+
+class RoiDataset(Dataset):
+    """ROI points of store frames grown from jittered ground-truth centres (segmenter training samples).
+
+    Item: ``coords`` (N, 3) int64 bins, ``features`` (N, 4) float32 (:func:`radar.roi.roi_points`),
+    ``labels`` (N,) int64 class per ROI voxel, ``recall`` float, ``frame`` int. Only frames with at
+    least one object are used (a frame without seeds has no ROI). The jitter and flips depend on
+    ``(seed, epoch, frame)``: call :meth:`set_epoch` before each epoch.
+    """
+
+    def __init__(self, store: StoreInfo, split: str, jitter: SeedJitter | None, *, flip_prob: float = 0.0,
+                 seed: int = 0, limit: int = 0):
+        self.store = store
+        self.frames = StoreDataset(store.path, split, fields=("input", "labels", "instances", "objects"),
+                                   normalise=False, flip_prob=flip_prob, seed=seed)
+        n_objects = open_store(store.path)["n_objects"][:]
+        keep = [i for i, slot in enumerate(self.frames.frames) if n_objects[slot] > 0]
+        self.indices = [keep[i] for i in subset(len(keep), limit)]
+        self.jitter = jitter
+        self.seed = seed
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, item: int) -> dict[str, Any]:
+        sample = self.frames[self.indices[item]]
+        log_power = sample["input"].permute(1, 2, 0).numpy()  # (R, A, D) dB
+        seeds = frame_centres(sample)
+        if self.jitter is not None:
+            rng = np.random.default_rng([self.seed, self.epoch, sample["frame"], 1])
+            seeds = seeds + self.jitter.sample(len(seeds), rng)
+        profile = self.store.profile
+        seeds = np.clip(seeds, 0, np.asarray(profile.shape) - 1)
+        regions = grow_regions(log_power, seeds, profile)
+        voxels = regions.voxels if len(regions) else regions.seeds  # a seed in the noise grows nothing
+        points = roi_points(voxels, log_power, profile, mean_db=self.store.normalisation["mean"],
+                            std_db=self.store.normalisation["std"])
+        labels = sample["labels"].numpy()[tuple(voxels.T)]
+        return {"coords": torch.from_numpy(points.coords), "features": torch.from_numpy(points.features),
+                "labels": torch.from_numpy(labels.astype(np.int64)),
+                "recall": regions.recall(sample["instances"].numpy()), "frame": sample["frame"]}
+
+
+def collate_roi(samples: list[dict[str, Any]]) -> dict[str, Any]:
+    """Concatenate ROI samples into one batch: ``coords`` (N, 4) with the sample index first."""
+    coords = [torch.cat([torch.full((len(s["coords"]), 1), b, dtype=torch.int64), s["coords"]], dim=1)
+              for b, s in enumerate(samples)]
+    return {"coords": torch.cat(coords), "features": torch.cat([s["features"] for s in samples]),
+            "labels": torch.cat([s["labels"] for s in samples]),
+            "recall": [s["recall"] for s in samples], "frames": [s["frame"] for s in samples]}
+
+
+class SegmenterTask(Task):
+    stage = "segmenter"
+    monitor = "val_mIoU"
+    jitter: SeedJitter
+    class_weights: torch.Tensor
+
+    def prepare(self, model: nn.Module, rank: int) -> None:
+        jitter_path = self.run_dir / "jitter.json"
+        weights_path = self.run_dir / "class_weights.json"
+        if jitter_path.is_file():  # resumed run, or written by rank 0 of this run
+            self.jitter = SeedJitter.from_dict(json.loads(jitter_path.read_text()))
+        elif self.cfg.jitter_from:
+            self.jitter = measure_detector_errors(self.cfg.jitter_from, self.store.path,
+                                                  self.cfg.val_split or self.cfg.train_split, max_frames=JITTER_FRAMES)
+        else:
+            log.warning("no --jitter-from detector given: seeds jittered by Gaussian errors of std %s bins",
+                        self.hyper.jitter_std)
+            self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (assumed)")
+        if weights_path.is_file():
+            self.class_weights = torch.tensor(json.loads(weights_path.read_text())["weights"])
+        else:
+            self.class_weights = self._measure_class_weights()
+        if rank == 0:
+            jitter_path.write_text(json.dumps(self.jitter.to_dict()))
+            weights_path.write_text(json.dumps({"weights": self.class_weights.tolist(),
+                                                "classes": list(self.store.class_names)}))
+
+    def _measure_class_weights(self) -> torch.Tensor:
+        """``1 / sqrt(frequency)`` of each class among ROI voxels of up to :data:`WEIGHT_FRAMES` training
+        frames, normalised to mean 1 over the classes seen (unseen classes get the largest weight)."""
+        dataset = RoiDataset(self.store, self.cfg.train_split, self.jitter, seed=self.cfg.seed, limit=WEIGHT_FRAMES)
+        counts = np.zeros(self.store.profile.num_classes)
+        for i in range(len(dataset)):
+            counts += np.bincount(dataset[i]["labels"].numpy(), minlength=len(counts))
+        seen = counts > 0
+        weights = np.ones_like(counts)
+        if seen.any():
+            weights[seen] = 1.0 / np.sqrt(counts[seen] / counts.sum())
+            weights[seen] /= weights[seen].mean()
+            weights[~seen] = weights[seen].max()
+        return torch.tensor(weights, dtype=torch.float32)
+
+    def train_dataset(self) -> Dataset:
+        return RoiDataset(self.store, self.cfg.train_split, self.jitter, flip_prob=self.hyper.flip_prob,
+                          seed=self.cfg.seed)
+
+    def collate(self, samples: list[dict[str, Any]]) -> dict[str, Any]:
+        return collate_roi(samples)
+
+    def loss(self, model: nn.Module, batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
+        logits = model(sparse_input(model, batch, device))
+        loss = nn.functional.cross_entropy(logits, batch["labels"].to(device), weight=self.class_weights.to(device))
+        return {"ce": loss, "total": loss}
+
+    @torch.no_grad()
+    def validate(self, model: nn.Module, device: torch.device) -> dict[str, float]:
+        if not self.cfg.val_split:
+            return {}
+        dataset = RoiDataset(self.store, self.cfg.val_split, self.jitter, seed=self.cfg.seed + 1,
+                             limit=self.hyper.val_frames)
+        if len(dataset) == 0:
+            return {}
+        model.eval()
+        confusion = ViewConfusion(self.store.profile.num_classes, views=("roi",))
+        recalls = []
+        for start in range(0, len(dataset), 4):
+            batch = collate_roi([dataset[i] for i in range(start, min(start + 4, len(dataset)))])
+            prediction = model(sparse_input(model, batch, device)).argmax(1).cpu().numpy()
+            confusion.add("roi", batch["labels"].numpy(), prediction)
+            recalls += batch["recall"]
+        model.train()
+        # voxel-level mIoU over the ROI voxels (background included), seeds jittered like in training
+        return {"val_mIoU": confusion.miou("roi"), "val_roi_recall": float(np.mean(recalls))}
+
+    def extra(self) -> dict[str, Any]:
+        return {"jitter": {k: v for k, v in self.jitter.to_dict().items() if k != "residuals"},
+                "class_weights": self.class_weights.tolist()}
