@@ -362,6 +362,7 @@ function drawView(canvas, spec) {
     ctx.fillText(hovered ? `${i + 1} ${m.label}` : String(i + 1), x + (hovered ? 16 : 9), y - (hovered ? 8 : 5));
   });
 
+  canvas.markerPositions = spec.markers.map((m) => ({ x: px(m.col + 0.5), y: py(m.row + 0.5) }));
   canvas.dataset.drawn = "true";
   canvas.dataset.maskCells = String(maskCells);
   canvas.dataset.markers = String(spec.markers.length);
@@ -562,6 +563,20 @@ function wire() {
   $("key-use").addEventListener("click", useKey);
   $("api-key").addEventListener("keydown", (event) => { if (event.key === "Enter") useKey(); });
   window.addEventListener("resize", () => { if (page.result) renderViews(); });
+  for (const canvas of [$("ra-view"), $("rd-view")]) { // pointing at a marker highlights its object too
+    canvas.addEventListener("mousemove", (event) => {
+      if (!canvas.markerPositions) return;
+      const box = canvas.getBoundingClientRect();
+      let nearest = -1;
+      let distance = 14;
+      canvas.markerPositions.forEach((p, i) => {
+        const d = Math.hypot(p.x - (event.clientX - box.left), p.y - (event.clientY - box.top));
+        if (d < distance) [nearest, distance] = [i, d];
+      });
+      highlight(nearest);
+    });
+    canvas.addEventListener("mouseleave", () => highlight(-1));
+  }
 }
 
 function start() {
