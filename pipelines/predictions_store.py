@@ -35,7 +35,6 @@ PREDICTION_OBJECT_FIELDS = ("class_id", "score", "range_m", "angle_deg", "veloci
 COMPUTE_FIELDS = ("macs_detect", "macs_grow", "macs_segment", "macs_total",
                   "seconds_transform", "seconds_detect", "seconds_grow", "seconds_segment", "seconds_project",
                   "seconds_total", "roi_voxels", "visited_points", "detections")
-PREDICTION_ARRAYS = ("labels", "ra_mask", "rd_mask", "objects", "n_objects", "compute")  # what encode_prediction gives
 
 
 @dataclass(frozen=True)
@@ -73,8 +72,8 @@ class PredictionLayout(Sharded):
 
 
 def encode_prediction(result: Any, layout: PredictionLayout) -> dict[str, np.ndarray]:
-    """One frame's arrays (``PREDICTION_ARRAYS``) from ERASE-Net's segmentation result; the object table keeps
-    the first ``layout.max_objects`` objects."""
+    """One frame's ``labels``, ``ra_mask``, ``rd_mask``, ``objects``, ``n_objects`` and ``compute`` from
+    ERASE-Net's segmentation result; the object table keeps the first ``layout.max_objects`` objects."""
     table = np.full((layout.max_objects, len(PREDICTION_OBJECT_FIELDS)), np.nan, np.float32)
     for k, obj in enumerate(result.objects[: layout.max_objects]):
         table[k] = [getattr(obj, name) for name in PREDICTION_OBJECT_FIELDS]

@@ -44,11 +44,20 @@ from typing import Any
 import numpy as np
 
 from pipelines.jobs import run_module
-from pipelines.sharded_job import Execution, ShardedJob, ShardJob, parse_checked, run_sharded
+from pipelines.sharded_job import (
+    Execution,
+    FrameSlot,
+    ShardedJob,
+    ShardedPlan,
+    ShardJob,
+    SourceSpec,
+    add_execution_arguments,
+    fill_shard,
+    run_sharded,
+)
 from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import (
     FORMAT,
-    FRAME_ARRAYS,
     MAX_OBJECTS,
     OBJECT_FIELDS,
     SPLIT_CODE,
@@ -98,46 +107,27 @@ class PreprocessConfig:
 
 
 @dataclass(frozen=True)
-class SourceSpec:
-    """Where a shard task gets its frames: enough to reopen the source inside a Ray worker."""
+class Slot(FrameSlot):
+    """One frame slot of the store, with the split of its sequence."""
 
-    kind: str  # one of SOURCE_KINDS
-    path: str | None  # recording dir or CARRADA root (absolute); None for sim
-    preset: str
-    seed: int = 0  # sim only
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class Slot:
-    """One frame slot of the store."""
-
-    slot: int
-    sequence_id: int
-    sequence: str
-    index: int  # frame index within the sequence
     split: int  # SPLIT_CODE
 
+    def slot_arrays(self) -> dict[str, int]:
+        return {**super().slot_arrays(), "split": self.split}
+
 
 @dataclass(frozen=True)
-class JobPlan:
-    """Everything fixed before any work: the source, the store layout and the slot of every frame."""
+class JobPlan(ShardedPlan):
+    """Everything fixed before any work: the source, the store layout, the slot of every frame (``Slot``s)
+    and the split rule."""
 
-    cfg: PreprocessConfig
-    out: Path
-    source: SourceSpec
-    layout: StoreLayout
-    sequences: tuple[str, ...]
-    slots: tuple[Slot, ...]
     split_rule: dict[str, Any]
 
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run that created the store."""
         return {"source": self.source.to_dict(), "layout": self.layout.to_dict(), "sequences": list(self.sequences),
                 "split_rule": self.split_rule,
-                "slots": [[s.sequence_id, s.index, s.split] for s in self.slots]}
+                "slots": [[s.sequence_id, s.index, s.split] for s in self.frames]}
 
 
 # --------------------------------------------------------------------------- arguments
@@ -153,13 +143,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="sim: scene seed")
     parser.add_argument("--split-fractions", type=float, nargs=3, metavar=("TRAIN", "VAL", "TEST"),
                         help="split by sequence in name order (default 0.7 0.15 0.15; CARRADA: its split file)")
-    parser.add_argument("--address", help="Ray address (default: embedded local Ray, or the job's cluster)")
     parser.add_argument("--tasks", type=int, help="shard tasks in flight (default: the cluster's CPUs)")
-    parser.add_argument("--shard-frames", type=int, default=DEFAULT_SHARD_FRAMES, help="frames per shard")
     parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS, help="width of the object table")
-    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
-    parser.add_argument("--in-process", action="store_true",
-                        help="run every shard in this process, without Ray (smoke runs and tests)")
+    add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
 
 
 def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
@@ -170,11 +156,6 @@ def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
         address=args.address, tasks=args.tasks, shard_frames=args.shard_frames, max_objects=args.max_objects,
         progress=args.progress, in_process=args.in_process,
     )
-
-
-def parse_args(argv: Sequence[str] | None = None, *, prog: str = "python -m pipelines.preprocess") -> PreprocessConfig:
-    """Parse and check the command line; wrong arguments exit with status 2 before any work."""
-    return parse_checked(sys.modules[__name__], argv, prog, plan_job)
 
 
 # --------------------------------------------------------------------------- planning
@@ -229,7 +210,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         reader = CarradaReader(root) if kind == "carrada" else Recording(root)
         if kind == "adc-recording" and reader.content != "adc":
             raise ValueError(f"--source {cfg.source!r}: {root} holds RAD cubes, not ADC samples (use recording:DIR)")
-        source = SourceSpec(kind, str(root), reader.profile.name)
+        source = SourceSpec(kind, str(root), reader.profile.name, seed=0)  # the store records a seed for any source
         frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
         if not any(frame_counts.values()):
             raise DataError(root, "the source holds no frame")
@@ -251,7 +232,8 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         for index in range(frame_counts[seq]):
             slots.append(Slot(len(slots), sequence_id, seq, index, SPLIT_CODE[splits[seq]]))
     layout = StoreLayout(get_profile(source.preset), len(slots), cfg.shard_frames, max_objects=cfg.max_objects)
-    plan = JobPlan(cfg, Path(cfg.out).expanduser().absolute(), source, layout, names, tuple(slots), split_rule)
+    plan = JobPlan(cfg=cfg, out=Path(cfg.out).expanduser().absolute(), source=source, layout=layout, sequences=names,
+                   frames=tuple(slots), split_rule=split_rule)
     _check_out(plan)
     return plan
 
@@ -313,31 +295,19 @@ def process_shard(job: ShardJob) -> dict[str, Any]:
     reasons, class voxel counts per split, and the train frames' ``input`` moments per Doppler bin.
     """
     layout = job.layout
-    buffers = layout.empty_shard(job.shard)
+    buffers, quarantined = fill_shard(job, _source_frames(job.source, job.frames),
+                                      lambda frame: encode_frame(frame, layout))
     start, _ = layout.shard_bounds(job.shard)
     num_classes = layout.profile.num_classes
     class_counts = {name: np.zeros(num_classes, np.int64) for name in SPLITS}
     moments = None
-    quarantined = []
-    for slot, frame in _source_frames(job.source, job.frames):
+    for slot in job.frames:  # in slot order, so the moments merge in a fixed order
         k = slot.slot - start
-        buffers["frame_index"][k], buffers["sequence_id"][k], buffers["split"][k] = (
-            slot.index, slot.sequence_id, slot.split)
-        try:
-            if isinstance(frame, DataError):
-                raise frame
-            encoded = encode_frame(frame, layout)
-        except (DataError, ValueError) as exc:
-            log.warning("quarantined %s/%d: %s", slot.sequence, slot.index, exc)
-            quarantined.append({"frame": slot.slot, "sequence": slot.sequence, "index": slot.index,
-                                "reason": str(exc)})
+        if not buffers["valid"][k]:
             continue
-        for name in FRAME_ARRAYS:
-            buffers[name][k] = encoded[name]
-        buffers["valid"][k] = 1
-        class_counts[SPLITS[slot.split]] += np.bincount(encoded["labels"].ravel(), minlength=num_classes)
+        class_counts[SPLITS[slot.split]] += np.bincount(buffers["labels"][k].ravel(), minlength=num_classes)
         if slot.split == SPLIT_CODE["train"]:
-            moments = _merge_moments(moments, _frame_moments(encoded["input"]))
+            moments = _merge_moments(moments, _frame_moments(buffers["input"][k]))
     write_shard_arrays(job.store, layout, job.shard, buffers)
     summary = {
         "shard": job.shard,
@@ -421,9 +391,8 @@ def check_stats(plan: JobPlan, stats: dict[str, Any]) -> None:
 def main(cfg: PreprocessConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, seconds)."""
     plan = plan_job(cfg)  # every argument is checked before Ray starts or anything is written
-    job = ShardedJob(out=plan.out, layout=plan.layout, source=plan.source, frames=plan.slots,
-                     create_store=create_store, attributes={"plan": plan.identity(), "job": cfg.to_dict()},
-                     stage=process_shard, reduce=reduce_summaries, finish=partial(store_attributes, plan))
+    job = ShardedJob(plan=plan, create_store=create_store, stage=process_shard, reduce=reduce_summaries,
+                     finish=partial(store_attributes, plan))
     run = run_sharded(job, Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.tasks,
                                      progress=cfg.progress, desc=f"preprocess {plan.source.preset}"))
     return {

@@ -48,13 +48,22 @@ from pipelines.predictions_store import (
     COMPUTE_FIELDS,
     DEFAULT_MAX_OBJECTS,
     FORMAT,
-    PREDICTION_ARRAYS,
     PREDICTION_OBJECT_FIELDS,
     PredictionLayout,
     create_predictions,
     encode_prediction,
 )
-from pipelines.sharded_job import Execution, ShardedJob, ShardJob, parse_checked, run_sharded
+from pipelines.sharded_job import (
+    Execution,
+    FrameSlot,
+    ShardedJob,
+    ShardedPlan,
+    ShardJob,
+    SourceSpec,
+    add_execution_arguments,
+    fill_shard,
+    run_sharded,
+)
 from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import frames_of_split, open_store
 from radar.io.errors import DataError
@@ -91,38 +100,20 @@ class SegmentBatchConfig:
 
 
 @dataclass(frozen=True)
-class FrameRef:
+class FrameRef(FrameSlot):
     """One frame to segment: where it is in the source and which slot it takes in the predictions."""
 
-    slot: int
     source_slot: int  # store slot, or running number over the recording's frames
-    sequence_id: int
-    sequence: str
-    index: int  # frame index within its sequence
+
+    def slot_arrays(self) -> dict[str, int]:
+        return {**super().slot_arrays(), "source_slot": self.source_slot}
 
 
 @dataclass(frozen=True)
-class SourceSpec:
-    """Enough to reopen the source inside an actor."""
+class BatchPlan(ShardedPlan):
+    """Everything fixed before any work: the source, the predictions' layout, the slot of every frame
+    (``FrameRef``s) and the checkpoints."""
 
-    kind: str  # one of SOURCE_KINDS
-    path: str  # absolute
-    preset: str
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class BatchPlan:
-    """Everything fixed before any work."""
-
-    cfg: SegmentBatchConfig
-    out: Path
-    source: SourceSpec
-    layout: PredictionLayout
-    sequences: tuple[str, ...]
-    frames: tuple[FrameRef, ...]
     checkpoints: dict[str, Any]
     class_names: tuple[str, ...]
 
@@ -146,15 +137,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--score-threshold", type=float, default=0.3, help="detector score threshold")
     parser.add_argument("--max-objects", type=int, default=DEFAULT_MAX_OBJECTS,
                         help="detections per frame and width of the object table")
-    parser.add_argument("--address", help="Ray address (default: embedded local Ray, or the job's cluster)")
     parser.add_argument("--workers", type=int, help="segmenter actors, each loading the model once "
                                                     "(default: the cluster's CPUs / --cpus-per-worker)")
     parser.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per actor")
     parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
-    parser.add_argument("--shard-frames", type=int, default=DEFAULT_SHARD_FRAMES, help="frames per shard")
-    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
-    parser.add_argument("--in-process", action="store_true",
-                        help="segment every shard in this process, without Ray (smoke runs and tests)")
+    add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
 
 
 def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
@@ -166,12 +153,6 @@ def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
         torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
         in_process=args.in_process,
     )
-
-
-def parse_args(argv: Sequence[str] | None = None, *,
-               prog: str = "python -m pipelines.segment_batch") -> SegmentBatchConfig:
-    """Parse and check the command line; wrong arguments exit with status 2 before any work."""
-    return parse_checked(sys.modules[__name__], argv, prog, plan_job)
 
 
 # --------------------------------------------------------------------------- planning
@@ -216,7 +197,7 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
         sequence_ids, frame_indices = root["sequence_id"][:], root["frame_index"][:]
         for slot in slots[: cfg.limit]:
             seq_id = int(sequence_ids[slot])
-            frames.append(FrameRef(len(frames), int(slot), seq_id, sequences[seq_id], int(frame_indices[slot])))
+            frames.append(FrameRef(len(frames), seq_id, sequences[seq_id], int(frame_indices[slot]), int(slot)))
     else:
         recording = Recording(root_path)
         preset = recording.profile.name
@@ -224,7 +205,7 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
         running = 0
         for seq_id, seq in enumerate(sequences):
             for index in range(recording.n_frames(seq)):
-                frames.append(FrameRef(len(frames), running, seq_id, seq, index))
+                frames.append(FrameRef(len(frames), seq_id, seq, index, running))
                 running += 1
         frames = frames[: cfg.limit]
     if preset != det.preset:
@@ -234,8 +215,9 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
     layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects)
     checkpoints = {name: {"path": str(Path(path)), "sha256": _file_sha256(Path(path)), "model": ckpt.model_name}
                    for name, path, ckpt in (("detector", cfg.detector, det), ("segmenter", cfg.segmenter, seg))}
-    plan = BatchPlan(cfg, Path(cfg.out), SourceSpec(kind, str(root_path), preset), layout, sequences, tuple(frames),
-                     checkpoints, tuple(det.class_names))
+    plan = BatchPlan(cfg=cfg, out=Path(cfg.out), source=SourceSpec(kind, str(root_path), preset), layout=layout,
+                     sequences=sequences, frames=tuple(frames), checkpoints=checkpoints,
+                     class_names=tuple(det.class_names))
     _check_out(plan)
     return plan
 
@@ -246,20 +228,20 @@ def _check_out(plan: BatchPlan) -> None:
 
 
 # --------------------------------------------------------------------------- the segmenter stage
-def _source_cubes(source: SourceSpec, frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError,
-                                                                                      bool]]:
-    """``(frame, cube or the DataError reading it raised, is_log_power)`` for each frame."""
+def _source_cubes(source: SourceSpec, frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError]]:
+    """Each frame's cube (a store's: float16 log power in dB; a recording's: complex), or the DataError
+    reading it raised."""
     if source.kind == "store":
         inputs = open_store(source.path)["input"]
-        for ref in frames:  # float16 log power in dB, as preprocessing stored it
-            yield ref, inputs[ref.source_slot].astype(np.float32), True
+        for ref in frames:
+            yield ref, inputs[ref.source_slot].astype(np.float32)
         return
     recording = Recording(source.path)
     for ref in frames:
         try:
-            yield ref, recording.read_frame(ref.sequence, ref.index).cube, False
+            yield ref, recording.read_frame(ref.sequence, ref.index).cube
         except DataError as exc:
-            yield ref, exc, False
+            yield ref, exc
 
 
 class ShardSegmenter:
@@ -295,29 +277,16 @@ class ShardSegmenter:
         (and stores in the marker) the shard's summary."""
         self.calls += 1
         layout = job.layout
-        buffers = layout.empty_shard(job.shard)
-        start, _ = layout.shard_bounds(job.shard)
-        quarantined = []
-        segment_seconds = 0.0
-        for ref, cube, is_log_power in _source_cubes(job.source, job.frames):
-            k = ref.slot - start
-            buffers["source_slot"][k], buffers["sequence_id"][k], buffers["frame_index"][k] = (
-                ref.source_slot, ref.sequence_id, ref.index)
-            try:
-                if isinstance(cube, DataError):
-                    raise cube
-                tick = time.perf_counter()
-                result = self.net.segment(cube, is_log_power=is_log_power)
-                segment_seconds += time.perf_counter() - tick
-            except ValueError as exc:  # DataError is a ValueError; so is a cube of the wrong shape
-                log.warning("quarantined %s/%d: %s", ref.sequence, ref.index, exc)
-                quarantined.append({"frame": ref.slot, "sequence": ref.sequence, "index": ref.index,
-                                    "reason": str(exc)})
-                continue
-            encoded = encode_prediction(result, layout)
-            for name in PREDICTION_ARRAYS:
-                buffers[name][k] = encoded[name]
-            buffers["valid"][k] = 1
+        is_log_power = job.source.kind == "store"  # a store holds log power; a recording, complex cubes
+        seconds = []
+
+        def segment(cube: np.ndarray) -> dict[str, np.ndarray]:  # a cube of the wrong shape raises ValueError
+            tick = time.perf_counter()
+            result = self.net.segment(cube, is_log_power=is_log_power)
+            seconds.append(time.perf_counter() - tick)
+            return encode_prediction(result, layout)
+
+        buffers, quarantined = fill_shard(job, _source_cubes(job.source, job.frames), segment)
         write_shard_arrays(job.store, layout, job.shard, buffers)
         valid = buffers["valid"].astype(bool)
         summary = {
@@ -327,7 +296,7 @@ class ShardSegmenter:
             "quarantined": quarantined,
             "objects": int(buffers["n_objects"][valid].sum()),
             "macs": int(buffers["compute"][valid, COMPUTE_FIELDS.index("macs_total")].sum()),
-            "segment_seconds": segment_seconds,
+            "segment_seconds": sum(seconds),
             "worker": {**self.identity(), "calls": self.calls},
         }
         mark_shard_done(job.store, job.shard, summary)
@@ -346,9 +315,8 @@ def _node_id() -> str | None:
 def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
-    job = ShardedJob(out=plan.out, layout=plan.layout, source=plan.source, frames=plan.frames,
-                     create_store=create_predictions, attributes={"plan": plan.identity(), "job": cfg.to_dict()},
-                     stage=ShardSegmenter, stage_args=(cfg.detector, cfg.segmenter),
+    job = ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
+                     stage_args=(cfg.detector, cfg.segmenter),
                      stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
                                    "torch_threads": cfg.torch_threads},
                      reduce=reduce_summaries, finish=partial(store_attributes, plan))

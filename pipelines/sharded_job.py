@@ -15,26 +15,28 @@ hands the runner a :class:`ShardedJob`. The runner
    does not depend on timing), lets the job check the figures and name the final attributes
    (``finish``), writes them with the code version and, last, ``complete``.
 
-Every shard summary holds ``shard`` and ``frames`` (slots in the shard). Also here: :func:`init_ray`
-(embedded local Ray unless told otherwise) and :func:`code_version`, shared by every Ray job.
+Every shard summary holds ``shard`` and ``frames`` (slots in the shard). Also here, shared by both jobs:
+the source spec and frame slots a stage reads, :func:`fill_shard` (a shard's buffers, bad frames
+quarantined), the execution arguments, :func:`init_ray` (embedded local Ray unless told otherwise) and
+:func:`code_version`.
 """
 
 from __future__ import annotations
 
+import argparse
 import importlib.metadata
 import logging
 import os
 import subprocess
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
+import numpy as np
 from tqdm import tqdm
 
-from pipelines.jobs import job_parser
 from pipelines.sharded_store import Sharded, done_shards, finish_store
 from radar.io.errors import DataError
 
@@ -44,29 +46,71 @@ OBJECT_STORE_BYTES = 256 * 2**20  # embedded Ray: results are small summaries, t
 
 
 @dataclass(frozen=True)
+class SourceSpec:
+    """Where a stage gets its frames: enough to reopen the source inside a Ray worker."""
+
+    kind: str  # the job's source kinds ("sim", "recording", "store", ...)
+    path: str | None  # absolute; None for the simulator
+    preset: str
+    seed: int | None = None  # the simulator's scene seed (preprocessing records it for every source)
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        if self.seed is None:
+            del data["seed"]
+        return data
+
+
+@dataclass(frozen=True)
+class FrameSlot:
+    """One frame of the job's source and the store slot it takes."""
+
+    slot: int
+    sequence_id: int  # index into the store's ``sequences`` attribute
+    sequence: str
+    index: int  # frame index within its sequence
+
+    def slot_arrays(self) -> dict[str, int]:
+        """What the store records in this slot, whether or not the frame turns out good."""
+        return {"sequence_id": self.sequence_id, "frame_index": self.index}
+
+
+@dataclass(frozen=True)
 class ShardJob:
     """The payload of one shard: where to write and what each of its slots holds."""
 
     store: str
     layout: Sharded
-    source: Any  # the job's source spec: enough to reopen the source inside a worker
+    source: SourceSpec
     shard: int
-    frames: tuple[Any, ...]  # one entry per slot of the shard, in slot order
+    frames: tuple[FrameSlot, ...]  # one per slot of the shard, in slot order
 
 
 Stage = Callable[[ShardJob], dict[str, Any]]
 
 
 @dataclass(frozen=True)
+class ShardedPlan:
+    """What a sharded job fixes before any work (its ``plan_job`` checks every argument and the source)."""
+
+    cfg: Any  # the job's config (``to_dict()`` is recorded in the store)
+    out: Path
+    source: SourceSpec
+    layout: Sharded
+    sequences: tuple[str, ...]  # names, indexed by ``sequence_id``
+    frames: tuple[FrameSlot, ...]  # one per slot of the store
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the run that created the store."""
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
 class ShardedJob:
     """A planned job as the runner needs it."""
 
-    out: Path
-    layout: Sharded
-    source: Any
-    frames: tuple[Any, ...]  # one entry per slot of the store
+    plan: ShardedPlan
     create_store: Callable[[Path, Any, dict[str, Any]], Any]  # (path, layout, attributes): the empty store
-    attributes: dict[str, Any]  # written when the store is created ("plan": what a resumed run must share)
     stage: Stage | type  # a function, or a class whose instances are stages (loaded once per worker)
     reduce: Callable[[Sequence[dict[str, Any]]], dict[str, Any]]  # every shard's summary -> the job's figures
     finish: Callable[[dict[str, Any]], dict[str, Any]]  # figures -> final attributes (DataError: nothing usable)
@@ -74,8 +118,9 @@ class ShardedJob:
     stage_kwargs: Mapping[str, Any] = field(default_factory=dict)
 
     def shard_job(self, shard: int) -> ShardJob:
-        start, stop = self.layout.shard_bounds(shard)
-        return ShardJob(str(self.out), self.layout, self.source, shard, self.frames[start:stop])
+        plan = self.plan
+        start, stop = plan.layout.shard_bounds(shard)
+        return ShardJob(str(plan.out), plan.layout, plan.source, shard, plan.frames[start:stop])
 
 
 @dataclass(frozen=True)
@@ -110,23 +155,63 @@ class ShardedRun:
         return frames / self.seconds_shards if frames else None
 
 
+def add_execution_arguments(parser: argparse.ArgumentParser, *, shard_frames: int) -> None:
+    """The arguments every sharded job takes (how many shards in flight is the job's own: tasks or actors)."""
+    parser.add_argument("--address", help="Ray address (default: embedded local Ray, or the job's cluster)")
+    parser.add_argument("--shard-frames", type=int, default=shard_frames, help="frames per shard")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    parser.add_argument("--in-process", action="store_true",
+                        help="run every shard in this process, without Ray (smoke runs and tests)")
+
+
+def fill_shard(job: ShardJob, frames: Iterable[tuple[FrameSlot, Any]],
+               encode: Callable[[Any], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
+    """Buffers of every array of ``job``'s shard, and its quarantined frames.
+
+    ``frames`` yields each slot with its frame, or with the DataError that reading it raised; ``encode``
+    returns a frame's arrays or raises ValueError (DataError is one). A bad frame is quarantined: its slot
+    keeps the fill values but for :meth:`FrameSlot.slot_arrays`, ``valid`` stays 0, the reason is kept and
+    the shard carries on.
+    """
+    buffers = job.layout.empty_shard(job.shard)
+    start, _ = job.layout.shard_bounds(job.shard)
+    quarantined = []
+    for ref, frame in frames:
+        k = ref.slot - start
+        for name, value in ref.slot_arrays().items():
+            buffers[name][k] = value
+        try:
+            if isinstance(frame, DataError):
+                raise frame
+            encoded = encode(frame)
+        except ValueError as exc:
+            log.warning("quarantined %s/%d: %s", ref.sequence, ref.index, exc)
+            quarantined.append({"frame": ref.slot, "sequence": ref.sequence, "index": ref.index, "reason": str(exc)})
+            continue
+        for name, value in encoded.items():
+            buffers[name][k] = value
+        buffers["valid"][k] = 1
+    return buffers, quarantined
+
+
 def run_sharded(job: ShardedJob, execution: Execution) -> ShardedRun:
     """Create or resume the store, run the stage on every shard not done, finish the store."""
+    plan = job.plan
     started = time.perf_counter()
-    if (job.out / "zarr.json").is_file():
-        done = done_shards(job.out)
+    if (plan.out / "zarr.json").is_file():
+        done = done_shards(plan.out)
     else:
         done = {}
-        job.create_store(job.out, job.layout, job.attributes)
-    todo = [s for s in range(job.layout.n_shards) if s not in done]
+        job.create_store(plan.out, plan.layout, {"plan": plan.identity(), "job": plan.cfg.to_dict()})
+    todo = [s for s in range(plan.layout.n_shards) if s not in done]
     backend = _InProcess(job) if execution.in_process else _OnRay(job, execution)
     new: list[dict[str, Any]] = []
     try:
         workers = backend.start(len(todo))
         ready = time.perf_counter()
-        log.info("%s: %d shards (%d done before), %d worker(s) %s", job.out, job.layout.n_shards, len(done),
+        log.info("%s: %d shards (%d done before), %d worker(s) %s", plan.out, plan.layout.n_shards, len(done),
                  workers, backend.where)
-        with tqdm(total=job.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
+        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
                   desc=execution.desc, disable=not execution.progress) as bar:
             for summary in backend.run(todo):
                 new.append(summary)
@@ -137,7 +222,7 @@ def run_sharded(job: ShardedJob, execution: Execution) -> ShardedRun:
     new.sort(key=lambda s: s["shard"])
     every = sorted([*done.values(), *new], key=lambda s: s["shard"])
     stats = job.reduce(every)
-    finish_store(job.out, {**job.finish(stats), "code_version": code_version()})  # `complete` goes last
+    finish_store(plan.out, {**job.finish(stats), "code_version": code_version()})  # `complete` goes last
     return ShardedRun(stats, tuple(new), len(todo), len(done), workers, ready - started, processed - ready,
                       time.perf_counter() - started)
 
@@ -259,15 +344,3 @@ def code_version() -> dict[str, Any]:
             commit = dirty = None
     return {"package": package, "git_commit": commit, "git_dirty": dirty}
 
-
-def parse_checked(module: ModuleType, argv: Sequence[str] | None, prog: str,
-                  plan: Callable[[Any], object]) -> Any:
-    """A job's config from the command line, planned once so that a wrong argument exits (status 2, argparse's
-    usage and the reason) before any work."""
-    parser = job_parser(module, prog)
-    cfg = module.config_from_args(parser.parse_args(argv))
-    try:
-        plan(cfg)
-    except (ValueError, DataError) as exc:
-        parser.error(str(exc))
-    return cfg

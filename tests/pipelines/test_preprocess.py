@@ -16,14 +16,8 @@ import numpy as np
 import pytest
 
 from pipelines.cli import main as cli_main
-from pipelines.preprocess import (
-    PreprocessConfig,
-    _split_by_fractions,
-    main,
-    parse_args,
-    plan_job,
-    simulated_frames,
-)
+from pipelines.jobs import job_module, parse_config, run_module
+from pipelines.preprocess import PreprocessConfig, _split_by_fractions, main, plan_job, simulated_frames
 from pipelines.sharded_store import done_shards
 from pipelines.store import array_checksums, open_store, summarise
 from radar import transforms
@@ -33,6 +27,10 @@ from radar.simulate import simulate_sequence
 from tests.pipelines.conftest import REPO, assert_store_matches_simulator, ray_env, ray_job_submit, stop_group
 
 SUBMIT_ARGS = ["--source", "sim", "--preset", "small", "--sequences", "3", "--frames", "8", "--seed", "11"]
+
+
+def parse_args(argv: list[str]) -> PreprocessConfig:
+    return parse_config(job_module("pipelines.preprocess"), argv, prog="python -m pipelines.preprocess")
 
 
 # --------------------------------------------------------------------------- no Ray
@@ -51,9 +49,7 @@ def test_wrong_arguments_fail_before_any_work(tmp_path, small_recording, capsys)
         (["--source", "sim", "--preset", "tiny"], "unknown radar preset 'tiny'"),
     ]
     for args, message in bad:
-        with pytest.raises(SystemExit) as exc:
-            parse_args([*args, "--out", str(out)])
-        assert exc.value.code == 2
+        assert run_module("pipelines.preprocess", [*args, "--out", str(out)]) == 2  # python -m pipelines.preprocess
         assert message in capsys.readouterr().err, args
     assert not out.exists()
     (tmp_path / "busy").mkdir()
@@ -230,6 +226,6 @@ def test_adc_recordings_preprocess_like_cube_recordings(tmp_path, embedded_ray, 
     np.testing.assert_allclose(a["input"][:].astype(np.float32), c["input"][:].astype(np.float32), atol=0.07)
     np.testing.assert_array_equal(a["labels"][:], c["labels"][:])
     assert a.attrs["schema"]["content"] == "log_power_db" and a.attrs["schema"]["profile"] == "small"
-    with pytest.raises(SystemExit):
-        parse_args(["--source", f"adc-recording:{cube_rec}", "--out", str(tmp_path / "x.zarr"), *common])
+    assert run_module("pipelines.preprocess", ["--source", f"adc-recording:{cube_rec}", "--out",
+                                               str(tmp_path / "x.zarr"), *common]) == 2
     assert "holds RAD cubes, not ADC samples" in capsys.readouterr().err
