@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export RAY_AUTH_MODE ?= disabled
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: venv test demo lint bench clean
+.PHONY: venv test test-fast demo lint bench clean
 
 venv: $(STAMP)
 
@@ -20,6 +20,10 @@ $(STAMP): pyproject.toml
 
 test: venv
 	$(BIN)/python -m pytest -q
+
+# The day-to-day lane: everything but the slow and Ray tests (CI runs the full `make test`).
+test-fast: venv
+	$(BIN)/python -m pytest -q -m "not slow and not ray"
 
 demo: venv
 	$(BIN)/radarseg demo --out out/demo
