@@ -57,4 +57,6 @@ def format_service_answer(answer: dict[str, Any]) -> str:
                  f"{c['visited_points']} visited, {c['seconds']['total'] * 1e3:.0f} ms")
     u = answer["usage"]
     lines.append(f"  usage today ({u['tenant']}): {u['requests']} requests, {u['macs'] / 1e9:.3f} GMACs")
+    lines.append("see it in a browser: start the service with `.venv/bin/radarseg serve` and open "
+                 "http://127.0.0.1:8000/viewer?example=1")
     return "\n".join(lines)
