@@ -61,6 +61,11 @@ def _finish(fig, profile: RadarProfile, title: str, path: str | Path) -> Path:
     fig.suptitle(title)
     height = fig.get_figheight()  # keep about 0.3 inch for the title and the legend, whatever the figure's size
     fig.tight_layout(rect=(0, min(0.05, 0.45 / height), 1, 1 - 0.3 / height))
+    return save_figure(fig, path)
+
+
+def save_figure(fig, path: str | Path) -> Path:  # noqa: ANN001 (a matplotlib Figure)
+    """Write ``fig`` as a PNG at ``path`` (folders made as needed), close it, return the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
@@ -140,11 +145,7 @@ def plot_pr_curves(curves: dict[str, tuple[np.ndarray, np.ndarray, float]], path
     ax.grid(alpha=0.3)
     ax.legend(loc="lower left")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_confusion(confusion: np.ndarray, class_names: tuple[str, ...] | list[str], path: str | Path, *,
@@ -164,8 +165,4 @@ def plot_confusion(confusion: np.ndarray, class_names: tuple[str, ...] | list[st
     ax.set_xticklabels(class_names, rotation=30)
     ax.set_yticklabels(class_names)
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

@@ -32,7 +32,7 @@ from tests.pipelines.conftest import (  # noqa: F401
     small_store,
     stop_group,
 )
-from tests.service.conftest import ApiProcess, pg_prefix, postgres_url, tiny_checkpoints  # noqa: F401  (fixtures)
+from tests.service.conftest import ApiProcess, pg_prefix, postgres_url  # noqa: F401  (fixtures)
 
 
 @dataclass

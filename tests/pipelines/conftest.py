@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import save_tiny_checkpoints  # noqa: F401 (re-exported for the pipelines tests)
+
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
 
@@ -144,52 +146,21 @@ def build_store_inline(cfg):
     return Path(main(replace(cfg, in_process=True))["store"])
 
 
-TINY_CLASSES = ("background", "pedestrian", "cyclist", "car")
 
 
-def save_tiny_checkpoints(store, root) -> dict[str, str]:
-    """Untrained tiny checkpoints of every kind for ``store`` (small preset), saved as the trainers save them:
-    detector, segmenter, unet_rd, unet_ra, tmvanet, smvanet. The segmenter's classifier never picks
-    background, so its untrained labels mix the object classes inside every ROI."""
-    import torch
+def sim_store(tmp_path_factory, name: str, **fields):
+    """A store of simulated ``small`` frames built without Ray (the runner's in-process mode)."""
+    from pipelines.preprocess import PreprocessConfig
 
-    from models.checkpoint import Checkpoint, save_checkpoint
-    from models.registry import create_model
-    from pipelines.store import open_store
-    from pipelines.views import ViewStats
-
-    attrs = open_store(store).attrs
-    normalisation = {"mean": float(attrs["normalisation"]["mean"]), "std": float(attrs["normalisation"]["std"])}
-    stats = ViewStats.from_store(store, "train").to_dict()
-    torch.manual_seed(0)
-    made = {}
-    for key, name, config, stage, norm in (
-            ("detector", "centre_detector_tiny", {}, "detector", normalisation),
-            ("segmenter", "minkunet_tiny", {}, "segmenter", normalisation),
-            ("unet_rd", "unet_tiny", {"view": "rd"}, "baseline", stats),
-            ("unet_ra", "unet_tiny", {"view": "ra"}, "baseline", stats),
-            ("tmvanet", "tmvanet_tiny", {}, "baseline", stats),
-            ("smvanet", "smvanet_tiny", {}, "baseline", stats)):
-        config = {"preset": "small", **config}
-        model = create_model(name, **config)
-        if key == "segmenter":
-            with torch.no_grad():
-                model.classifier.linear.bias.copy_(torch.tensor([-1e3, 0.0, 0.0, 0.0]))
-        made[key] = save_checkpoint(Checkpoint(model_name=name, config=config, state_dict=model.state_dict(),
-                                               preset="small", class_names=TINY_CLASSES, normalisation=norm,
-                                               extra={"stage": stage}), Path(root) / f"{key}.pt")
-    return {key: str(path) for key, path in made.items()}
+    out = tmp_path_factory.mktemp(name) / f"{name}.zarr"
+    return build_store_inline(PreprocessConfig(source="sim", out=str(out), preset="small", progress=False, **fields))
 
 
 @pytest.fixture(scope="session")
 def small_store(tmp_path_factory):
-    """A store of the small preset built without Ray: 2 sequences x 3 frames, seed 5, shards of 2 frames."""
-    from pipelines.preprocess import PreprocessConfig
-
-    out = tmp_path_factory.mktemp("store") / "small.zarr"
-    cfg = PreprocessConfig(source="sim", out=str(out), preset="small", sequences=2, frames=3, seed=5,
-                           split_fractions=(0.5, 0.5, 0.0), shard_frames=2, progress=False)
-    return build_store_inline(cfg)
+    """2 sequences x 3 frames, seed 5, shards of 2 frames; no test split."""
+    return sim_store(tmp_path_factory, "small", sequences=2, frames=3, seed=5, split_fractions=(0.5, 0.5, 0.0),
+                     shard_frames=2)
 
 
 def assert_store_matches_simulator(path, *, preset: str, sequences: int, frames: int, seed: int) -> None:
@@ -243,10 +214,6 @@ def assert_store_matches_simulator(path, *, preset: str, sequences: int, frames:
 
 @pytest.fixture(scope="session")
 def seq_store(tmp_path_factory):
-    """small preset, 3 sequences x 6 frames (one per split), built without Ray."""
-    from pipelines.preprocess import PreprocessConfig
-
-    out = tmp_path_factory.mktemp("views") / "seq.zarr"
-    cfg = PreprocessConfig(source="sim", out=str(out), preset="small", sequences=3, frames=6, seed=3,
-                           split_fractions=(0.34, 0.33, 0.33), shard_frames=6, progress=False)
-    return build_store_inline(cfg)
+    """3 sequences x 6 frames (one per split), seed 3."""
+    return sim_store(tmp_path_factory, "seq", sequences=3, frames=6, seed=3, split_fractions=(0.34, 0.33, 0.33),
+                     shard_frames=6)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import io
 import os
 import subprocess
+import sys
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,10 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 
-from models.checkpoint import Checkpoint, save_checkpoint
-from models.registry import create_model
 from pipelines.serve_process import free_port, serve_command, stop_process, wait_ready
 from radar.simulate import simulate_sequence
 from service.settings import ModelSpec, Settings
@@ -33,19 +31,6 @@ def npy_bytes(array: np.ndarray, *, allow_pickle: bool = False) -> bytes:
     buf = io.BytesIO()
     np.save(buf, array, allow_pickle=allow_pickle)
     return buf.getvalue()
-
-
-@pytest.fixture(scope="session")
-def tiny_checkpoints(tmp_path_factory) -> tuple[Path, Path]:
-    """Random-weight tiny detector and MinkUNet for the small preset (fixed seed)."""
-    out = tmp_path_factory.mktemp("ckpt")
-    torch.manual_seed(0)
-    det = create_model("centre_detector_tiny", preset="small")
-    seg = create_model("minkunet_tiny", preset="small")
-    return (save_checkpoint(Checkpoint("centre_detector_tiny", {"preset": "small"}, det.state_dict(), "small", CLASSES,
-                                       {"mean": 60.0, "std": 8.0}), out / "det.pt"),
-            save_checkpoint(Checkpoint("minkunet_tiny", {"preset": "small"}, seg.state_dict(), "small", CLASSES),
-                            out / "seg.pt"))
 
 
 @pytest.fixture(scope="session")
@@ -137,6 +122,19 @@ def Server(env: dict[str, str], log_path: Path) -> ApiProcess:  # noqa: N802 (re
     """A ``radarseg serve`` process on a free loopback port."""
     port = free_port()
     return ApiProcess(serve_command(port), port, env, log_path)
+
+
+def guarded_command(port: int, log_level: str = "warning") -> list[str]:
+    """``python -m service.server``: the app under uvicorn with the settings' HTTP limits (head size and count,
+    port bound before the models load)."""
+    return [sys.executable, "-m", "service.server", "--port", str(port), "--log-level", log_level]
+
+
+def GuardedServer(env: dict[str, str], log_path: Path, port: int | None = None,  # noqa: N802
+                  log_level: str = "warning") -> ApiProcess:
+    """A ``python -m service.server`` process on loopback (a free port unless given)."""
+    port = port or free_port()
+    return ApiProcess(guarded_command(port, log_level), port, env, log_path)
 
 
 @pytest.fixture
