@@ -1,4 +1,6 @@
 import os
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -70,3 +72,18 @@ def tiny_checkpoints(tmp_path_factory) -> tuple[Path, Path]:
     """Random-weight tiny detector and MinkUNet for the small preset (fixed seed, no store)."""
     made = save_tiny_checkpoints(None, tmp_path_factory.mktemp("ckpt"), ("detector", "segmenter"), mixed_labels=False)
     return Path(made["detector"]), Path(made["segmenter"])
+
+
+def wait_until(ready: Callable[[], bool], *, timeout_s: float, what: str, errors=(OSError,)) -> None:
+    """Poll ``ready()`` every 0.5 s (``errors`` count as not ready yet) until it is true; RuntimeError naming
+    ``what`` after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            if ready():
+                return
+        except errors:
+            pass
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"{what} within {timeout_s:g} s")
+        time.sleep(0.5)

@@ -14,7 +14,6 @@ import os
 import shutil
 import subprocess
 import sys
-import time
 import urllib.request
 import uuid
 from collections.abc import Iterator
@@ -23,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from tests.conftest import wait_until
 from tests.pipelines.conftest import (  # noqa: F401
     BIN,
     REPO,
@@ -91,16 +91,9 @@ def cluster() -> Iterator[LocalCluster]:
         worker_pgid, _ = _ray_start([f"--address=127.0.0.1:{gcs_port}", *common, *_node_ports()], "worker", temp_dir)
         cluster = LocalCluster(f"127.0.0.1:{gcs_port}", f"http://127.0.0.1:{dashboard_port}", head_pgid, worker_pgid,
                                temp_dir)
-        deadline = time.monotonic() + 90
-        while True:  # the jobs API comes up a little after `ray start` returns; then both nodes must be alive
-            try:
-                if len(cluster.alive_nodes()) == 2:
-                    break
-            except (OSError, KeyError, ValueError):
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError("the two-node Ray cluster did not come up within 90 s")
-            time.sleep(0.5)
+        # the jobs API comes up a little after `ray start` returns; then both nodes must be alive
+        wait_until(lambda: len(cluster.alive_nodes()) == 2, timeout_s=90, errors=(OSError, KeyError, ValueError),
+                   what="the two-node Ray cluster did not come up")
         yield cluster
     finally:
         left = []

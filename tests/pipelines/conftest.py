@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import save_tiny_checkpoints  # noqa: F401 (re-exported for the pipelines tests)
+from tests.conftest import save_tiny_checkpoints, wait_until  # noqa: F401 (re-exported for the pipelines tests)
 
 REPO = Path(__file__).resolve().parents[2]
 BIN = Path(sys.executable).parent
@@ -118,17 +118,12 @@ def ray_head(tmp_path_factory):
         out, _ = proc.communicate(timeout=120)
         if proc.returncode != 0:
             raise RuntimeError(f"ray start failed ({proc.returncode}):\n{out[-3000:]}")
-        deadline = time.monotonic() + 60
-        while True:  # the jobs API comes up a little after `ray start` returns
-            try:
-                with urllib.request.urlopen(f"{head.dashboard_url}/api/version", timeout=2) as resp:
-                    if resp.status == 200:
-                        break
-            except OSError:
-                pass
-            if time.monotonic() > deadline:
-                raise RuntimeError("the Ray dashboard did not come up within 60 s")
-            time.sleep(0.5)
+        def dashboard_up() -> bool:
+            with urllib.request.urlopen(f"{head.dashboard_url}/api/version", timeout=2) as resp:
+                return resp.status == 200
+
+        # the jobs API comes up a little after `ray start` returns
+        wait_until(dashboard_up, timeout_s=60, what="the Ray dashboard did not come up")
         yield head
     finally:
         left = stop_group(pgid, grace_s=3.0)
