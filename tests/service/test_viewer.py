@@ -79,8 +79,9 @@ def rendered(url: str, profile: Path) -> Dom:
 @pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium is not installed (.ci/run installs it)")
 def test_viewer_draws_an_example_and_shows_the_services_error_messages(serve, tmp_path):
     assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
-    # The shipped model (the default settings): the tiny random one finds no object to list.
-    env = {"RADARSEG_DATA_DIR": str(tmp_path / "data")}
+    # The shipped model (the default settings): the tiny random one finds no object to list. No warm-up (three
+    # scenes segmented at start-up for the quota estimate; no quota here).
+    env = {"RADARSEG_DATA_DIR": str(tmp_path / "data"), "RADARSEG_WARMUP": "false"}
     with serve(env) as (server,):
         page = rendered(f"{server.url}/viewer?example=1", tmp_path / "browser")
         # What the API answers for the same cube: the page must show exactly this.
