@@ -81,19 +81,6 @@ class ConvBnAct(nn.Sequential):
         self.out_channels = out_channels
 
 
-def conv_bn_act(
-    in_channels: int,
-    out_channels: int,
-    kernel_size: int = 1,
-    *,
-    stride: int = 1,
-    groups: int = 1,
-    act: str = "silu",
-) -> ConvBnAct:
-    """Factory for :class:`ConvBnAct` (``act="identity"`` for conv + BN only)."""
-    return ConvBnAct(in_channels, out_channels, kernel_size, stride=stride, groups=groups, act=act)
-
-
 class SeparableConv2d(nn.Module):
     """Depthwise ``k x k`` conv then pointwise 1x1 conv, optionally BN and activation after.
 

@@ -39,7 +39,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import nn
 
-from models.layers import SqueezeExcite, batch_norm, conv_bn_act, make_divisible
+from models.layers import ConvBnAct, SqueezeExcite, batch_norm, make_divisible
 
 
 @dataclass(frozen=True)
@@ -108,8 +108,8 @@ class MBConv(nn.Module):
     ) -> None:
         super().__init__()
         mid = in_channels * expand
-        self.expand = conv_bn_act(in_channels, mid, 1) if expand != 1 else nn.Identity()
-        self.depthwise = conv_bn_act(mid, mid, kernel, stride=stride, groups=mid)
+        self.expand = ConvBnAct(in_channels, mid, 1) if expand != 1 else nn.Identity()
+        self.depthwise = ConvBnAct(mid, mid, kernel, stride=stride, groups=mid)
         self.se = SqueezeExcite(mid, max(1, int(in_channels * se_ratio))) if se_ratio > 0 else nn.Identity()
         self.project = nn.Sequential(nn.Conv2d(mid, out_channels, 1, bias=False), batch_norm(out_channels))
         self.residual = stride == 1 and in_channels == out_channels
@@ -135,7 +135,7 @@ class EfficientNetBackbone(nn.Module):
         se_ratio: float,
     ) -> None:
         super().__init__()
-        self.stem = conv_bn_act(in_channels, stem_channels, 3, stride=2)
+        self.stem = ConvBnAct(in_channels, stem_channels, 3, stride=2)
         blocks = []
         channels, stride = stem_channels, 2
         self.feature_stages = tuple(feature_stages)
