@@ -88,8 +88,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
 
 def _document_errors_as_sent(app: FastAPI) -> None:
-    """Parameter validation errors are answered in the ErrorBody shape (service.errors), so the OpenAPI
-    document says so instead of FastAPI's default HTTPValidationError."""
+    """The OpenAPI document as the service answers: parameter validation errors in the ErrorBody shape
+    (service.errors) instead of FastAPI's default HTTPValidationError, and the 400 for ambiguous credentials
+    on every operation that takes a key (service.deps.get_principal)."""
     build = app.openapi
 
     def openapi() -> dict[str, Any]:
@@ -99,9 +100,13 @@ def _document_errors_as_sent(app: FastAPI) -> None:
             spec["components"]["schemas"].setdefault("ErrorBody", ErrorBody.model_json_schema())
             for operations in spec["paths"].values():
                 for operation in operations.values():
-                    answer = operation.get("responses", {}).get("422")
-                    if answer is not None:
-                        answer["content"] = {"application/json": {"schema": ref}}
+                    responses = operation.setdefault("responses", {})
+                    if "422" in responses:
+                        responses["422"]["content"] = {"application/json": {"schema": ref}}
+                    if operation.get("security") and "400" not in responses:
+                        responses["400"] = {"description": "Ambiguous credentials (two keys, or a key beside "
+                                                           "another Authorization)",
+                                            "content": {"application/json": {"schema": ref}}}
             for unused in ("HTTPValidationError", "ValidationError"):
                 spec["components"]["schemas"].pop(unused, None)
             app.openapi_schema = spec

@@ -45,6 +45,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
     max_header_bytes = 65536
     max_headers = 100
+    linger_s = 2.0  # after refusing, read and drop what the client still sends for this long before closing
 
     def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 (uvicorn's signature)
         super().__init__(*args, **kwargs)
@@ -53,6 +54,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         self._head_content = 0  # request line and header bytes parsed so far
         self._header_count = 0
         self._url_bytes = 0
+        self._refused = False
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
@@ -81,6 +83,8 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         super().on_headers_complete()
 
     def data_received(self, data: bytes) -> None:
+        if self._refused:  # lingering after a refusal: the rest of the request is dropped unread
+            return
         if self._reading_head:
             self._head_bytes += len(data)
         self._unset_keepalive_if_required()
@@ -107,16 +111,29 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         self._refuse(400, f"malformed HTTP request ({msg})")
 
     def _refuse(self, status: int, detail: str) -> None:
-        """Answer ``status`` with a JSON error body and close the connection."""
-        if self.transport.is_closing():
+        """Answer ``status`` with a JSON error body and close the connection. The close lingers: our side is shut
+        for writing at once, what the client still sends is read and dropped for ``linger_s``, then the socket
+        closes (closing at once with unread input would reset the connection, and the client could lose the
+        answer)."""
+        if self.transport.is_closing() or self._refused:
             return
+        self._refused = True
+        if self.cycle is not None and not self.cycle.response_complete:
+            # a request whose body turned out malformed: its app sees a disconnect and sends nothing more
+            self.cycle.disconnected = True
+            self.cycle.message_event.set()
         body = json.dumps({"error": ERROR_TYPES.get(status, "bad_request"), "detail": detail}).encode()
         reason = {400: b"Bad Request", 414: b"URI Too Long", 431: b"Request Header Fields Too Large"}[status]
         self.transport.write(b"".join([
             b"HTTP/1.1 %d %s\r\n" % (status, reason),
             *[name + b": " + value + b"\r\n" for name, value in self.server_state.default_headers],
             b"content-type: application/json\r\ncontent-length: %d\r\nconnection: close\r\n\r\n" % len(body), body]))
-        self.transport.close()
+        if self.transport.can_write_eof():
+            self.transport.write_eof()
+            self.flow.resume_reading()
+            self.loop.call_later(self.linger_s, self.transport.close)
+        else:
+            self.transport.close()
 
 
 def guarded_protocol(settings: Settings) -> type[GuardedHttpToolsProtocol]:
