@@ -12,6 +12,8 @@ from models.sparse.conv import (
     SubmanifoldConv3d,
     TransposedConv3d,
     apply_kernel_map,
+    choose_path,
+    count_executed_macs,
     count_macs,
 )
 from models.sparse.kernel_map import KernelMap, VoxelIndex, build_kernel_map, downsample_coords, kernel_offsets
@@ -31,6 +33,8 @@ __all__ = [
     "VoxelIndex",
     "apply_kernel_map",
     "build_kernel_map",
+    "choose_path",
+    "count_executed_macs",
     "cat_features",
     "count_macs",
     "downsample_coords",

@@ -1,8 +1,11 @@
-"""Sparse convolution layers: gather, matrix multiply and scatter-add per kernel offset.
+"""Sparse convolution layers over kernel maps, by one of two paths chosen per layer (`choose_path`):
+an implicit GEMM over the neighbour table in cache-sized chunks, or gather / matmul / scatter-add per
+kernel offset.
 
 Every conv holds a weight `[K, C_in, C_out]` (K = kernel voxels) and records the exact multiply-
-accumulates of its last call in `last_macs` (sum over offsets of pairs x C_in x C_out); `count_macs`
-adds them up over a model after a forward pass. The code is device-agnostic: it runs wherever the
+accumulates of its last call in `last_macs` (sum over offsets of pairs x C_in x C_out) and those its
+kernels executed in `last_executed_macs`; `count_macs` / `count_executed_macs` add them up over a model
+after a forward pass. The code is device-agnostic: it runs wherever the
 features and coordinates live.
 
 Equivalences with dense PyTorch on a grid whose origin is coordinate 0 (tested):
@@ -24,9 +27,12 @@ from models.sparse.tensor import SparseTensor
 
 
 class MACCounted(nn.Module):
-    """A layer that records its multiply-accumulates of the last forward call in `last_macs`."""
+    """A layer that records its multiply-accumulates of the last forward call: `last_macs` the useful ones
+    (pairs x C_in x C_out), `last_executed_macs` those its kernels actually ran (more on the GEMM path,
+    which also multiplies the zeros of missing neighbours)."""
 
     last_macs: int = 0
+    last_executed_macs: int = 0
 
 
 def count_macs(model: nn.Module) -> int:
@@ -36,6 +42,11 @@ def count_macs(model: nn.Module) -> int:
     forward counts only its last call.
     """
     return sum(module.last_macs for module in model.modules() if isinstance(module, MACCounted))
+
+
+def count_executed_macs(model: nn.Module) -> int:
+    """Sum of `last_executed_macs` over a model (call after a forward pass): what the kernels ran."""
+    return sum(module.last_executed_macs for module in model.modules() if isinstance(module, MACCounted))
 
 
 class _GatherMatmulScatter(torch.autograd.Function):
@@ -89,7 +100,180 @@ class _GatherMatmulScatter(torch.autograd.Function):
         return grad_feats, grad_weight, None, None, None, None, None
 
 
-def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, transposed: bool) -> tuple[Tensor, int]:
+def gather_neighbours(feats: Tensor, neighbours: Tensor) -> Tensor:
+    """Features of every (row, offset) neighbour side by side, zeros where there is none.
+
+    Args:
+        feats: (N, C).
+        neighbours: (M, K) int64 rows of `feats`, N for a missing neighbour.
+
+    Returns:
+        (M, K * C), block `k` of row `j` = `feats[neighbours[j, k]]`.
+    """
+    padded = torch.cat([feats, feats.new_zeros(1, feats.shape[1])])
+    return padded.index_select(0, neighbours.reshape(-1)).view(neighbours.shape[0], -1)
+
+
+def pick_products(feats: Tensor, weight: Tensor, slots: Tensor) -> Tensor:
+    """`out[i] = feats[slots[i] // K] @ weight[slots[i] % K]`: one GEMM over all offsets, then a gather.
+
+    Args:
+        feats: (M, C_in).
+        weight: (K, C_in, C_out).
+        slots: (N,) int64 `row * K + k`.
+
+    Returns:
+        (N, C_out).
+    """
+    num_offsets, c_in, c_out = weight.shape
+    products = feats @ weight.permute(1, 0, 2).reshape(c_in, num_offsets * c_out)  # (M, K * C_out)
+    return products.view(-1, c_out).index_select(0, slots)
+
+
+GEMM_CHUNK_BYTES = 4 << 20
+"""Gathered rows per GEMM chunk are sized to about this many bytes, so they stay in cache between the
+gather and the matrix product (unchunked, the (N, K x C) matrix is memory-bound: 2-3x slower)."""
+
+
+def chunk_rows(row_bytes: int) -> int:
+    """Rows per chunk of a gathered matrix whose rows take `row_bytes`."""
+    return max(256, min(8192, GEMM_CHUNK_BYTES // max(1, row_bytes)))
+
+
+def neighbour_gemm(feats: Tensor, neighbours: Tensor, weight_stacked: Tensor) -> Tensor:
+    """`gather_neighbours(feats, neighbours) @ weight_stacked` in cache-sized chunks of rows.
+
+    Args:
+        feats: (N, C_in).
+        neighbours: (M, K) int64 rows of `feats`, N where missing.
+        weight_stacked: (K * C_in, C_out).
+
+    Returns:
+        (M, C_out).
+    """
+    padded = torch.cat([feats, feats.new_zeros(1, feats.shape[1])])
+    num_rows, width = neighbours.shape[0], weight_stacked.shape[0]
+    out = feats.new_empty(num_rows, weight_stacked.shape[1])
+    step = chunk_rows(width * feats.element_size())
+    for start in range(0, num_rows, step):
+        rows = neighbours[start:start + step].reshape(-1)
+        torch.mm(padded.index_select(0, rows).view(-1, width), weight_stacked, out=out[start:start + step])
+    return out
+
+
+def neighbour_weight_grad(feats: Tensor, neighbours: Tensor, grad_out: Tensor) -> Tensor:
+    """`gather_neighbours(feats, neighbours).T @ grad_out` (K * C_in, C_out), chunked like `neighbour_gemm`."""
+    padded = torch.cat([feats, feats.new_zeros(1, feats.shape[1])])
+    width = neighbours.shape[1] * feats.shape[1]
+    grad = feats.new_zeros(width, grad_out.shape[1])
+    step = chunk_rows(width * feats.element_size())
+    for start in range(0, neighbours.shape[0], step):
+        gathered = padded.index_select(0, neighbours[start:start + step].reshape(-1)).view(-1, width)
+        grad.addmm_(gathered.T, grad_out[start:start + step])
+    return grad
+
+
+class _NeighbourGemm(torch.autograd.Function):
+    """Implicit GEMM: `out = gather_neighbours(feats) @ weight.view(K * C_in, C_out)`, in cache-sized chunks.
+
+    Executes N_out x K x C_in x C_out MACs (missing neighbours multiply zeros) in 2 operations per chunk
+    of rows instead of 3 per offset. The backward needs no scatter either: a submanifold map is its own
+    transpose with offsets mirrored (`k <-> K-1-k`), and a down-sampling map gives each input exactly
+    one (output, offset) slot.
+    """
+
+    @staticmethod
+    def forward(ctx, feats, weight, kernel_map):  # noqa: D102
+        ctx.save_for_backward(feats, weight)
+        ctx.kernel_map = kernel_map
+        num_offsets, c_in, c_out = weight.shape
+        return neighbour_gemm(feats, kernel_map.neighbours, weight.reshape(num_offsets * c_in, c_out))
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        feats, weight = ctx.saved_tensors
+        kernel_map = ctx.kernel_map
+        num_offsets, c_in, c_out = weight.shape
+        grad_out = grad_out.contiguous()
+        grad_feats = grad_weight = None
+        if ctx.needs_input_grad[1]:
+            grad_weight = neighbour_weight_grad(feats, kernel_map.neighbours, grad_out).view(num_offsets, c_in, c_out)
+        if ctx.needs_input_grad[0]:
+            if kernel_map.identity_offset is not None:
+                # Submanifold: input j feeds output nbr[j, K-1-k] through offset k, so block k' of the
+                # gathered gradient meets weight[K-1-k'].
+                weight_t = weight.flip(0).transpose(1, 2).reshape(num_offsets * c_out, c_in)
+                grad_feats = neighbour_gemm(grad_out, kernel_map.neighbours, weight_t)
+            else:
+                grad_feats = pick_products(grad_out, weight.transpose(1, 2), kernel_map.parent_slots)
+        return grad_feats, grad_weight, None
+
+
+class _PickProducts(torch.autograd.Function):
+    """Transposed (up-sampling) conv over a down-sampling map: every fine voxel reads its one coarse parent,
+    so `out = pick_products(feats, weight, parent_slots)`: one GEMM and a gather, no scatter.
+
+    Executes N_coarse x K x C_in x C_out MACs (products for absent children are computed and dropped).
+    """
+
+    @staticmethod
+    def forward(ctx, feats, weight, kernel_map):  # noqa: D102
+        ctx.save_for_backward(feats, weight)
+        ctx.kernel_map = kernel_map
+        return pick_products(feats, weight, kernel_map.parent_slots)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        feats, weight = ctx.saved_tensors
+        neighbours = ctx.kernel_map.neighbours  # (N_coarse, K): the gradient of the products is a gather
+        num_offsets, c_in, c_out = weight.shape
+        grad_out = grad_out.contiguous()
+        grad_feats = grad_weight = None
+        if ctx.needs_input_grad[0]:
+            grad_feats = neighbour_gemm(grad_out, neighbours, weight.transpose(1, 2).reshape(num_offsets * c_out, c_in))
+        if ctx.needs_input_grad[1]:
+            grad_t = neighbour_weight_grad(grad_out, neighbours, feats)  # (K * C_out, C_in)
+            grad_weight = grad_t.view(num_offsets, c_out, c_in).transpose(1, 2)
+        return grad_feats, grad_weight, None
+
+
+PATHS = ("per_offset", "gemm")
+"""How a conv runs over its map: gather / matmul / scatter per offset (`per_offset`, executes exactly the
+useful MACs), or all offsets in one matrix product (`gemm`: `_NeighbourGemm`, or `_PickProducts` for a
+transposed conv, which also multiplies the missing neighbours)."""
+
+
+GEMM_MIN_FILL = 0.25
+"""Smallest fill (pairs / (N_out x K)) at which the GEMM path runs: it executes 1 / fill times the useful
+MACs. On uniformly scattered voxels (fill 0.08) the per-offset path wins."""
+GEMM_MAX_IN_CHANNELS = 16
+"""Widest input of a submanifold (K = 27) conv run by the GEMM path."""
+
+
+def choose_path(kernel_map: KernelMap, in_channels: int, out_channels: int, *, transposed: bool) -> str:
+    """The rule measured on the shipped MinkUNet's ROIs (2 x 25k voxels, fill 0.45-0.85 at every stride;
+    best of 5 interleaved runs, forward + backward, one thread; `/work/notes/issue16.md`):
+
+    - down/up-sampling (K = 8): GEMM at every width (0.3-0.7x the per-offset time): 8 offsets make the
+      per-offset path pay 24 small operations for about one product per input voxel;
+    - submanifold (K = 27): GEMM up to 16 input channels (8 -> 8: 0.45-0.8x at strides 1-4), per-offset
+      above (32 -> 24 even, 64 -> 64: per-offset 0.8x the GEMM's time): once a chunk's gathered rows are wide
+      the GEMM's wasted MACs (1 / fill - 1 per useful one) cost more than the per-offset overhead;
+    - either, only while fill >= `GEMM_MIN_FILL`.
+    """
+    # The same fill for a transposed conv: it computes K products per coarse voxel and keeps num_pairs.
+    fill = kernel_map.num_pairs / max(1, kernel_map.num_out * kernel_map.num_offsets)
+    if fill < GEMM_MIN_FILL:
+        return "per_offset"
+    if kernel_map.stride == 1 and in_channels > GEMM_MAX_IN_CHANNELS:
+        return "per_offset"
+    return "gemm"
+
+
+def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, transposed: bool,
+                     path: str = "auto") -> tuple[Tensor, int, int]:
     """Run one sparse convolution over a kernel map.
 
     Args:
@@ -97,10 +281,23 @@ def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, tr
         weight: (K, C_in, C_out).
         kernel_map: pairs per offset; `transposed` swaps its input and output roles.
         transposed: run the adjoint (up-sampling) of the map's convolution.
+        path: one of `PATHS`, or "auto" for `choose_path`.
 
     Returns:
-        output features (N_out, C_out) and the exact MAC count of the call.
+        output features (N_out, C_out), the useful MACs (pairs x C_in x C_out) and the executed MACs.
     """
+    c_in, c_out = weight.shape[1], weight.shape[2]
+    if path == "auto":
+        path = choose_path(kernel_map, c_in, c_out, transposed=transposed)
+    useful = kernel_map.num_pairs * c_in * c_out
+    if path == "gemm":
+        if transposed:
+            out = _PickProducts.apply(feats, weight, kernel_map)
+            return out, useful, kernel_map.num_out * kernel_map.num_offsets * c_in * c_out
+        out = _NeighbourGemm.apply(feats, weight, kernel_map)
+        return out, useful, kernel_map.num_out * kernel_map.num_offsets * c_in * c_out
+    if path != "per_offset":
+        raise ValueError(f"path must be one of {PATHS} or 'auto', got {path!r}")
     if transposed:
         sources, targets, num_out = kernel_map.out_indices, kernel_map.in_indices, kernel_map.num_in
     else:
@@ -108,11 +305,14 @@ def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, tr
     out = _GatherMatmulScatter.apply(
         feats, weight, sources, targets, kernel_map.pair_counts, kernel_map.identity_offset, num_out
     )
-    return out, kernel_map.num_pairs * weight.shape[1] * weight.shape[2]
+    return out, useful, useful
 
 
 class _KernelConv(MACCounted):
     """Shared parameters and initialisation of the kernel convolutions."""
+
+    path: str = "auto"
+    """`PATHS` member or "auto" (`choose_path`); a plain attribute, so benchmarks can force a path."""
 
     def __init__(self, in_channels: int, out_channels: int, kernel_size: int, *, bias: bool) -> None:
         super().__init__()
@@ -158,7 +358,9 @@ class SubmanifoldConv3d(_KernelConv):
     def forward(self, x: SparseTensor) -> SparseTensor:
         self._check(x)
         kernel_map = x.cache.kernel_map(x.stride, self.kernel_size, 1)
-        out, self.last_macs = apply_kernel_map(x.feats, self.weight, kernel_map, transposed=False)
+        out, self.last_macs, self.last_executed_macs = apply_kernel_map(
+            x.feats, self.weight, kernel_map, transposed=False, path=self.path
+        )
         return x.replace_feats(self._finish(out))
 
 
@@ -175,7 +377,9 @@ class StridedConv3d(_KernelConv):
     def forward(self, x: SparseTensor) -> SparseTensor:
         self._check(x)
         kernel_map = x.cache.kernel_map(x.stride, 2, 2)
-        out, self.last_macs = apply_kernel_map(x.feats, self.weight, kernel_map, transposed=False)
+        out, self.last_macs, self.last_executed_macs = apply_kernel_map(
+            x.feats, self.weight, kernel_map, transposed=False, path=self.path
+        )
         coarse = 2 * x.stride
         return SparseTensor(x.cache.coords(coarse), self._finish(out), coarse, cache=x.cache)
 
@@ -196,7 +400,9 @@ class TransposedConv3d(_KernelConv):
             raise ValueError(f"cannot up-sample a tensor at odd tensor stride {x.stride}")
         fine = x.stride // 2
         kernel_map = x.cache.kernel_map(fine, 2, 2)
-        out, self.last_macs = apply_kernel_map(x.feats, self.weight, kernel_map, transposed=True)
+        out, self.last_macs, self.last_executed_macs = apply_kernel_map(
+            x.feats, self.weight, kernel_map, transposed=True, path=self.path
+        )
         return SparseTensor(x.cache.coords(fine), self._finish(out), fine, cache=x.cache)
 
 
@@ -220,6 +426,7 @@ class PointwiseConv(MACCounted):
         feats = x.feats if isinstance(x, SparseTensor) else x
         out = self.linear(feats)
         self.last_macs = feats.shape[0] * self.linear.in_features * self.linear.out_features
+        self.last_executed_macs = self.last_macs
         return x.replace_feats(out) if isinstance(x, SparseTensor) else out
 
 

@@ -16,6 +16,7 @@ from models.sparse import (
     StridedConv3d,
     SubmanifoldConv3d,
     TransposedConv3d,
+    count_executed_macs,
     count_macs,
 )
 
@@ -76,13 +77,18 @@ def check_against_dense(sparse_fn, dense_fn, coords: Tensor, feats: Tensor, weig
     torch.testing.assert_close(grad_weight_sparse, weight.grad)
 
 
+PATHS = ["per_offset", "gemm"]
+
+
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("kernel_size", [3, 5])
-def test_submanifold_conv_matches_dense_conv3d(kernel_size):
+def test_submanifold_conv_matches_dense_conv3d(kernel_size, path):
     generator = torch.Generator().manual_seed(kernel_size)
     extent, batch_size = 9, 2
     coords = random_coords(generator, num_per_sample=150, extent=extent, batch_size=batch_size, shared=100)
     feats = torch.randn(len(coords), 5, generator=generator, dtype=DTYPE)
     conv = SubmanifoldConv3d(5, 7, kernel_size).to(DTYPE)
+    conv.path = path
 
     def sparse_fn(f):
         out = conv(SparseTensor(coords, f))
@@ -96,13 +102,15 @@ def test_submanifold_conv_matches_dense_conv3d(kernel_size):
     check_against_dense(sparse_fn, dense_fn, coords, feats, conv.weight, generator)
 
 
+@pytest.mark.parametrize("path", PATHS)
 @pytest.mark.parametrize("tensor_stride", [1, 2])
-def test_strided_conv_matches_dense_conv3d(tensor_stride):
+def test_strided_conv_matches_dense_conv3d(tensor_stride, path):
     generator = torch.Generator().manual_seed(10 + tensor_stride)
     extent, batch_size = 10, 2
     coords = random_coords(generator, num_per_sample=200, extent=extent, batch_size=batch_size, shared=150)
     feats = torch.randn(len(coords), 4, generator=generator, dtype=DTYPE)
     conv = StridedConv3d(4, 6).to(DTYPE)
+    conv.path = path
     # A tensor already at tensor stride 2 (its coordinates are in units of 2 finest voxels) behaves the
     # same on its own grid: the strided conv takes it to stride 4.
     cache_stride = tensor_stride
@@ -129,7 +137,8 @@ def test_strided_conv_output_voxels_are_unique_halved_coordinates():
     assert len(out) == len(expected)
 
 
-def test_transposed_conv_matches_dense_conv_transpose3d_and_reuses_the_strided_map(monkeypatch):
+@pytest.mark.parametrize("path", PATHS)
+def test_transposed_conv_matches_dense_conv_transpose3d_and_reuses_the_strided_map(monkeypatch, path):
     generator = torch.Generator().manual_seed(4)
     extent, batch_size = 10, 2
     fine_coords = random_coords(generator, num_per_sample=200, extent=extent, batch_size=batch_size, shared=150)
@@ -146,6 +155,7 @@ def test_transposed_conv_matches_dense_conv_transpose3d_and_reuses_the_strided_m
     assert builds == [(2, 2)]
     feats = torch.randn(len(coarse), 3, generator=generator, dtype=DTYPE)
     conv = TransposedConv3d(3, 5).to(DTYPE)
+    conv.path = path
 
     def sparse_fn(f):
         out = conv(coarse.replace_feats(f))
@@ -167,6 +177,7 @@ def test_submanifold_map_is_built_once_and_identity_offset_skips_the_search(monk
     coords = random_coords(generator, num_per_sample=60, extent=6, batch_size=1)
     x = SparseTensor(coords, torch.randn(len(coords), 2, generator=generator))
     first, second = SubmanifoldConv3d(2, 2), SubmanifoldConv3d(2, 2)
+    first.path = "per_offset"
     second(first(x))
     assert x.cache.num_maps == 1
     kernel_map = x.cache.kernel_map(1, 3, 1)
@@ -197,7 +208,8 @@ def brute_force_pairs(in_coords: Tensor, out_coords: Tensor, offsets, stride: in
     return pairs
 
 
-def test_mac_counts_equal_brute_force_pair_counts():
+@pytest.mark.parametrize("path", PATHS)
+def test_mac_counts_equal_brute_force_pair_counts(path):
     generator = torch.Generator().manual_seed(6)
     coords = random_coords(generator, num_per_sample=120, extent=7, batch_size=2, shared=60)
     x = SparseTensor(coords, torch.randn(len(coords), 3, generator=generator))
@@ -208,6 +220,8 @@ def test_mac_counts_equal_brute_force_pair_counts():
         PointwiseConv(2, 6),
     )
     model = torch.nn.ModuleList([sub, down, up, pointwise])
+    for conv in (sub, down, up):
+        conv.path = path
     coarse = down(sub(x))
     pointwise(up(coarse))
 
@@ -221,6 +235,11 @@ def test_mac_counts_equal_brute_force_pair_counts():
     assert up.last_macs == down_pairs * 5 * 2
     assert pointwise.last_macs == len(coords) * 2 * 6
     assert count_macs(model) == sub.last_macs + down.last_macs + up.last_macs + pointwise.last_macs
+    executed = {"per_offset": (sub_pairs, down_pairs, down_pairs),  # pairs; the GEMM path: every slot
+                "gemm": (len(coords) * 27, len(coarse) * 8, len(coarse) * 8)}[path]
+    assert (sub.last_executed_macs, down.last_executed_macs, up.last_executed_macs) == (
+        executed[0] * 3 * 4, executed[1] * 4 * 5, executed[2] * 5 * 2)
+    assert count_executed_macs(model) == sum(m.last_executed_macs for m in model)
 
 
 def test_negative_coordinates_behave_like_shifted_positive_ones():
