@@ -30,17 +30,25 @@ def _overlay(ax, mask: np.ndarray, extent, num_classes: int) -> None:
 
 def draw_views(axes, log_power: np.ndarray, profile: RadarProfile, ra_mask: np.ndarray | None,
                rd_mask: np.ndarray | None, annotations: list[tuple[str, float, float, float]], *,
-               colorbar: bool = True) -> None:
+               colorbar: bool = True, empty_note: str | None = None) -> None:
     """RA view (sin(azimuth) x range) on ``axes[0]`` and RD view (velocity x range) on ``axes[1]``, masks
-    drawn over them and ``annotations`` ``(text, x m, y m, radial velocity m/s)`` placed on both."""
+    drawn over them and ``annotations`` ``(text, x m, y m, radial velocity m/s)`` placed on both; a colour
+    bar (dB) beside each view (``colorbar``); ``empty_note`` (e.g. "no detections") written on both views
+    when there is no annotation and no masked pixel, so an empty prediction does not look like a bug."""
     p = profile
     ra, rd = transforms.ra_view(log_power, is_log_power=True), transforms.rd_view(log_power, is_log_power=True)
     ra_extent = (-1.0, 1.0, 0.0, p.max_range)
     rd_extent = (float(p.velocity_mps(0)), float(p.velocity_mps(p.n_doppler)), 0.0, p.max_range)
-    im = axes[0].imshow(ra, origin="lower", aspect="auto", extent=ra_extent, cmap="viridis")
-    axes[1].imshow(rd, origin="lower", aspect="auto", extent=rd_extent, cmap="viridis")
-    if colorbar:
-        axes[0].figure.colorbar(im, ax=axes[0], label="dB")
+    images = (axes[0].imshow(ra, origin="lower", aspect="auto", extent=ra_extent, cmap="viridis"),
+              axes[1].imshow(rd, origin="lower", aspect="auto", extent=rd_extent, cmap="viridis"))
+    if colorbar:  # the two views have their own dB scales (max over Doppler; log of the sum over angle)
+        for ax, image in zip(axes, images, strict=True):
+            ax.figure.colorbar(image, ax=ax, label="dB", fraction=0.06, pad=0.02)
+    empty = not annotations and not any(m is not None and m.any() for m in (ra_mask, rd_mask))
+    if empty_note and empty:
+        for ax in axes:
+            ax.text(0.5, 0.5, empty_note, transform=ax.transAxes, ha="center", va="center", color="white",
+                    fontsize=11, bbox={"facecolor": "black", "alpha": 0.6, "edgecolor": "none"})
     if ra_mask is not None:
         _overlay(axes[0], ra_mask, ra_extent, p.num_classes)
     if rd_mask is not None:
@@ -91,7 +99,7 @@ def plot_prediction(log_power: np.ndarray, profile: RadarProfile, ra_mask: np.nd
     (``objects`` carry ``class_name, score, x, y, velocity_mps``, as :class:`models.erasenet.SegmentedObject`)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), gridspec_kw={"width_ratios": [1.3, 1]})
     annotations = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in objects]
-    draw_views(axes, log_power, profile, ra_mask, rd_mask, annotations)
+    draw_views(axes, log_power, profile, ra_mask, rd_mask, annotations, empty_note="no detections")
     return _finish(fig, profile, title, path)
 
 
@@ -103,10 +111,11 @@ def plot_truth_vs_prediction(log_power: np.ndarray, profile: RadarProfile, truth
     """Write a PNG of one frame: RA and RD views with the ground-truth masks ``truth`` ((R, A), (R, D))
     on the top row and the predicted masks ``prediction`` on the bottom row; optional annotations
     ``(text, x m, y m, radial velocity m/s)`` per row."""
-    fig, axes = plt.subplots(2, 2, figsize=(11, 9.6), gridspec_kw={"width_ratios": [1.3, 1]})
-    for row, (masks, notes, label) in enumerate(((truth, truth_objects, "truth"),
-                                                 (prediction, predicted_objects, "prediction"))):
-        draw_views(axes[row], log_power, profile, masks[0], masks[1], notes or [], colorbar=False)
+    fig, axes = plt.subplots(2, 2, figsize=(12, 9.6), gridspec_kw={"width_ratios": [1.3, 1]})
+    for row, (masks, notes, label, empty) in enumerate(((truth, truth_objects, "truth", "no labelled objects"),
+                                                        (prediction, predicted_objects, "prediction",
+                                                         "no detections"))):
+        draw_views(axes[row], log_power, profile, masks[0], masks[1], notes or [], empty_note=empty)
         for ax in axes[row]:
             ax.set_title(f"{label}: {ax.get_title()}", fontsize=9)
     return _finish(fig, profile, title, path)
