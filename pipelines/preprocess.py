@@ -43,18 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from pipelines import sharded_job
 from pipelines.jobs import run_module
-from pipelines.sharded_job import (
-    Execution,
-    FrameSlot,
-    ShardedJob,
-    ShardedPlan,
-    ShardJob,
-    SourceSpec,
-    add_execution_arguments,
-    fill_shard,
-    run_sharded,
-)
 from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import (
     FORMAT,
@@ -107,7 +97,7 @@ class PreprocessConfig:
 
 
 @dataclass(frozen=True)
-class Slot(FrameSlot):
+class Slot(sharded_job.FrameSlot):
     """One frame slot of the store, with the split of its sequence."""
 
     split: int  # SPLIT_CODE
@@ -117,7 +107,7 @@ class Slot(FrameSlot):
 
 
 @dataclass(frozen=True)
-class JobPlan(ShardedPlan):
+class JobPlan(sharded_job.ShardedPlan):
     """Everything fixed before any work: the source, the store layout, the slot of every frame (``Slot``s)
     and the split rule."""
 
@@ -145,7 +135,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="split by sequence in name order (default 0.7 0.15 0.15; CARRADA: its split file)")
     parser.add_argument("--tasks", type=int, help="shard tasks in flight (default: the cluster's CPUs)")
     parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS, help="width of the object table")
-    add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
+    sharded_job.add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
 
 
 def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
@@ -199,7 +189,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         n_frames = 8 if cfg.frames is None else cfg.frames
         if n_sequences < 1 or n_frames < 1:
             raise ValueError(f"--sequences and --frames must be >= 1, got {n_sequences} and {n_frames}")
-        source = SourceSpec("sim", None, preset, cfg.seed)
+        source = sharded_job.SourceSpec("sim", None, preset, cfg.seed)
         frame_counts = {sequence_name(i): n_frames for i in range(n_sequences)}
     else:
         given = [f"--{n}" for n in ("preset", "sequences", "frames") if getattr(cfg, n) is not None]
@@ -210,7 +200,8 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         reader = CarradaReader(root) if kind == "carrada" else Recording(root)
         if kind == "adc-recording" and reader.content != "adc":
             raise ValueError(f"--source {cfg.source!r}: {root} holds RAD cubes, not ADC samples (use recording:DIR)")
-        source = SourceSpec(kind, str(root), reader.profile.name, seed=0)  # the store records a seed for any source
+        # the store records a seed for any source
+        source = sharded_job.SourceSpec(kind, str(root), reader.profile.name, seed=0)
         frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
         if not any(frame_counts.values()):
             raise DataError(root, "the source holds no frame")
@@ -251,7 +242,8 @@ def simulated_frames(preset: str, seed: int, sequence_index: int, indices: Seque
     return simulate_sequence(preset, n_frames, seed=seed, sequence_index=sequence_index, only=indices)
 
 
-def _source_frames(source: SourceSpec, slots: Sequence[Slot]) -> Iterator[tuple[Slot, RadarFrame | DataError]]:
+def _source_frames(source: sharded_job.SourceSpec,
+                   slots: Sequence[Slot]) -> Iterator[tuple[Slot, RadarFrame | DataError]]:
     """Each slot's frame, or the DataError that reading it raised."""
     if source.kind == "sim":
         by_sequence: dict[int, list[Slot]] = {}
@@ -288,14 +280,14 @@ def _merge_moments(a: dict[str, Any] | None, b: dict[str, Any] | None) -> dict[s
             "m2": np.asarray(a["m2"]) + np.asarray(b["m2"]) + delta**2 * (a["count"] * b["count"] / n)}
 
 
-def process_shard(job: ShardJob) -> dict[str, Any]:
+def process_shard(job: sharded_job.ShardJob) -> dict[str, Any]:
     """Encode the frames of one shard, write the whole shard of every array, then its marker.
 
     Returns (and stores in the marker) the shard's summary: frames written, quarantined frames with
     reasons, class voxel counts per split, and the train frames' ``input`` moments per Doppler bin.
     """
     layout = job.layout
-    buffers, quarantined = fill_shard(job, _source_frames(job.source, job.frames),
+    buffers, quarantined = sharded_job.fill_shard(job, _source_frames(job.source, job.frames),
                                       lambda frame: encode_frame(frame, layout))
     start, _ = layout.shard_bounds(job.shard)
     num_classes = layout.profile.num_classes
@@ -391,10 +383,11 @@ def check_stats(plan: JobPlan, stats: dict[str, Any]) -> None:
 def main(cfg: PreprocessConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, seconds)."""
     plan = plan_job(cfg)  # every argument is checked before Ray starts or anything is written
-    job = ShardedJob(plan=plan, create_store=create_store, stage=process_shard, reduce=reduce_summaries,
-                     finish=partial(store_attributes, plan))
-    run = run_sharded(job, Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.tasks,
-                                     progress=cfg.progress, desc=f"preprocess {plan.source.preset}"))
+    job = sharded_job.ShardedJob(plan=plan, create_store=create_store, stage=process_shard, reduce=reduce_summaries,
+                                 finish=partial(store_attributes, plan))
+    execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.tasks,
+                                      progress=cfg.progress, desc=f"preprocess {plan.source.preset}")
+    run = sharded_job.run_sharded(job, execution)
     return {
         "store": str(plan.out),
         "frames": run.stats["frames"],

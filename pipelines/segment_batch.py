@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from pipelines import sharded_job
 from pipelines.jobs import run_module
 from pipelines.predictions_store import (
     COMPUTE_FIELDS,
@@ -52,17 +53,6 @@ from pipelines.predictions_store import (
     PredictionLayout,
     create_predictions,
     encode_prediction,
-)
-from pipelines.sharded_job import (
-    Execution,
-    FrameSlot,
-    ShardedJob,
-    ShardedPlan,
-    ShardJob,
-    SourceSpec,
-    add_execution_arguments,
-    fill_shard,
-    run_sharded,
 )
 from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import frames_of_split, open_store
@@ -100,7 +90,7 @@ class SegmentBatchConfig:
 
 
 @dataclass(frozen=True)
-class FrameRef(FrameSlot):
+class FrameRef(sharded_job.FrameSlot):
     """One frame to segment: where it is in the source and which slot it takes in the predictions."""
 
     source_slot: int  # store slot, or running number over the recording's frames
@@ -110,7 +100,7 @@ class FrameRef(FrameSlot):
 
 
 @dataclass(frozen=True)
-class BatchPlan(ShardedPlan):
+class BatchPlan(sharded_job.ShardedPlan):
     """Everything fixed before any work: the source, the predictions' layout, the slot of every frame
     (``FrameRef``s) and the checkpoints."""
 
@@ -141,7 +131,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                     "(default: the cluster's CPUs / --cpus-per-worker)")
     parser.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per actor")
     parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
-    add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
+    sharded_job.add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
 
 
 def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
@@ -215,7 +205,8 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
     layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects)
     checkpoints = {name: {"path": str(Path(path)), "sha256": _file_sha256(Path(path)), "model": ckpt.model_name}
                    for name, path, ckpt in (("detector", cfg.detector, det), ("segmenter", cfg.segmenter, seg))}
-    plan = BatchPlan(cfg=cfg, out=Path(cfg.out), source=SourceSpec(kind, str(root_path), preset), layout=layout,
+    plan = BatchPlan(cfg=cfg, out=Path(cfg.out), source=sharded_job.SourceSpec(kind, str(root_path), preset),
+                     layout=layout,
                      sequences=sequences, frames=tuple(frames), checkpoints=checkpoints,
                      class_names=tuple(det.class_names))
     _check_out(plan)
@@ -228,7 +219,8 @@ def _check_out(plan: BatchPlan) -> None:
 
 
 # --------------------------------------------------------------------------- the segmenter stage
-def _source_cubes(source: SourceSpec, frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError]]:
+def _source_cubes(source: sharded_job.SourceSpec,
+                  frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError]]:
     """Each frame's cube (a store's: float16 log power in dB; a recording's: complex), or the DataError
     reading it raised."""
     if source.kind == "store":
@@ -272,7 +264,7 @@ class ShardSegmenter:
         return {"pid": os.getpid(), "node_id": _node_id(), "model_loads": self.model_loads,
                 "load_seconds": self.load_seconds}
 
-    def __call__(self, job: ShardJob) -> dict[str, Any]:
+    def __call__(self, job: sharded_job.ShardJob) -> dict[str, Any]:
         """Segment the frames of ``job``, write the whole shard of every array, then its marker; returns
         (and stores in the marker) the shard's summary."""
         self.calls += 1
@@ -286,7 +278,7 @@ class ShardSegmenter:
             seconds.append(time.perf_counter() - tick)
             return encode_prediction(result, layout)
 
-        buffers, quarantined = fill_shard(job, _source_cubes(job.source, job.frames), segment)
+        buffers, quarantined = sharded_job.fill_shard(job, _source_cubes(job.source, job.frames), segment)
         write_shard_arrays(job.store, layout, job.shard, buffers)
         valid = buffers["valid"].astype(bool)
         summary = {
@@ -315,13 +307,14 @@ def _node_id() -> str | None:
 def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
-    job = ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
-                     stage_args=(cfg.detector, cfg.segmenter),
-                     stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
-                                   "torch_threads": cfg.torch_threads},
-                     reduce=reduce_summaries, finish=partial(store_attributes, plan))
-    run = run_sharded(job, Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
-                                     cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment"))
+    job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
+                                 stage_args=(cfg.detector, cfg.segmenter),
+                                 stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
+                                               "torch_threads": cfg.torch_threads},
+                                 reduce=reduce_summaries, finish=partial(store_attributes, plan))
+    execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
+                                      cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment")
+    run = sharded_job.run_sharded(job, execution)
     per_worker: dict[int, dict[str, Any]] = {}
     for s in run.summaries:
         entry = per_worker.setdefault(s["worker"]["pid"], {**s["worker"], "shards": 0, "frames": 0})
