@@ -87,7 +87,20 @@ def export_checkpoint(source: str | Path, target: str | Path, *, float16: bool =
     tensors in float16 when ``float16`` (half the size; :meth:`Checkpoint.build` loads them back into the
     float32 model). Returns ``target``."""
     checkpoint = load_checkpoint(source)
-    state = {k: (v.half() if float16 and v.is_floating_point() else v) for k, v in checkpoint.state_dict.items()}
     extra = {k: v for k, v in checkpoint.extra.items() if k not in ("optimizer", "scheduler")}
-    extra["stored_dtype"] = "float16" if float16 else "float32"
-    return save_checkpoint(dataclasses.replace(checkpoint, state_dict=state, extra=extra), target)
+    return save_checkpoint(stored_as(dataclasses.replace(checkpoint, extra=extra), float16=float16), target)
+
+
+def stores_float16(checkpoint: Checkpoint) -> bool:
+    """Whether the checkpoint's floating weights are stored in float16 (an exported, shippable copy)."""
+    floating = [v for v in checkpoint.state_dict.values() if v.is_floating_point()]
+    return bool(floating) and all(v.dtype == torch.float16 for v in floating)
+
+
+def stored_as(checkpoint: Checkpoint, *, float16: bool) -> Checkpoint:
+    """A copy whose floating tensors are stored in float16 (``float16``) or float32, ``extra["stored_dtype"]``
+    saying which; :meth:`Checkpoint.build` loads either into the float32 model."""
+    dtype = torch.float16 if float16 else torch.float32
+    state = {k: (v.to(dtype) if v.is_floating_point() else v) for k, v in checkpoint.state_dict.items()}
+    extra = {**checkpoint.extra, "stored_dtype": "float16" if float16 else "float32"}
+    return dataclasses.replace(checkpoint, state_dict=state, extra=extra)

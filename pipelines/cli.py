@@ -71,17 +71,20 @@ def _cmd_store_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_prune(args: argparse.Namespace) -> int:
-    from models.checkpoint import load_checkpoint, save_checkpoint
+    from models.checkpoint import load_checkpoint, save_checkpoint, stored_as, stores_float16
     from models.slimming import prune_checkpoint
 
-    pruned, report = prune_checkpoint(load_checkpoint(args.checkpoint), ratio=args.ratio, params=args.params,
-                                      macs=args.macs, min_channels=args.min_channels)
-    save_checkpoint(pruned, args.out)
+    source = load_checkpoint(args.checkpoint)
+    pruned, report = prune_checkpoint(source, ratio=args.ratio, params=args.params, macs=args.macs,
+                                      min_channels=args.min_channels)
+    # float16 when asked, or when the input was stored so (a shipped checkpoint): smaller on disk, like export.
+    half = args.half if args.half is not None else stores_float16(source)
+    path = save_checkpoint(stored_as(pruned, float16=half), args.out)
     macs = (f", MACs {report.macs_before / 1e9:.3f} G -> {report.macs_after / 1e9:.3f} G"
             if report.macs_before is not None else "")
     print(f"{args.out}: ratio {report.ratio:.3f}, {report.removed_channels}/{report.candidate_channels} channels "
           f"removed (threshold {report.threshold:.3g}), params {report.params_before:,} -> {report.params_after:,}"
-          f"{macs}")
+          f"{macs}; stored {'float16' if half else 'float32'}, {path.stat().st_size / 1e6:.2f} MB")
     return 0
 
 
@@ -110,9 +113,9 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 def _cmd_models_summary(args: argparse.Namespace) -> int:
     import json
 
-    from pipelines.summary import format_summary, models_summary
+    from pipelines.summary import SHIPPED, format_summary, models_summary
 
-    rows = models_summary(tuple(args.preset) if args.preset else ("small", "carrada", "nxp"))
+    rows = models_summary(tuple(args.preset or ()), tuple(args.checkpoint or SHIPPED))
     print(json.dumps(rows, indent=2) if args.json else format_summary(rows))
     return 0
 
@@ -144,19 +147,42 @@ def _cmd_radar_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _recorded_coupling(adc_path: str) -> bool | None:
+    """Whether the ADC file inside a recording (``DIR/seq_*/adc/NNNNNN.npy``) carries TDM coupling, as its
+    ``recording.json`` says; ``None`` for a file outside a recording."""
+    from pathlib import Path
+
+    meta_path = Path(adc_path).resolve().parent.parent.parent / "recording.json"
+    if Path(adc_path).resolve().parent.name != "adc" or not meta_path.is_file():
+        return None
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        return None
+    return bool(meta.get("tdm_compensation", False)) if meta.get("content") == "adc" else None
+
+
 def _cmd_process_adc(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from radar.adc import adc_shape, process_adc
+    from radar.adc import adc_shape, layout_hint, process_adc
+    from radar.io.errors import DataError
     from radar.io.npy import load_npy
     from radar.profiles import get_profile
 
     profile = get_profile(args.profile)
-    adc = load_npy(args.adc, shape=adc_shape(profile, args.layout), dtypes=(np.complexfloating,),
-                   what=f"ADC samples ({args.layout} layout)")
-    cube = process_adc(adc, profile, layout=args.layout, tdm_compensation=not args.no_tdm_compensation)
+    adc = load_npy(args.adc, dtypes=(np.complexfloating,), what=f"ADC samples ({args.layout} layout)")
+    expected = adc_shape(profile, args.layout)
+    if adc.shape != expected:
+        raise DataError(args.adc, f"ADC samples of profile {profile.name!r} in layout {args.layout!r} have shape "
+                                  f"{expected}, got {adc.shape}{layout_hint(adc.shape, profile, args.layout)}")
+    recorded = _recorded_coupling(args.adc)
+    coupled = {"tdm": True, "none": False, "auto": True if recorded is None else recorded}[args.coupling]
+    cube = process_adc(adc, profile, layout=args.layout, tdm_compensation=coupled)
     np.save(args.out, cube, allow_pickle=False)
-    print(f"RAD cube {cube.shape} {cube.dtype} written to {args.out}")
+    source = "" if args.coupling != "auto" or recorded is None else ", as its recording.json says"
+    print(f"RAD cube {cube.shape} {cube.dtype} written to {args.out} "
+          f"(TDM coupling {'compensated' if coupled else 'none to compensate'}{source})")
     return 0
 
 
@@ -186,6 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
     budget.add_argument("--macs", type=int, help="or: largest MACs per frame (dense models: detector, baselines)")
     prune.add_argument("--min-channels", type=int, default=1, help="channels every layer keeps at least")
     prune.add_argument("--out", required=True, help="pruned checkpoint")
+    prune.add_argument("--half", action=argparse.BooleanOptionalAction, default=None,
+                       help="store the weights in float16 (half the size on disk, as `train export` does); "
+                            "default: float16 when the input is stored in float16, else float32 (to fine-tune)")
     prune.set_defaults(func=_cmd_prune)
     store = sub.add_parser("store", help="inspect a preprocessed store")
     store_sub = store.add_subparsers(dest="store_command", required=True)
@@ -215,14 +244,30 @@ def build_parser() -> argparse.ArgumentParser:
     adc.add_argument("--profile", required=True, help="carrada, nxp, small, or a .toml/.json profile file")
     adc.add_argument("--layout", choices=["sck", "ti"], default="sck",
                      help="sck: (sample, chirp, virtual element); ti: TX-interleaved (chirp, rx, sample)")
-    adc.add_argument("--no-tdm-compensation", action="store_true", help="skip the TDM Doppler-angle compensation")
+    adc.add_argument("--coupling", choices=["auto", "tdm", "none"], default="auto",
+                     help="TDM Doppler-angle coupling in the samples: tdm (what a TDM-MIMO radar records; "
+                          "compensated), none (not compensated), auto (default: what the recording.json of a "
+                          "file inside a recording says, else tdm)")
+    adc.add_argument("--no-tdm-compensation", dest="coupling", action="store_const", const="none",
+                     help="the same as --coupling none")
     adc.add_argument("--out", required=True, help="output .npy (complex64 (R, A, D))")
     adc.set_defaults(func=_cmd_process_adc)
 
+    upload = sub.add_parser("upload-check", help="what `ray job submit --working-dir DIR` would upload; a one-line "
+                                                 "error over Ray's limit (HTTP 413) naming the largest files")
+    from pipelines import upload_check
+
+    upload_check.add_arguments(upload)
+    upload.set_defaults(func=upload_check.run)
+
     models = sub.add_parser("models", help="describe the models")
     models_sub = models.add_subparsers(dest="models_command", required=True)
-    summary = models_sub.add_parser("summary", help="params and MACs per model and preset")
-    summary.add_argument("--preset", action="append", choices=sorted(BUILTIN_PRESETS), help="repeat for several")
+    summary = models_sub.add_parser("summary", help="params and MACs of the shipped models (or --checkpoint), "
+                                                    "and of the full-size models per --preset")
+    summary.add_argument("--checkpoint", action="append",
+                         help="a detector or segmenter checkpoint instead of the shipped ones; repeat for several")
+    summary.add_argument("--preset", action="append", choices=sorted(BUILTIN_PRESETS),
+                         help="also the registry's full-size models for this preset; repeat for several")
     summary.add_argument("--json", action="store_true")
     summary.set_defaults(func=_cmd_models_summary)
 

@@ -129,13 +129,25 @@ def sck_to_ti(adc: np.ndarray, profile: RadarProfile) -> np.ndarray:
     return np.ascontiguousarray(by_tx[:, list(order)].reshape(-1, profile.n_rx, profile.n_samples))
 
 
+def layout_hint(shape: tuple[int, ...], profile: RadarProfile, layout: str) -> str:
+    """``"; that is the shape of layout 'ti'"`` when ``shape`` fits another layout of ``profile``, else ``""``."""
+    others = [other for other in LAYOUTS if other != layout and adc_shape(profile, other) == tuple(shape)]
+    return f"; that is the shape of layout {others[0]!r}" if others else ""
+
+
 def process_adc(adc: np.ndarray, profile: RadarProfile, *, layout: str = "sck",
                 tdm_compensation: bool = True) -> np.ndarray:
-    """Raw complex ADC samples of one frame -> (R, A, D) complex64 RAD cube."""
+    """Raw complex ADC samples of one frame -> (R, A, D) complex64 RAD cube.
+
+    ``tdm_compensation`` says whether the samples carry TDM Doppler-angle coupling to remove: they do when
+    a real TDM-MIMO radar recorded them, and when the simulator wrote them (``SimulatorConfig.tdm_coupling``,
+    on by default; a recording says so in ``recording.json``), so the default processes the simulator's own
+    ADC into the simulator's own cube. Pass ``False`` for ADC without coupling.
+    """
     expected = adc_shape(profile, layout)
     if adc.shape != expected:
         raise ValueError(f"ADC samples for profile {profile.name!r} in layout {layout!r} must have shape "
-                         f"{expected}, got {adc.shape}")
+                         f"{expected}, got {adc.shape}{layout_hint(adc.shape, profile, layout)}")
     if not np.iscomplexobj(adc):
         raise ValueError(f"ADC samples must be complex (I/Q), got dtype {adc.dtype}")
     if not np.isfinite(adc).all():

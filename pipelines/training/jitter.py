@@ -95,6 +95,11 @@ def measure_detector_errors(detector_path: str | Path, store: str | Path, split:
             false_pos += unmatched
             truths += len(truth)
     residuals_arr = np.asarray(residuals, np.float64).reshape(-1, 3)
+    if not len(indices):
+        raise ValueError(
+            f"--jitter-from {detector_path}: split {split!r} of {store} has no frames to measure the detector's "
+            f"errors on; give Gaussian seed errors instead with --jitter-std R A D (bins, e.g. --jitter-std "
+            f"{' '.join(f'{v:g}' for v in DEFAULT_STD)}), or preprocess with a non-zero validation fraction")
     if not len(residuals_arr):
         raise ValueError(
             f"--jitter-from {detector_path}: the detector matched none of the {truths} objects in {len(indices)} "

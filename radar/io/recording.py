@@ -60,7 +60,8 @@ class RecordingWriter:
         if content not in ("cube", "adc"):
             raise ValueError(f"content must be 'cube' or 'adc', got {content!r}")
         self.content = content
-        self.tdm_compensation = False
+        self.tdm_compensation = False  # ADC recordings: whether the samples carry TDM coupling to remove
+        self.tdm_coupling = False
         self.root = Path(out_dir)
         if (self.root / "recording.json").exists():
             raise FileExistsError(f"{self.root}: a recording already exists here; choose another --out")
@@ -81,6 +82,7 @@ class RecordingWriter:
             if "adc" not in frame.extras:
                 raise ValueError(f"{frame.sequence}/{frame.index}: an ADC recording needs frames that carry their ADC")
             self.tdm_compensation = bool(frame.extras.get("tdm_compensation", False))
+            self.tdm_coupling = bool(frame.extras.get("tdm_coupling", False))
             _atomic_write(seq_dir / "adc" / f"{name}.npy",
                           lambda fh: np.save(fh, frame.extras["adc"], allow_pickle=False))
         else:
@@ -106,6 +108,7 @@ class RecordingWriter:
             "radar_file": profile_to_dict(self.profile) if self.profile.chirp is not None else None,
             "schema": cube_schema(self.profile),
             "content": self.content,
+            "tdm_coupling": self.tdm_coupling,
             "tdm_compensation": self.tdm_compensation,
             "radar": self.profile.to_dict(),
             "classes": list(self.profile.all_class_names),

@@ -25,7 +25,10 @@ class SimulatorConfig:
 
     label_snr_db: float = 6.0  # a labelled voxel is at least this far above the noise floor
     label_peak_db: float = 20.0  # ... and within this of its object's own peak
-    tdm_coupling: bool = False  # TDM Doppler-angle coupling in the signal
+    # TDM Doppler-angle coupling in the ADC samples, as a real TDM-MIMO radar records them (a TX firing
+    # later in the chirp cycle sees the target moved further), removed by the processing chain: the ADC
+    # then processes into the frame's cube by radar.adc.process_adc's defaults on every path.
+    tdm_coupling: bool = True
     tdm_compensation: bool = True  # ... removed by the processing chain (only applies with coupling)
     clutter: bool = True
     noise: bool = True
@@ -114,7 +117,8 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
         )
     return RadarFrame(cube=cube, profile=profile, sequence=sequence, index=index, labels=labels,
                       instances=instances, objects=objects,
-                      extras={"object_scatterers": per_object, "adc": adc, "tdm_compensation": compensated})
+                      extras={"object_scatterers": per_object, "adc": adc, "tdm_coupling": config.tdm_coupling,
+                              "tdm_compensation": compensated})
 
 
 def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, sequence_index: int = 0,
