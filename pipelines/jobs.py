@@ -13,7 +13,9 @@ same arguments. A job module is imported only when its command runs: Ray and tor
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
+import os
 import shlex
 import sys
 from collections.abc import Sequence
@@ -50,10 +52,45 @@ def parse_config(module: ModuleType, argv: Sequence[str] | None, prog: str) -> A
     return module.config_from_args(args)
 
 
+# Smoke mode (RADARSEG_SMOKE=1): every job runs its command on tiny sizes, so that the README's commands run
+# as written in seconds (tests/test_readme_commands.py). Config field -> (cap, whether an unset value, None or
+# 0 meaning "all" or "the profile's", becomes the cap).
+SMOKE_ENV = "RADARSEG_SMOKE"
+SMOKE_CAPS: dict[str, tuple[int, bool]] = {
+    "sequences": (4, False), "frames": (2, False), "shard_frames": (2, False),  # preprocess
+    "epochs": (1, True), "max_steps": (2, True), "batch_size": (2, True),  # training
+    "max_frames": (2, True), "pictures": (1, False), "sweep_frames": (2, False),  # evaluate, compare, slim-sweep
+    "limit": (4, True), "finetune_steps": (1, False), "finetune_steps_baseline": (1, False),
+}
+
+
+def smoke_config(cfg: Any) -> Any:
+    """``cfg`` with every size in :data:`SMOKE_CAPS` capped, one ratio of a sweep, one torch thread."""
+    if not dataclasses.is_dataclass(cfg):
+        return cfg
+    fields = {f.name for f in dataclasses.fields(cfg)}
+    changes: dict[str, Any] = {}
+    for name, (cap, fill) in SMOKE_CAPS.items():
+        if name in fields:
+            value = getattr(cfg, name)
+            if value:
+                changes[name] = min(value, cap)
+            elif fill:
+                changes[name] = cap
+    if "ratios" in fields and len(cfg.ratios) > 1:
+        changes["ratios"] = tuple(cfg.ratios[:1])
+    if "threads" in fields:
+        changes["threads"] = 1
+    return dataclasses.replace(cfg, **changes)
+
+
 def run_job(name: str, argv: Sequence[str] | None, prog: str) -> tuple[dict[str, Any], str]:
-    """Parse, run and format one job: ``(result, printed summary)``."""
+    """Parse, run and format one job: ``(result, printed summary)``; tiny sizes under ``RADARSEG_SMOKE=1``."""
     module = job_module(name)
-    result = module.main(parse_config(module, argv, prog))
+    cfg = parse_config(module, argv, prog)
+    if os.environ.get(SMOKE_ENV, "") not in ("", "0"):
+        cfg = smoke_config(cfg)
+    result = module.main(cfg)
     return result, module.format_result(result)
 
 
