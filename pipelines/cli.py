@@ -37,8 +37,10 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from pipelines.demo import run_demo
+    from pipelines.jobs import smoke_mode
 
-    result = run_demo(args.out)
+    # RADARSEG_SMOKE: the same steps on 3 sequences of 2 frames, one frame segmented
+    result = run_demo(args.out, **({"frames": 2, "pictures": 2, "segment_frames": 1} if smoke_mode() else {}))
     print(f"simulated {result['frames']} frames into {result['recording']}")
     print("RA/RD pictures with labels:")
     for path in result["pictures"]:
@@ -62,10 +64,28 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _is_predictions_store(path: str) -> bool:
+    """Whether ``path`` holds batch segmentation's predictions (format attribute), not a preprocessed store."""
+    from pathlib import Path
+
+    from pipelines.predictions_store import FORMAT
+
+    meta = Path(path) / "zarr.json"
+    try:
+        return json.loads(meta.read_text()).get("attributes", {}).get("format") == FORMAT
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        return False  # store.summarise says what is wrong with it
+
+
 def _cmd_store_info(args: argparse.Namespace) -> int:
     from pipelines.store import format_summary, summarise
 
-    summary = summarise(args.store)
+    if _is_predictions_store(args.store):
+        from pipelines.predictions_report import format_predictions, summarise_predictions
+
+        format_summary, summary = format_predictions, summarise_predictions(args.store)
+    else:
+        summary = summarise(args.store)
     print(json.dumps(summary, indent=2) if args.json else format_summary(summary))
     return 0
 
@@ -218,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
     prune.set_defaults(func=_cmd_prune)
     store = sub.add_parser("store", help="inspect a preprocessed store")
     store_sub = store.add_subparsers(dest="store_command", required=True)
-    info = store_sub.add_parser("info", help="frames per split, class counts, statistics, quarantined frames")
+    info = store_sub.add_parser("info", help="frames per split, class counts, statistics, quarantined frames; of a "
+                                             "predictions store: frames, class voxels, detections per frame")
     info.add_argument("store", help="store path")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(func=_cmd_store_info)

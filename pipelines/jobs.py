@@ -64,6 +64,11 @@ SMOKE_CAPS: dict[str, tuple[int, bool]] = {
 }
 
 
+def smoke_mode() -> bool:
+    """Whether ``RADARSEG_SMOKE`` asks for tiny sizes."""
+    return os.environ.get(SMOKE_ENV, "") not in ("", "0")
+
+
 def smoke_config(cfg: Any) -> Any:
     """``cfg`` with every size in :data:`SMOKE_CAPS` capped, one ratio of a sweep, one torch thread."""
     if not dataclasses.is_dataclass(cfg):
@@ -88,7 +93,7 @@ def run_job(name: str, argv: Sequence[str] | None, prog: str) -> tuple[dict[str,
     """Parse, run and format one job: ``(result, printed summary)``; tiny sizes under ``RADARSEG_SMOKE=1``."""
     module = job_module(name)
     cfg = parse_config(module, argv, prog)
-    if os.environ.get(SMOKE_ENV, "") not in ("", "0"):
+    if smoke_mode():
         cfg = smoke_config(cfg)
     result = module.main(cfg)
     return result, module.format_result(result)

@@ -150,13 +150,21 @@ def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
 
 # --------------------------------------------------------------------------- planning
 def _split_by_fractions(sequences: Sequence[str], fractions: Sequence[float]) -> dict[str, str]:
-    """Sequence ``i`` of ``n`` (name order) goes to the split whose cumulative fraction first exceeds (i + 0.5) / n."""
-    edges = np.cumsum(fractions)
-    out = {}
-    for i, seq in enumerate(sequences):
-        position = (i + 0.5) / len(sequences)
-        out[seq] = SPLITS[min(int(np.searchsorted(edges, position, side="right")), len(SPLITS) - 1)]
-    return out
+    """Contiguous runs of sequences in name order: train, then val, then test. Counts are ``fraction * n`` rounded
+    by largest remainder; then every split of non-zero fraction that got none takes one sequence from the largest
+    split, in split order, while the largest holds two or more (3 sequences: one per split at 0.7/0.15/0.15)."""
+    n = len(sequences)
+    exact = np.asarray(fractions, np.float64) * n
+    counts = np.floor(exact + 1e-9).astype(int)
+    for i in np.argsort(-(exact - counts), kind="stable")[: n - int(counts.sum())]:
+        counts[i] += 1
+    for i, fraction in enumerate(fractions):
+        donor = int(np.argmax(counts))
+        if fraction > 0 and counts[i] == 0 and counts[donor] >= 2:
+            counts[donor] -= 1
+            counts[i] += 1
+    names = [split for split, count in zip(SPLITS, counts, strict=True) for _ in range(count)]
+    return dict(zip(sequences, names, strict=True))
 
 
 def plan_job(cfg: PreprocessConfig) -> JobPlan:
@@ -212,6 +220,12 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         fractions = cfg.split_fractions or DEFAULT_SPLIT_FRACTIONS
         splits = _split_by_fractions(names, fractions)
         split_rule = {"rule": "fractions", "fractions": list(fractions)}
+        empty = [split for split, f in zip(SPLITS, fractions, strict=True) if f > 0 and split not in splits.values()]
+        if empty:
+            wanted = sum(f > 0 for f in fractions)
+            log.warning("--split-fractions %s over %d sequences: the %s split(s) get no sequence (one per split needs "
+                        "at least %d sequences); train with --val-split none, or preprocess more --sequences",
+                        " ".join(f"{f:g}" for f in fractions), len(names), ", ".join(map(repr, empty)), wanted)
     else:
         split_rule = {"rule": "carrada data_seq_ref.json"}
     if not any(splits[s] == "train" and frame_counts[s] for s in names):

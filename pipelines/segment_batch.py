@@ -304,6 +304,9 @@ def _node_id() -> str | None:
 
 
 # --------------------------------------------------------------------------- the job
+REPORT_PICTURES = 3  # frames drawn in the report beside the store (most detections first)
+
+
 def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
@@ -321,8 +324,12 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
         entry.update(calls=max(entry["calls"], s["worker"]["calls"]), shards=entry["shards"] + 1,
                      frames=entry["frames"] + s["frames"])
     stats = run.stats
+    from pipelines.predictions_report import write_predictions_report  # summary.json/.txt and pictures beside it
+
+    report = write_predictions_report(plan.out, pictures=REPORT_PICTURES)
     return {
         "store": str(plan.out),
+        "report": report["dir"],
         "source": plan.source.to_dict(),
         "frames": stats["frames"],
         "written": stats["written"],
@@ -378,7 +385,8 @@ def format_result(result: dict[str, Any]) -> str:
     return (f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
             f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
             f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
-            f"{result['workers']} worker(s) on {result['nodes']} node(s)\n{json.dumps(result)}")
+            f"{result['workers']} worker(s) on {result['nodes']} node(s); summary and pictures in {result['report']}"
+            f"\n{json.dumps(result)}")
 
 
 if __name__ == "__main__":
