@@ -1,17 +1,26 @@
-"""The HTTP service under load: a real ``radarseg serve`` (uvicorn) on loopback, a bounded request loop
-at concurrency 1, 2 and 4 for ``small`` and ``carrada`` cubes; latency p50/p95, throughput, errors, and
-where a request's time goes: receiving and decoding the body (the server's ``decode`` stage runs while the
-body streams in, so it includes the upload), model stages, response encoding, and the rest (HTTP parsing
-of the headers, the response transfer, queueing behind the model's one replica at concurrency > 1).
-Prints a table and writes benchmarks/results/service.json.
+"""The HTTP service under load: a real ``python -m service.server`` (uvicorn) on loopback.
 
-    .venv/bin/python benchmarks/service.py [--requests-small 8 --requests-carrada 4] [--quick]
+Three parts, each written into benchmarks/results/service.json with the load average it ran under (a part not
+run keeps its previous figures):
+
+- ``levels``: a bounded request loop at concurrency 1, 2 and 4 for ``small`` and ``carrada`` cubes; latency
+  p50/p95, throughput, errors, and where a request's time goes: receiving and decoding the body (the server's
+  ``decode`` stage runs while the body streams in, so it includes the upload), model stages, response encoding,
+  and the rest (HTTP parsing of the headers, the response transfer, queueing behind the model's one replica at
+  concurrency > 1).
+- ``stages`` (issue 16 item 3): the model stages of the same frames inside the service (``Server-Timing``, at
+  concurrency 1) against a plain process (``EraseNet.segment`` on the main thread of this process, with the
+  service's torch thread count), side by side, and the client's p50 against the plain process's end to end.
+- ``slow_clients`` (issue 17): normal clients alone (the idle p95), then the same clients while 16 clients
+  upload at 1 KB/s (each reconnects when cut off with 408): the share of normal requests answered 200 and their
+  p95 against the idle p95. Goal: >= 95 % and <= 2x.
+
+    .venv/bin/python -m benchmarks.service [--parts levels,stages,slow_clients] [--quick]
 
 Models: the shipped ``small`` checkpoints when checkpoints/ holds them, else a real-size untrained
 ``centre_detector`` + ``minkunet`` for ``small``; ``carrada`` always uses real-size untrained models (no
 trained carrada checkpoint exists). Untrained models run with score threshold 0 and 4 objects, so the
-cost per request resembles a scene with four objects. Target (issue 7): overhead (everything but the
-model stages) at most 10% of the p50 latency on carrada cubes; no errors under load.
+cost per request resembles a scene with four objects. Figures are printed and written, never asserted.
 """
 
 from __future__ import annotations
@@ -21,17 +30,24 @@ import io
 import json
 import os
 import platform
+import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import httpx
-import numpy as np
+# `python benchmarks/service.py` puts benchmarks/ first on sys.path, where this file would shadow the `service` package.
+if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
+    sys.path.pop(0)
 
-from pipelines.serve_process import free_port, serve_command, stop_process, wait_ready
+import httpx  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pipelines.serve_process import free_port, stop_process, wait_ready  # noqa: E402
+from service.server import server_command  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "service.json"
@@ -70,7 +86,7 @@ def _start(models: list[dict], data_dir: Path, log: Path) -> tuple[subprocess.Po
     port = free_port()
     env = {**os.environ, "RADARSEG_MODELS": json.dumps(models), "RADARSEG_DATA_DIR": str(data_dir),
            "RADARSEG_MAX_QUEUE": "8"}
-    proc = subprocess.Popen(serve_command(port), cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
+    proc = subprocess.Popen(server_command(port), cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
         wait_ready(url, proc, log, timeout_s=300)
@@ -128,47 +144,195 @@ def run_level(url: str, model: str, body: bytes, concurrency: int, n_requests: i
     }
 
 
-def main() -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--requests-small", type=int, default=8, help="requests per concurrency level")
-    parser.add_argument("--requests-carrada", type=int, default=4)
-    parser.add_argument("--quick", action="store_true", help="2 requests per level (a smoke run)")
-    args = parser.parse_args()
+def _npy(cube: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, cube)
+    return buf.getvalue()
+
+
+def run_levels(url: str, args: argparse.Namespace) -> dict:
     from radar.simulate import simulate_sequence
 
-    machine = {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]}
-    results: dict = {"machine": machine, "levels": {}}
+    out = {}
+    for preset, n in (("small", args.requests_small), ("carrada", args.requests_carrada)):
+        body = _npy(next(simulate_sequence(preset, 1, seed=3)).cube)
+        levels = []
+        for concurrency in (1, 2, 4):
+            count = 2 if args.quick else max(n, concurrency * 2)
+            level = run_level(url, preset, body, concurrency, count)
+            level["body_bytes"] = len(body)
+            levels.append(level)
+            shares = level["share_of_mean_latency"]
+            print(f"{preset:8s} c={concurrency}  p50 {level['p50_s'] * 1e3:8.1f} ms  p95 "
+                  f"{level['p95_s'] * 1e3:8.1f} ms  {level['throughput_rps']:6.2f} req/s  errors "
+                  f"{level['errors']}  receive+decode {shares.get('receive_decode', 0):.1%}  model "
+                  f"{shares.get('model', 0):.1%}  encode {shares.get('encode', 0):.1%}  other "
+                  f"{shares.get('http_transfer_and_queue', 0):.1%}  overhead/p50 "
+                  f"{level['overhead_share_of_p50']:.1%}", flush=True)
+        out[preset] = levels
+    carrada_c1 = out["carrada"][0]
+    return {"levels": out, "target": {"carrada_overhead_share_of_p50_at_c1": carrada_c1["overhead_share_of_p50"],
+                                      "limit": 0.10, "met": carrada_c1["overhead_share_of_p50"] <= 0.10,
+                                      "errors": sum(lv["errors"] for lv in sum(out.values(), []))}}
+
+
+def run_stages(url: str, model: dict, frames: int) -> dict:
+    """The same ``small`` frames through the service (concurrency 1) and through ``EraseNet.segment`` in this
+    process, interleaved frame by frame so that both see the same machine load."""
+    import torch
+
+    from models.erasenet import EraseNet
+    from radar.simulate import simulate_sequence
+    from service.settings import Settings, resolve_path
+
+    threads = Settings().inference_threads
+    torch.set_num_threads(threads)
+    net = EraseNet.from_checkpoints(resolve_path(model["detector"]), resolve_path(model["segmenter"]),
+                                    score_threshold=model.get("score_threshold", 0.3),
+                                    max_objects=model.get("max_objects", 32))
+    cubes = [frame.cube for frame in simulate_sequence("small", frames, seed=11)]
+    net.segment(cubes[0])  # warm, as the service warms its replicas
+    plain: dict[str, list[float]] = {stage: [] for stage in (*STAGES, "total")}
+    served: dict[str, list[float]] = {stage: [] for stage in (*STAGES, "total")}
+    client = []
+    with httpx.Client(timeout=600) as http:
+        _one(http, url, "small", _npy(cubes[0]))
+        for cube in cubes:
+            seconds = net.segment(cube).compute["seconds"]
+            for stage in STAGES:
+                plain[stage].append(seconds[stage])
+            plain["total"].append(sum(seconds[s] for s in STAGES))
+            body = _npy(cube)
+            start = time.perf_counter()
+            r = http.post(f"{url}/v1/segment?model=small", content=body, headers={"content-type": "application/x-npy"})
+            client.append(time.perf_counter() - start)
+            timing = _server_timing(r.headers["server-timing"])
+            for stage in STAGES:
+                served[stage].append(timing[stage])
+            served["total"].append(sum(timing[s] for s in STAGES))
+    rows = {stage: {"plain_ms": 1e3 * float(np.median(plain[stage])),
+                    "service_ms": 1e3 * float(np.median(served[stage]))} for stage in plain}
+    for stage, row in rows.items():
+        row["ratio"] = row["service_ms"] / row["plain_ms"] if row["plain_ms"] > 0 else float("nan")
+        print(f"stage {stage:9s}  plain {row['plain_ms']:8.1f} ms  service {row['service_ms']:8.1f} ms  "
+              f"ratio {row['ratio']:.2f}", flush=True)
+    client_p50 = float(np.median(client))
+    end_to_end = client_p50 / (rows["total"]["plain_ms"] / 1e3)
+    print(f"client p50 {client_p50 * 1e3:.1f} ms = {end_to_end:.2f}x the plain process's model stages", flush=True)
+    return {"frames": frames, "torch_threads": threads, "stages": rows, "client_p50_s": client_p50,
+            "client_p50_over_plain_total": end_to_end,
+            "goal": {"client_p50_within_15pct_of_plain": end_to_end <= 1.15}}
+
+
+def _trickle(port: int, body: bytes, stop: threading.Event, rate: int, outcomes: list[int]) -> None:
+    """One slow client: upload ``body`` at ``rate`` bytes/s, reconnecting whenever the server cuts it off."""
+    head = (f"POST /v1/segment HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-npy\r\n"
+            f"Content-Length: {len(body)}\r\n\r\n").encode()
+    while not stop.is_set():
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
+                sock.sendall(head)
+                for start in range(0, len(body), rate):
+                    if stop.wait(1.0):
+                        return
+                    sock.sendall(body[start:start + rate])
+                outcomes.append(int(sock.recv(64).split()[1]))
+        except (OSError, IndexError, ValueError):  # cut off: the answer was 408 and the socket is closed
+            outcomes.append(408)
+
+
+def _normal_requests(url: str, body: bytes, clients: int, per_client: int) -> tuple[list[int], list[float]]:
+    codes, latencies = [], []
+
+    def one_client(_: int) -> None:
+        with httpx.Client(timeout=120) as http:
+            for _ in range(per_client):
+                start = time.perf_counter()
+                try:
+                    code = http.post(f"{url}/v1/segment?model=small", content=body,
+                                     headers={"content-type": "application/x-npy"}).status_code
+                except httpx.HTTPError:
+                    code = 0
+                codes.append(code)
+                latencies.append(time.perf_counter() - start)
+
+    with ThreadPoolExecutor(clients) as pool:
+        list(pool.map(one_client, range(clients)))
+    return codes, latencies
+
+
+def run_slow_clients(url: str, port: int, *, slow: int, normal_clients: int, per_client: int) -> dict:
+    from radar.simulate import simulate_sequence
+
+    body = _npy(next(simulate_sequence("small", 1, seed=3)).cube)
+    idle_codes, idle = _normal_requests(url, body, normal_clients, per_client)
+    stop, outcomes = threading.Event(), []
+    tricklers = [threading.Thread(target=_trickle, args=(port, body, stop, 1024, outcomes)) for _ in range(slow)]
+    for thread in tricklers:
+        thread.start()
+    time.sleep(2.0)  # every slow client is uploading
+    codes, loaded = _normal_requests(url, body, normal_clients, per_client)
+    stop.set()
+    for thread in tricklers:
+        thread.join(timeout=60)
+    idle_ok = [t for t, c in zip(idle, idle_codes, strict=True) if c == 200]
+    ok = [t for t, c in zip(loaded, codes, strict=True) if c == 200]
+    idle_p95 = float(np.percentile(idle_ok, 95)) if idle_ok else float("nan")
+    p95 = float(np.percentile(ok, 95)) if ok else float("nan")
+    share = len(ok) / len(codes)
+    result = {"slow_clients": slow, "slow_rate_bytes_s": 1024, "normal_clients": normal_clients,
+              "normal_requests": len(codes), "idle_p95_s": idle_p95, "idle_share_200": len(idle_ok) / len(idle_codes),
+              "share_200": share, "p95_s": p95, "p95_over_idle_p95": p95 / idle_p95,
+              "codes": {str(c): codes.count(c) for c in sorted(set(codes))},
+              "slow_client_answers": {str(c): outcomes.count(c) for c in sorted(set(outcomes))},
+              "goal": {"share_200_at_least_0.95": share >= 0.95, "p95_at_most_2x_idle": p95 <= 2 * idle_p95}}
+    print(f"slow clients: {slow} at 1 KB/s; normal {len(codes)} requests: {share:.1%} answered 200, p95 "
+          f"{p95 * 1e3:.0f} ms against {idle_p95 * 1e3:.0f} ms idle ({result['p95_over_idle_p95']:.2f}x); slow "
+          f"clients were answered {result['slow_client_answers']}", flush=True)
+    return result
+
+
+PARTS = ("levels", "stages", "slow_clients")
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated among {', '.join(PARTS)}")
+    parser.add_argument("--requests-small", type=int, default=8, help="requests per concurrency level")
+    parser.add_argument("--requests-carrada", type=int, default=4)
+    parser.add_argument("--stage-frames", type=int, default=12, help="frames compared in the stages part")
+    parser.add_argument("--normal-clients", type=int, default=2, help="normal clients in the slow-client part")
+    parser.add_argument("--per-client", type=int, default=10, help="requests of each normal client")
+    parser.add_argument("--quick", action="store_true", help="a smoke run: 2 requests per level, 3 frames")
+    args = parser.parse_args()
+    parts = [part.strip() for part in args.parts.split(",") if part.strip()]
+    if unknown := sorted(set(parts) - set(PARTS)):
+        parser.error(f"unknown parts {unknown}; choose among {list(PARTS)}")
+
+    results: dict = json.loads(RESULTS.read_text()) if RESULTS.is_file() else {}
+    results["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "python": sys.version.split()[0]}
     with tempfile.TemporaryDirectory(prefix="rsg-bench-") as tmp:
         tmp = Path(tmp)
         models, kinds = _models(tmp)
         results["models"] = kinds
         proc, url = _start(models, tmp / "data", tmp / "server.log")
+        port = int(url.rsplit(":", 1)[1])
         try:
-            for preset, n in (("small", args.requests_small), ("carrada", args.requests_carrada)):
-                cube = next(simulate_sequence(preset, 1, seed=3)).cube
-                buf = io.BytesIO()
-                np.save(buf, cube)
-                body = buf.getvalue()
-                levels = []
-                for concurrency in (1, 2, 4):
-                    count = 2 if args.quick else max(n, concurrency * 2)
-                    level = run_level(url, preset, body, concurrency, count)
-                    level["body_bytes"] = len(body)
-                    levels.append(level)
-                    shares = level["share_of_mean_latency"]
-                    print(f"{preset:8s} c={concurrency}  p50 {level['p50_s'] * 1e3:8.1f} ms  p95 "
-                          f"{level['p95_s'] * 1e3:8.1f} ms  {level['throughput_rps']:6.2f} req/s  errors "
-                          f"{level['errors']}  receive+decode {shares.get('receive_decode', 0):.1%}  model "
-                          f"{shares.get('model', 0):.1%}  encode {shares.get('encode', 0):.1%}  other "
-                          f"{shares.get('http_transfer_and_queue', 0):.1%}  overhead/p50 "
-                          f"{level['overhead_share_of_p50']:.1%}", flush=True)
-                results["levels"][preset] = levels
+            for part in parts:
+                load_before = os.getloadavg()
+                if part == "levels":
+                    figures = run_levels(url, args)
+                elif part == "stages":
+                    figures = run_stages(url, models[0], 3 if args.quick else args.stage_frames)
+                else:
+                    figures = run_slow_clients(url, port, slow=16, normal_clients=args.normal_clients,
+                                               per_client=3 if args.quick else args.per_client)
+                figures["loadavg_before"], figures["loadavg_after"] = load_before, os.getloadavg()
+                figures["measured_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+                results[part] = figures
         finally:
             stop_process(proc, grace_s=30)
-    carrada_c1 = results["levels"]["carrada"][0]
-    results["target"] = {"carrada_overhead_share_of_p50_at_c1": carrada_c1["overhead_share_of_p50"],
-                         "limit": 0.10, "met": carrada_c1["overhead_share_of_p50"] <= 0.10,
-                         "errors": sum(lv["errors"] for lv in sum(results["levels"].values(), []))}
+    results.pop("target", None)  # older layout: now under levels
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(results, indent=2) + "\n")
     print(f"written to {RESULTS.relative_to(REPO)}")

@@ -75,17 +75,25 @@ class ServedModel:
         """Build the replicas from the checkpoints and start one inference thread per replica, each with
         ``threads`` torch threads; on failure record why (the service stays up, not ready)."""
         detector, segmenter = resolve_path(self.spec.detector), resolve_path(self.spec.segmenter)
+        executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}",
+                                      initializer=_set_torch_threads, initargs=(threads,))
+
+        def build() -> EraseNet:
+            return EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
+                                             max_objects=self.spec.max_objects)
+
+        # Built and warmed on the inference threads themselves: no other thread of the process runs torch, so
+        # each replica's OpenMP team is the only one (a second team's idle threads compete for the cores).
         try:
-            nets = [EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
-                                              max_objects=self.spec.max_objects) for _ in range(replicas)]
+            nets = [future.result() for future in [executor.submit(build) for _ in range(replicas)]]
         except (CheckpointError, ValueError, KeyError, RuntimeError) as exc:
+            executor.shutdown(wait=True)
             self.error = str(exc)
             log.error("model %s not loaded: %s", self.spec.name, exc)
             return
-        self._executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}",
-                                            initializer=_set_torch_threads, initargs=(threads,))
-        if warmup:  # on the inference threads themselves, one replica each
-            for done in [self._executor.submit(self._warm, net) for net in nets]:
+        self._executor = executor
+        if warmup:
+            for done in [executor.submit(self._warm, net) for net in nets]:
                 done.result()
         for net in nets:
             self._free.put(net)

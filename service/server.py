@@ -160,6 +160,11 @@ def bind(host: str, port: int) -> socket.socket:
     return sock
 
 
+def server_command(port: int, log_level: str = "warning") -> list[str]:
+    """``python -m service.server`` on ``port`` with this interpreter (settings from RADARSEG_*)."""
+    return [sys.executable, "-m", "service.server", "--port", str(port), "--log-level", log_level]
+
+
 def serve(settings: Settings, *, log_level: str = "info") -> None:
     """Bind the port, then build the app and run it (its lifespan loads the models) until stopped."""
     from service.main import create_app

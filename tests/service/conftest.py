@@ -7,7 +7,6 @@ from __future__ import annotations
 import io
 import os
 import subprocess
-import sys
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -124,17 +123,14 @@ def Server(env: dict[str, str], log_path: Path) -> ApiProcess:  # noqa: N802 (re
     return ApiProcess(serve_command(port), port, env, log_path)
 
 
-def guarded_command(port: int, log_level: str = "warning") -> list[str]:
-    """``python -m service.server``: the app under uvicorn with the settings' HTTP limits (head size and count,
-    port bound before the models load)."""
-    return [sys.executable, "-m", "service.server", "--port", str(port), "--log-level", log_level]
-
-
 def GuardedServer(env: dict[str, str], log_path: Path, port: int | None = None,  # noqa: N802
                   log_level: str = "warning") -> ApiProcess:
-    """A ``python -m service.server`` process on loopback (a free port unless given)."""
+    """A ``python -m service.server`` process on loopback (a free port unless given): the app under uvicorn with
+    the settings' HTTP limits (head size and count, port bound before the models load)."""
+    from service.server import server_command
+
     port = port or free_port()
-    return ApiProcess(guarded_command(port, log_level), port, env, log_path)
+    return ApiProcess(server_command(port, log_level), port, env, log_path)
 
 
 @pytest.fixture
