@@ -24,6 +24,7 @@ from models.segmenter.spvcnn import SPVCNN, PointTensor
 from models.sparse import SparseTensor
 from radar import transforms
 from radar.detections import Centres
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
 from radar.profiles import RadarProfile, get_profile, resolve_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
@@ -77,6 +78,7 @@ class EraseNet:
     def __init__(self, detector: nn.Module, segmenter: nn.Module, profile: RadarProfile | str, *,
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
                  score_threshold: float = 0.3, max_objects: int = 32,
+                 doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
                  region_config: RegionGrowingConfig | None = None, device: str | torch.device = "cpu"):
         self.profile = get_profile(profile)
         self.class_names = tuple(class_names or self.profile.all_class_names)
@@ -91,6 +93,9 @@ class EraseNet:
         self.score_threshold = score_threshold
         self.max_objects = max_objects
         self.region_config = region_config or RegionGrowingConfig.for_profile(self.profile)
+        # The detector's Doppler passes a 1x1 compression of D bins to 3 channels: refine it from the cube
+        # (radar.doppler; None keeps the detector's own estimate).
+        self.doppler_refinement = doppler_refinement
         self._detector_counter = ComputeCounter(self.detector)
         self.params = {"detector": count_params(self.detector), "segmenter": count_params(self.segmenter)}
 
@@ -147,6 +152,8 @@ class EraseNet:
                 outputs = self.detector(x)
                 decoded = self.detector.decode(outputs, k=self.max_objects, score_threshold=self.score_threshold)[0]
                 centres = Centres.from_mapping(decoded)
+                if self.doppler_refinement is not None:
+                    centres = refine_doppler(log_power, centres, self.doppler_refinement)
                 detect_macs = self.detector_macs()
             else:
                 detect_macs = 0

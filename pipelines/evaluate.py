@@ -41,6 +41,7 @@ from pipelines.scoring import DetectionScorer, ViewConfusion
 from pipelines.spread import spread
 from pipelines.store import OBJECT_FIELDS, frames_of_split, open_store
 from radar.detections import Centres
+from radar.doppler import DOPPLER_REFINEMENT, refine_doppler
 from radar.region_growing import RegionGrowingConfig, grow_regions
 
 log = logging.getLogger(__name__)
@@ -63,6 +64,7 @@ class EvaluateConfig:
     sweep_frames: int = 48
     score_threshold: float | None = None  # operating threshold (None = EraseNet's default)
     oracle: bool = True  # also segment from ground-truth seeds
+    doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads (0 = torch's default); the per-stage seconds are taken with these
     progress: bool = True
@@ -103,7 +105,8 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     det_ckpt, seg_ckpt = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
-    kwargs = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
+    kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
+    kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
     net = EraseNet.from_checkpoints(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
     profile, class_names, num_classes = net.profile, net.class_names, net.profile.num_classes
     root = open_store(cfg.store)
@@ -140,7 +143,10 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         with torch.no_grad():
             decoded = net.detector.decode(net.detector(x[None].to(net.device)), k=net.max_objects,
                                           score_threshold=AP_SCORE_THRESHOLD)[0]
-        detection.add(Centres.from_mapping(decoded), table)
+        scored = Centres.from_mapping(decoded)
+        if net.doppler_refinement is not None:  # AP of what the product outputs
+            scored = refine_doppler(log_power, scored, net.doppler_refinement)
+        detection.add(scored, table)
 
         # the whole chain at the operating threshold
         result = net.segment(log_power, is_log_power=True)
@@ -188,6 +194,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         "models": {"detector": det_ckpt.model_name, "segmenter": seg_ckpt.model_name},
         "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
         "score_threshold": net.score_threshold, "classes": list(class_names),
+        "doppler_refinement": None if net.doppler_refinement is None else asdict(net.doppler_refinement),
         "detection": {**summary, "n_truth": detection.n_truth,
                       "n_predictions": int(len(next(iter(curves.values())).score)) if curves else 0,
                       "ap_score_threshold": AP_SCORE_THRESHOLD},
@@ -231,6 +238,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sweep-frames", type=int, default=48)
     parser.add_argument("--score-threshold", type=float)
     parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
+    parser.add_argument("--no-doppler-refinement", action="store_true",
+                        help="keep the detector's own Doppler (no refinement from the cube)")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--threads", type=int, default=0,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
@@ -242,7 +251,8 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           split=None if args.split == "all" else args.split, max_frames=args.max_frames,
                           pictures=args.pictures,
                           sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
-                          score_threshold=args.score_threshold, oracle=not args.no_oracle, device=args.device,
+                          score_threshold=args.score_threshold, oracle=not args.no_oracle,
+                          doppler_refinement=not args.no_doppler_refinement, device=args.device,
                           threads=args.threads, progress=not args.no_progress)
 
 

@@ -19,6 +19,7 @@ from pipelines.spread import subset
 from pipelines.store import OBJECT_FIELDS, StoreDataset
 from pipelines.views import ViewDataset, collate_views, masks_of, model_inputs
 from radar.detections import Centres
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
 from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, mean_iou
 from radar.profiles import RadarProfile
 
@@ -65,10 +66,13 @@ class DetectionScorer:
 def score_detector(detector: nn.Module, store: str, split: str, profile: RadarProfile,
                    normalisation: Mapping[str, Any], *, max_frames: int = 0, score_threshold: float = 0.05,
                    batch_size: int = 8, device: torch.device | str = "cpu",
-                   with_loss: bool = False) -> dict[str, float]:
+                   with_loss: bool = False,
+                   doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT) -> dict[str, float]:
     """Detection AP@1/3/5 and mAP of ``detector`` on ``max_frames`` evenly spread frames of ``split`` (0 = all),
     input normalised with the store's global mean/std in dB exactly as :class:`models.erasenet.EraseNet` does;
-    with ``with_loss`` also ``loss`` (mean total per frame). The model is left in eval mode."""
+    with ``with_loss`` also ``loss`` (mean total per frame). The Doppler of each centre is refined from the
+    frame's cube (:func:`radar.doppler.refine_doppler`) as EraseNet does, unless ``doppler_refinement`` is None.
+    The model is left in eval mode."""
     detector.eval()
     dataset = StoreDataset(store, split, fields=("input", "objects"), normalise=False)
     indices = subset(len(dataset), max_frames)
@@ -83,7 +87,11 @@ def score_detector(detector: nn.Module, store: str, split: str, profile: RadarPr
             loss_sum += float(loss) * len(samples)
         for sample, decoded in zip(samples, detector.decode(outputs, k=20, score_threshold=score_threshold),
                                    strict=True):
-            scorer.add(Centres.from_mapping(decoded), sample["objects"][:int(sample["n_objects"])])
+            centres = Centres.from_mapping(decoded)
+            if doppler_refinement is not None:  # (D, R, A) -> (R, A, D) dB
+                centres = refine_doppler(sample["input"].float().numpy().transpose(1, 2, 0), centres,
+                                         doppler_refinement)
+            scorer.add(centres, sample["objects"][:int(sample["n_objects"])])
     result = dict(scorer.summary())
     if with_loss:
         result["loss"] = loss_sum / max(len(indices), 1)

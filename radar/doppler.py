@@ -82,3 +82,6 @@ def refine_doppler(log_power: np.ndarray, centres: Centres, config: DopplerRefin
         if weight.sum() > 0:
             doppler[i] = float((weight * window).sum() / weight.sum())
     return Centres(centres.score, centres.range_bin, centres.angle_bin, np.mod(doppler, n_doppler))
+
+
+DOPPLER_REFINEMENT = DopplerRefinement()  # the default applied by models.erasenet.EraseNet and the AP scorers
