@@ -57,7 +57,7 @@ def parse_config(module: ModuleType, argv: Sequence[str] | None, prog: str) -> A
 # 0 meaning "all" or "the profile's", becomes the cap).
 SMOKE_ENV = "RADARSEG_SMOKE"
 SMOKE_CAPS: dict[str, tuple[int, bool]] = {
-    "sequences": (4, False), "frames": (2, False), "shard_frames": (2, False),  # preprocess
+    "sequences": (4, False), "frames": (6, False), "shard_frames": (2, False),  # preprocess (TMVA-Net needs 5)
     "epochs": (1, True), "max_steps": (2, True), "batch_size": (2, True),  # training
     "max_frames": (2, True), "pictures": (1, False), "sweep_frames": (2, False),  # evaluate, compare, slim-sweep
     "limit": (4, True), "finetune_steps": (1, False), "finetune_steps_baseline": (1, False),
