@@ -70,7 +70,8 @@ def smoke_mode() -> bool:
 
 
 def smoke_config(cfg: Any) -> Any:
-    """``cfg`` with every size in :data:`SMOKE_CAPS` capped, one ratio of a sweep, one torch thread."""
+    """``cfg`` with every size in :data:`SMOKE_CAPS` capped, one ratio of a sweep, one torch thread, sharded jobs
+    in process."""
     if not dataclasses.is_dataclass(cfg):
         return cfg
     fields = {f.name for f in dataclasses.fields(cfg)}
@@ -86,6 +87,8 @@ def smoke_config(cfg: Any) -> Any:
         changes["ratios"] = tuple(cfg.ratios[:1])
     if "threads" in fields:
         changes["threads"] = 1
+    if "in_process" in fields:  # sharded jobs: every shard in this process, no Ray start (tests/deploy runs Ray)
+        changes["in_process"] = True
     return dataclasses.replace(cfg, **changes)
 
 

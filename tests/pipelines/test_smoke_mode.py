@@ -1,0 +1,25 @@
+"""RADARSEG_SMOKE=1: a job's command runs as written on tiny sizes (what the README-command test relies on)."""
+
+from __future__ import annotations
+
+from pipelines.jobs import smoke_config
+from pipelines.preprocess import PreprocessConfig
+from pipelines.training.config import TrainConfig
+
+
+def test_smoke_caps_sizes_and_fills_unset_budgets():
+    pre = smoke_config(PreprocessConfig(source="sim", out="x.zarr", sequences=1000, frames=3, shard_frames=8))
+    assert (pre.sequences, pre.frames, pre.shard_frames, pre.in_process) == (4, 3, 2, True)
+    assert smoke_config(PreprocessConfig(source="sim", out="x.zarr")).sequences is None  # the job's default (2)
+    train = smoke_config(TrainConfig(stage="detector", store="s.zarr", out="runs/det"))
+    assert (train.epochs, train.max_steps, train.batch_size, train.threads) == (1, 2, 2, 1)
+    assert smoke_config(TrainConfig(stage="detector", store="s.zarr", out="r", epochs=1, max_steps=1)).max_steps == 1
+
+
+def test_smoke_mode_is_read_from_the_environment(monkeypatch, small_store, tmp_path):
+    from pipelines.jobs import run_job
+
+    monkeypatch.setenv("RADARSEG_SMOKE", "1")
+    result, _ = run_job("pipelines.preprocess", ["--source", "sim", "--sequences", "50", "--frames", "9",
+                                                 "--out", str(tmp_path / "s.zarr"), "--no-progress"], prog="t")
+    assert result["frames"] == 4 * 6
