@@ -39,8 +39,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from pipelines.demo import run_demo
     from pipelines.jobs import smoke_mode
 
-    # RADARSEG_SMOKE: the same steps on 3 sequences of 2 frames, one frame segmented
-    result = run_demo(args.out, **({"frames": 2, "pictures": 2, "segment_frames": 1} if smoke_mode() else {}))
+    # RADARSEG_SMOKE: the same steps on 3 sequences of 2 frames, preprocessed in process, one frame segmented
+    smoke = {"frames": 2, "pictures": 2, "segment_frames": 1, "in_process": True}
+    result = run_demo(args.out, **(smoke if smoke_mode() else {}))
     print(f"simulated {result['frames']} frames into {result['recording']}")
     print("RA/RD pictures with labels:")
     for path in result["pictures"]:

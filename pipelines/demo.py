@@ -20,7 +20,7 @@ SHIPPED = Path(__file__).resolve().parents[1] / "checkpoints"
 
 def run_demo(out: str | Path = "out/demo", *, preset: str = "small", sequences: int = 3, frames: int = 6,
              seed: int = 7, pictures: int = 4, store: bool = True, segment_frames: int = 4,
-             checkpoints: str | Path = SHIPPED, service: bool = True) -> dict[str, object]:
+             checkpoints: str | Path = SHIPPED, service: bool = True, in_process: bool = False) -> dict[str, object]:
     out = Path(out)
     rec_dir = out / "recording"
     store_dir = out / "store.zarr"
@@ -40,7 +40,8 @@ def run_demo(out: str | Path = "out/demo", *, preset: str = "small", sequences: 
         # with 3 sequences: one each for train / val / test (split by sequence, in name order)
         fractions = (0.5, 0.25, 0.25) if sequences >= 3 else None
         preprocess(PreprocessConfig(source=f"recording:{rec_dir.absolute()}", out=str(store_dir.absolute()),
-                                    shard_frames=4, split_fractions=fractions, progress=False))
+                                    shard_frames=4, split_fractions=fractions, progress=False,
+                                    in_process=in_process))
         result["store"] = store_dir
         checkpoints = Path(checkpoints)
         if segment_frames and (checkpoints / "detector.pt").is_file() and (checkpoints / "segmenter.pt").is_file():
