@@ -332,7 +332,8 @@ def main() -> dict:
                 results[part] = figures
         finally:
             stop_process(proc, grace_s=30)
-    results.pop("target", None)  # older layout: now under levels
+    if "levels" in parts:
+        results.pop("target", None)  # the older layout's; now under levels
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(results, indent=2) + "\n")
     print(f"written to {RESULTS.relative_to(REPO)}")

@@ -108,7 +108,7 @@ class ServedModel:
 
         profile = net.profile
         cubes = [point_target_cube(profile, profile.max_range / 3, 0.0, 1.0, rcs_dbsm=20.0, noise=True, seed=0)]
-        cubes += [frame.cube for frame in simulate_sequence(profile, 2, seed=0)]
+        cubes += [frame.cube for frame in simulate_sequence(profile, 1, seed=0)]
         for cube in cubes:
             result = net.segment(cube)
             self.segment_macs_high = max(self.segment_macs_high, result.compute["macs"]["segment"])

@@ -176,6 +176,14 @@ def test_openapi_describes_every_error(client):
     assert set(segment["requestBody"]["content"]) == {"application/x-npy", "application/octet-stream"}
     assert "403" in spec["paths"]["/v1/usage"]["get"]["responses"]
     assert "503" in spec["paths"]["/readyz"]["get"]["responses"]
+    # what the service sends: parameter errors in the ErrorBody shape (issue 17: the document said otherwise)
+    usage_422 = spec["paths"]["/v1/usage"]["get"]["responses"]["422"]["content"]["application/json"]["schema"]
+    assert usage_422 == {"$ref": "#/components/schemas/ErrorBody"} and "HTTPValidationError" not in spec["components"]
+    assert client.get("/v1/usage?days=0").json()["error"] == "invalid_parameters"
+    # the product card's path is the same operation, and every keyed operation documents ambiguous credentials
+    alias = spec["paths"]["/segment"]["post"]
+    assert alias["responses"].keys() == segment["responses"].keys() and "408" in alias["responses"]
+    assert all("400" in op["responses"] for ops in spec["paths"].values() for op in ops.values() if op.get("security"))
 
 
 def test_metrics_are_exposed_with_bounded_labels(client, cube_body):

@@ -180,3 +180,39 @@ def test_reservations_never_let_the_billed_total_pass_the_limit(ledger_url_and_p
     assert totals.macs <= limit and totals.reserved_macs == 0
     assert ledger.request_sums("acme")[1] == totals.macs
     ledger.dispose()
+
+
+def test_expired_leases_are_given_back_once(ledger_url_and_prefix):
+    """A lease left by a request cut off by a crash blocks its tenant until its deadline, is then reclaimed by
+    the next reservation, and is never given back twice (a late settle or release of it gives back nothing)."""
+    url, prefix = ledger_url_and_prefix
+    ledger = Ledger(url, table_prefix=prefix)
+    ledger.create()
+    day, limit = dt.date(2030, 1, 4), 1000
+    t0 = dt.datetime(2030, 1, 4, 12, tzinfo=dt.UTC)
+    cut_off = ledger.reserve("acme", 600, limit, lease_s=60, day=day, now=t0)
+    assert not isinstance(cut_off, QuotaExceeded)
+    blocked = ledger.reserve("acme", 600, limit, lease_s=60, day=day, now=t0 + dt.timedelta(seconds=30))
+    assert isinstance(blocked, QuotaExceeded) and blocked.reserved_macs == 600
+    assert ledger.held("acme", day, now=t0 + dt.timedelta(seconds=30)).leases == 1
+    later = t0 + dt.timedelta(seconds=61)
+    assert ledger.held("acme", day, now=later).expired_macs == 600
+    lease = ledger.reserve("acme", 600, limit, lease_s=60, day=day, now=later)  # reclaims, then fits
+    assert not isinstance(lease, QuotaExceeded) and ledger.day_totals("acme", day).reserved_macs == 600
+    ledger.release(cut_off)  # the crashed request's lease is gone already: nothing more is given back
+    assert ledger.day_totals("acme", day).reserved_macs == 600
+    billed = ledger.settle("acme", model="m", macs=550, compute_us=1, lease=lease, limit=limit)
+    assert not isinstance(billed, QuotaExceeded) and (billed.macs, billed.reserved_macs) == (550, 0)
+    assert ledger.reclaim_expired(now=later + dt.timedelta(days=1)) == 0
+    ledger.dispose()
+
+
+def test_ledger_recent_maximum_survives_reopening(tmp_path):
+    ledger = Ledger(f"sqlite:///{tmp_path / 'l.sqlite3'}")
+    ledger.create()
+    for macs in (5, 50, 20):
+        ledger.settle("acme", model="m", macs=macs, compute_us=1)
+    ledger.dispose()
+    reopened = Ledger(f"sqlite:///{tmp_path / 'l.sqlite3'}")
+    assert (reopened.recent_max_macs("m"), reopened.recent_max_macs("other")) == (50, 0)
+    reopened.dispose()
