@@ -76,7 +76,7 @@ class ServedModel:
         ``threads`` torch threads; on failure record why (the service stays up, not ready)."""
         detector, segmenter = resolve_path(self.spec.detector), resolve_path(self.spec.segmenter)
         executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}",
-                                      initializer=_set_torch_threads, initargs=(threads,))
+                                      initializer=set_torch_threads, initargs=(threads,))
 
         def build() -> EraseNet:
             return EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
@@ -159,7 +159,7 @@ class ServedModel:
             self._executor = None
 
 
-def _set_torch_threads(threads: int) -> None:
+def set_torch_threads(threads: int) -> None:
     """Initializer of an inference thread: torch's intra-op thread count applies per calling thread."""
     import torch
 
