@@ -16,6 +16,7 @@ from pipelines.scoring import frame_centres
 from pipelines.spread import subset
 from pipelines.store import StoreDataset
 from radar.detections import Centres
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
 from radar.profiles import get_profile
 
 JITTER_MATCH_M = 3.0  # a detection within this many metres (and bins of Doppler) of a truth is "its" detection
@@ -71,10 +72,12 @@ def _match(pred: np.ndarray, truth: np.ndarray, profile) -> tuple[list[np.ndarra
 @torch.no_grad()
 def measure_detector_errors(detector_path: str | Path, store: str | Path, split: str = "val", *,
                             score_threshold: float = 0.3, max_frames: int = 0,
-                            device: torch.device | str = "cpu") -> SeedJitter:
+                            device: torch.device | str = "cpu",
+                            doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT) -> SeedJitter:
     """Errors of a trained detector on a split: for each ground-truth object, the nearest detection
     within :data:`JITTER_MATCH_M` metres and Doppler bins gives a residual (prediction - truth, bins).
-    Also reports the miss rate and false positives per frame (in ``stats``)."""
+    Also reports the miss rate and false positives per frame (in ``stats``). Doppler is refined from the cube as
+    EraseNet refines it (:mod:`radar.doppler`) unless ``doppler_refinement`` is None."""
     checkpoint = load_checkpoint(detector_path)
     detector = checkpoint.build(device=device)
     profile = get_profile(checkpoint.preset)
@@ -89,7 +92,11 @@ def measure_detector_errors(detector_path: str | Path, store: str | Path, split:
         for sample, decoded in zip(samples, detector.decode(outputs, k=20, score_threshold=score_threshold),
                                    strict=True):
             truth = frame_centres(sample)
-            found, missed, unmatched = _match(Centres.from_mapping(decoded).bins, truth, profile)
+            centres = Centres.from_mapping(decoded)
+            if doppler_refinement is not None:  # the seeds EraseNet grows from: (D, R, A) -> (R, A, D) dB
+                centres = refine_doppler(sample["input"].float().numpy().transpose(1, 2, 0), centres,
+                                         doppler_refinement)
+            found, missed, unmatched = _match(centres.bins, truth, profile)
             residuals += found
             misses += missed
             false_pos += unmatched
