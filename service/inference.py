@@ -84,8 +84,8 @@ class ServedModel:
 
         # Built and warmed on the inference threads themselves: no other thread of the process runs torch, so
         # each replica's OpenMP team is the only one (a second team's idle threads compete for the cores).
-        try:
-            nets = [future.result() for future in [executor.submit(build) for _ in range(replicas)]]
+        try:  # one after the other: building (tracing) a model is not assumed to be thread-safe
+            nets = [executor.submit(build).result() for _ in range(replicas)]
         except (CheckpointError, ValueError, KeyError, RuntimeError) as exc:
             executor.shutdown(wait=True)
             self.error = str(exc)

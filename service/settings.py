@@ -65,7 +65,8 @@ class Settings(BaseSettings):
     max_queue: Annotated[int, Field(ge=0, le=1024)] = 8  # requests waiting per model beyond the running ones
     retry_after_s: Annotated[int, Field(ge=1, le=3600)] = 1
     warmup: bool = True  # run each model once at start-up (the first torch call of a process is slow)
-    # torch intra-op threads of each replica's inference thread; None: the CPUs divided among the replicas
+    # torch intra-op threads of each replica's inference thread; None: OMP_NUM_THREADS if set, else the CPUs
+    # divided among the replicas
     torch_threads: Annotated[int | None, Field(ge=1, le=256)] = None
     # a complex128 carrada cube (256 x 256 x 64) and its header; the header check refuses other shapes early
     max_body_bytes: Annotated[int, Field(ge=1024, le=MAX_BODY_LIMIT)] = 64 * 2**20 + 65536
@@ -157,7 +158,11 @@ class Settings(BaseSettings):
 
     @property
     def inference_threads(self) -> int:
-        """torch threads per replica: ``torch_threads``, else the CPUs shared among the replicas."""
+        """torch threads per replica: ``torch_threads``, else ``OMP_NUM_THREADS`` when set (Ray sets it to an
+        actor's CPUs), else the CPUs shared among the replicas."""
+        omp = os.environ.get("OMP_NUM_THREADS", "")
+        if self.torch_threads is None and omp.isdigit() and int(omp) > 0:
+            return int(omp)
         return self.torch_threads or max(1, (os.cpu_count() or 1) // self.replicas)
 
     @property
