@@ -12,6 +12,7 @@ params, 0.49 GMACs at 256 x 256 (carrada), 1.46 GMACs at 424 x 512 (nxp).
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import platform
@@ -23,6 +24,7 @@ import torch
 
 from models.compute import count_macs
 from models.detector.centre_detector import SMALLER_VARIANT, VARIANTS
+from models.detector.inference import FrozenDetector
 from models.registry import create_model
 from radar.profiles import get_profile
 
@@ -75,6 +77,30 @@ def latency(preset: str, variant: str, repeats: int, warmup: int = 2) -> dict:
     return {"median_s": statistics.median(times), "min_s": min(times), "repeats": repeats}
 
 
+def inference_forms(preset: str, repeats: int) -> dict:
+    """Forward ms of the chosen variant in each inference form, interleaved in one loop (ratios are what
+    count on a shared machine): eager, channels_last, and FrozenDetector (BN folded, channels_last, traced)."""
+    n_range, n_angle, n_doppler = get_profile(preset).shape
+    torch.manual_seed(0)
+    model = create_model("centre_detector", preset=preset, variant=SMALLER_VARIANT).eval()
+    log_power = torch.randn(1, n_doppler, n_range, n_angle)
+    channels_last = copy.deepcopy(model).to(memory_format=torch.channels_last)
+    forms = {"eager": (model, log_power),
+             "channels_last": (channels_last, log_power.contiguous(memory_format=torch.channels_last)),
+             "folded_channels_last_traced": (FrozenDetector(model, tuple(log_power.shape)), log_power)}
+    times: dict[str, list[float]] = {name: [] for name in forms}
+    with torch.inference_mode():
+        reference = model(log_power)["heatmap"]
+        max_diff = {name: float((m(x)["heatmap"] - reference).abs().max()) for name, (m, x) in forms.items()}
+        for _ in range(repeats):
+            for name, (m, x) in forms.items():
+                start = time.perf_counter()
+                m(x)
+                times[name].append(time.perf_counter() - start)
+    return {name: {"median_s": statistics.median(t), "min_s": min(t), "max_abs_diff_heatmap": max_diff[name]}
+            for name, t in times.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeats", type=int, default=10)
@@ -86,6 +112,8 @@ def main() -> None:
     table = cost_table()
     closest = closest_to_paper(table)
     timings = {preset: latency(preset, SMALLER_VARIANT, args.repeats) for preset in PRESETS}
+    load_forms = os.getloadavg()
+    forms = {preset: inference_forms(preset, args.repeats) for preset in ("small", "carrada")}
     results = {
         "machine": {
             "cpu": platform.processor() or platform.machine(),
@@ -101,6 +129,7 @@ def main() -> None:
         "variants": {name: v.description for name, v in VARIANTS.items()},
         "cost": table,
         "latency_chosen_variant": timings,
+        "inference_forms": {"load_average_before": load_forms, "load_average_after": os.getloadavg(), **forms},
     }
 
     print(f"{'preset':8} {'variant':12} {'params M':>9} {'GMACs':>7} {'GMACs w/o D-conv':>17}")
@@ -115,6 +144,10 @@ def main() -> None:
     print(f"forward latency of {SMALLER_VARIANT!r}, batch 1, {args.threads} thread(s):")
     for preset, timing in timings.items():
         print(f"  {preset:8} median {timing['median_s'] * 1e3:7.1f} ms   min {timing['min_s'] * 1e3:7.1f} ms")
+    print(f"inference forms of {SMALLER_VARIANT!r} (interleaved; median / min ms), load {load_forms[0]:.2f}:")
+    for preset, rows in forms.items():
+        print(f"  {preset:8} " + "   ".join(f"{name} {row['median_s'] * 1e3:.1f} / {row['min_s'] * 1e3:.1f}"
+                                          for name, row in rows.items()))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))
     print(f"written to {args.out}")

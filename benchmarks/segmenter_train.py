@@ -7,16 +7,25 @@ measured. Prints the figures and merges them under ``--label`` into benchmarks/r
 (one label per code version, e.g. ``before`` and ``after``); never asserts a time.
 
     .venv/bin/python -m benchmarks.segmenter_train --label after [--frames 8] [--batch-size 2] [--repeats 3] [--smoke]
+    .venv/bin/python -m benchmarks.segmenter_train --against b4750c9 --rounds 3   # before/after, interleaved
+
+``--against REF`` exports that commit's tree (``git archive``) to a temporary folder and runs this benchmark
+there and here in alternating processes, ``--rounds`` times each, so both versions see the same machine
+load; it records both and the ratio of their median step times under the label ``REF..HEAD``.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import os
 import platform
 import statistics
 import subprocess
+import sys
+import tarfile
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -124,7 +133,41 @@ def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     return result
 
 
-def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path]:
+def against(ref: str, rounds: int, cfg: BenchConfig, output: Path) -> dict:
+    """Interleaved before (commit `ref`) / after (this tree) runs in separate processes; see the docstring."""
+    repo = Path(__file__).resolve().parents[1]
+    args = ["-m", "benchmarks.segmenter_train", "--preset", cfg.preset, "--frames", str(cfg.frames),
+            "--batch-size", str(cfg.batch_size), "--repeats", str(cfg.repeats), "--threads", str(cfg.threads)]
+    steps: dict[str, dict[float, list[float]]] = {"before": {}, "after": {}}
+    load_before = os.getloadavg()
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(["git", "archive", ref], cwd=repo, capture_output=True, check=True).stdout
+        old_tree = Path(tmp) / "tree"
+        with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+            tar.extractall(old_tree, filter="data")
+        for _ in range(rounds):
+            for label, tree in (("before", old_tree), ("after", repo)):
+                out = Path(tmp) / f"{label}.json"
+                subprocess.run([sys.executable, *args, "--label", label, "--output", str(out)], cwd=tree, check=True,
+                               env={**os.environ, "PYTHONPATH": str(tree)}, stdout=subprocess.DEVNULL)
+                for row in json.loads(out.read_text())[label]["rows"]:
+                    steps[label].setdefault(row["ratio"], []).append(row["median_step_s"])
+    rows = []
+    for ratio in steps["after"]:
+        before, after = statistics.median(steps["before"][ratio]), statistics.median(steps["after"][ratio])
+        rows.append({"ratio": ratio, "before_step_s": before, "after_step_s": after, "speedup": before / after,
+                     "before_runs": steps["before"][ratio], "after_runs": steps["after"][ratio]})
+        print(f"MinkUNet ratio {ratio}: before {before * 1e3:.0f} ms/step ({1 / before:.2f} steps/s), after "
+              f"{after * 1e3:.0f} ms/step ({1 / after:.2f} steps/s): {before / after:.2f}x")
+    result = {"config": asdict(cfg), "ref": ref, "rounds": rounds, "rows": rows,
+              "machine": {"load_average_before": load_before, "load_average_after": os.getloadavg()}}
+    merged = json.loads(output.read_text()) if output.is_file() else {}
+    merged[f"{ref}..HEAD"] = result
+    output.write_text(json.dumps(merged, indent=2) + "\n")
+    return result
+
+
+def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path, str | None, int]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--label", default="after", help="key of this run in the results file")
     parser.add_argument("--preset", default="small")
@@ -134,14 +177,20 @@ def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path]:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--smoke", action="store_true", help="two frames, one repeat, the shipped ratio only")
     parser.add_argument("--output", default=str(RESULTS))
+    parser.add_argument("--against", help="git commit to compare with, interleaved (see the docstring)")
+    parser.add_argument("--rounds", type=int, default=3, help="with --against: runs of each version")
     args = parser.parse_args(argv)
     if args.smoke:
         cfg = BenchConfig(preset=args.preset, frames=2, batch_size=1, repeats=1, ratios=(0.25,), threads=args.threads)
     else:
         cfg = BenchConfig(preset=args.preset, frames=args.frames, batch_size=args.batch_size, repeats=args.repeats,
                           threads=args.threads)
-    return cfg, args.label, Path(args.output)
+    return cfg, args.label, Path(args.output), args.against, args.rounds
 
 
 if __name__ == "__main__":
-    main(*parse_args())
+    config, label, output_path, ref, n_rounds = parse_args()
+    if ref:
+        against(ref, n_rounds, config, output_path)
+    else:
+        main(config, label, output_path)

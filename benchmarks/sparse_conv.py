@@ -5,7 +5,11 @@ Measured side by side in one run:
   bounding grid, next to a dense `nn.Conv3d` on that bounding grid; two layouts: solid blobs like
   region-grown ROIs (about 21 neighbours per voxel) and uniformly random voxels (about 2);
 - a MinkUNet (ratio 0.37, 4 features, 5 classes) SGD training step at 5k and 20k voxels, kernel maps
-  built inside the step as in training.
+  built inside the step as in training;
+- the engine's paths side by side on ROI-like blobs (`paths`): a 3^3 map built through the dense index
+  grid and through hashing, and a 3^3 submanifold conv forward + backward at 8-64 channels on the
+  per-offset path, the GEMM path and the one `choose_path` picks; and, when spconv happens to be
+  importable (not a dependency), its CPU forward on the same voxels.
 
 Prints the figures and writes them to `benchmarks/results/sparse_conv.json`. Never asserts a time.
 
@@ -16,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import time
@@ -27,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from models.segmenter.minkunet import MinkUNet
-from models.sparse import SparseTensor, SubmanifoldConv3d, count_macs
+from models.sparse import SparseTensor, SubmanifoldConv3d, VoxelIndex, build_kernel_map, choose_path, count_macs
 
 RESULTS = Path(__file__).parent / "results" / "sparse_conv.json"
 
@@ -40,6 +45,8 @@ class BenchConfig:
     conv_voxels: tuple[int, ...] = (20_000, 100_000)
     layouts: tuple[str, ...] = ("blobs", "uniform")  # solid ROI-like blobs; uniform random voxels
     step_voxels: tuple[int, ...] = (5_000, 20_000)
+    path_voxels: int = 20_000
+    path_channels: tuple[int, ...] = (8, 16, 32, 64)
     density: float = 0.05
     repeats: int = 7
     dense_repeats: int = 2
@@ -184,6 +191,62 @@ def bench_minkunet_step(num_voxels: int, cfg: BenchConfig, device: torch.device)
     }
 
 
+def bench_paths(cfg: BenchConfig, device: torch.device) -> dict:
+    """Map building (grid, hashing) and a 3^3 conv C -> C, forward + backward, per path, interleaved."""
+    generator = torch.Generator().manual_seed(cfg.seed + 2)
+    coords = clustered_voxels(cfg.path_voxels, cfg.density, generator).to(device)
+    out = {"voxels": cfg.path_voxels}
+    map_times = {"grid": [], "hashing": []}
+    for _ in range(cfg.repeats):
+        for name, max_cells in (("grid", None), ("hashing", 0)):
+            start = time.perf_counter()
+            index = VoxelIndex(coords) if max_cells is None else VoxelIndex(coords, max_cells=max_cells)
+            build_kernel_map(index, coords, 3, 1, same_coords=True)
+            map_times[name].append(time.perf_counter() - start)
+    out["map_build_s"] = {name: statistics.median(t) for name, t in map_times.items()}
+    kernel_map = SparseTensor(coords, torch.zeros(len(coords), 1, device=device)).cache.kernel_map(1, 3, 1)
+    out["fill"] = kernel_map.num_pairs / (kernel_map.num_out * kernel_map.num_offsets)
+    rows = []
+    for channels in cfg.path_channels:
+        feats = torch.randn(len(coords), channels, generator=generator).to(device).requires_grad_(True)
+        conv = SubmanifoldConv3d(channels, channels).to(device)
+        x = SparseTensor(coords, feats)
+        times = {"per_offset": [], "gemm": []}
+        for _ in range(cfg.repeats):
+            for path in times:
+                conv.path = path
+                start = time.perf_counter()
+                conv(x).feats.sum().backward()
+                times[path].append(time.perf_counter() - start)
+        row = {"channels": channels, "chosen": choose_path(kernel_map, channels, channels, transposed=False),
+               "useful_macs": conv.last_macs, **{f"{p}_fwd_bwd_s": statistics.median(t) for p, t in times.items()}}
+        row["gemm_over_per_offset"] = row["gemm_fwd_bwd_s"] / row["per_offset_fwd_bwd_s"]
+        row["spconv_fwd_s"] = spconv_forward(coords, channels, cfg.repeats)
+        rows.append(row)
+    out["submanifold_fwd_bwd"] = rows
+    return out
+
+
+def spconv_forward(coords: Tensor, channels: int, repeats: int) -> float | None:
+    """spconv's CPU forward of a 3^3 submanifold conv on the same voxels (index build included), or None
+    when spconv is not importable (it is not a dependency)."""
+    try:
+        import spconv.pytorch as spconv  # noqa: PLC0415
+    except ImportError:
+        return None
+    spatial = coords[:, 1:].max(dim=0).values + 1
+    conv = spconv.SubMConv3d(channels, channels, 3, bias=False, indice_key="bench")
+    feats = torch.randn(len(coords), channels)
+    indices = coords.int().cpu()
+    times = []
+    with torch.no_grad():
+        for _ in range(repeats + 1):
+            start = time.perf_counter()
+            conv(spconv.SparseConvTensor(feats, indices, spatial.tolist(), 1))
+            times.append(time.perf_counter() - start)
+    return statistics.median(times[1:])
+
+
 def main(cfg: BenchConfig) -> dict:
     """Run every measurement, write the JSON file, return the results."""
     device = torch.device(cfg.device)
@@ -193,12 +256,15 @@ def main(cfg: BenchConfig) -> dict:
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
             "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+            "load_average_before": os.getloadavg(),
         },
         "submanifold_conv_32_32": [
             bench_submanifold_vs_dense(n, layout, cfg, device) for layout in cfg.layouts for n in cfg.conv_voxels
         ],
         "minkunet_r037_train_step": [bench_minkunet_step(n, cfg, device) for n in cfg.step_voxels],
+        "paths": bench_paths(cfg, device),
     }
+    results["machine"]["load_average_after"] = os.getloadavg()
     output = Path(cfg.output)
     output.parent.mkdir(parents=True, exist_ok=True)
     output.write_text(json.dumps(results, indent=2) + "\n")
@@ -214,9 +280,20 @@ def parse_args(argv: list[str] | None = None) -> BenchConfig:
     if args.smoke:
         return BenchConfig(
             device=args.device, conv_voxels=(2_000,), step_voxels=(1_000,), repeats=1, dense_repeats=1,
-            output=args.output,
+            path_voxels=2_000, path_channels=(8,), output=args.output,
         )  # fmt: skip
     return BenchConfig(device=args.device, output=args.output)
+
+
+def _print_paths(paths: dict) -> None:
+    maps = paths["map_build_s"]
+    print(f"engine paths on {paths['voxels']} blob voxels (fill {paths['fill']:.2f}): 3^3 map grid "
+          f"{maps['grid'] * 1e3:.1f} ms, hashing {maps['hashing'] * 1e3:.1f} ms")
+    for row in paths["submanifold_fwd_bwd"]:
+        spconv_ms = "n/a" if row["spconv_fwd_s"] is None else f"{row['spconv_fwd_s'] * 1e3:.1f} ms"
+        print(f"  {row['channels']:3} ch fwd+bwd: per_offset {row['per_offset_fwd_bwd_s'] * 1e3:7.1f} ms, gemm "
+              f"{row['gemm_fwd_bwd_s'] * 1e3:7.1f} ms (x{row['gemm_over_per_offset']:.2f}), chosen {row['chosen']}; "
+              f"spconv fwd {spconv_ms}")
 
 
 def report(results: dict) -> None:
@@ -233,6 +310,7 @@ def report(results: dict) -> None:
             f"{row['sparse_fwd_bwd_min_s']:>7.4f} {row['dense_fwd_bwd_s']:>9.3f} {row['dense_fwd_bwd_min_s']:>7.3f} "
             f"{row['dense_over_sparse']:>12.1f}"
         )
+    _print_paths(results["paths"])
     print("MinkUNet ratio 0.37 training step (SGD, maps built in the step)")
     for row in results["minkunet_r037_train_step"]:
         print(

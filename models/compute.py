@@ -51,7 +51,8 @@ class ComputeReport:
     per output position, as the paper's counter did. ``dynamic_macs``: the part of ``macs`` reported
     by data-dependent modules (``last_macs``). ``by_stage``: ``macs`` per top-level child module
     (``"(root)"`` for layers of the model itself). ``input_shapes``: the shapes counted for (batch
-    included: MACs scale with the batch).
+    included: MACs scale with the batch). ``executed_macs``: the MACs the kernels actually ran (a sparse
+    conv on its GEMM path also multiplies the zeros of missing neighbours); None when equal to ``macs``.
     """
 
     params: int
@@ -60,6 +61,7 @@ class ComputeReport:
     dynamic_macs: int = 0
     by_stage: dict[str, int] = field(default_factory=dict)
     input_shapes: tuple[tuple[int, ...], ...] = ()
+    executed_macs: int | None = None  # what the kernels ran (sparse GEMM paths multiply zeros too); None: = macs
 
     @property
     def gmacs(self) -> float:
@@ -77,7 +79,13 @@ class ComputeReport:
             dynamic_macs=self.dynamic_macs + other.dynamic_macs,
             by_stage=by_stage,
             input_shapes=self.input_shapes + other.input_shapes,
+            executed_macs=self.executed + other.executed,
         )
+
+    @property
+    def executed(self) -> int:
+        """MACs the kernels ran (``executed_macs``, or ``macs`` where not recorded)."""
+        return self.macs if self.executed_macs is None else self.executed_macs
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON, with the two MAC conventions labelled."""
@@ -88,6 +96,7 @@ class ComputeReport:
             "macs_paper": self.macs_paper,
             "macs_paper_convention": "transposed convs counted per output position (paper/thop)",
             "dynamic_macs": self.dynamic_macs,
+            "executed_macs": self.executed,
             "by_stage": dict(self.by_stage),
             "input_shapes": [list(shape) for shape in self.input_shapes],
         }
@@ -191,6 +200,7 @@ class MacRecorder:
         self.macs = 0
         self.macs_paper = 0
         self.dynamic_macs = 0
+        self.executed_macs = 0
         self.by_stage: dict[str, int] = {}
         self.input_shapes: tuple[tuple[int, ...], ...] = ()
         self._handles: list[torch.utils.hooks.RemovableHandle] = []
@@ -202,11 +212,13 @@ class MacRecorder:
             if hasattr(module, "last_macs"):
                 correct = paper = int(module.last_macs)
                 self.dynamic_macs += correct
+                self.executed_macs += int(getattr(module, "last_executed_macs", correct))
             else:
                 counted = layer_macs(module, inputs, output)
                 if counted is None:
                     return
                 correct, paper = counted
+                self.executed_macs += correct
             self.macs += correct
             self.macs_paper += paper
             self.by_stage[stage] = self.by_stage.get(stage, 0) + correct
@@ -236,6 +248,7 @@ class MacRecorder:
             dynamic_macs=self.dynamic_macs,
             by_stage=dict(self.by_stage),
             input_shapes=self.input_shapes,
+            executed_macs=self.executed_macs,
         )
 
 

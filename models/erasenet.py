@@ -20,6 +20,7 @@ from torch import nn
 
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import ComputeCounter, MacRecorder, count_params
+from models.detector.inference import FrozenDetector
 from models.segmenter.spvcnn import SPVCNN, PointTensor
 from models.sparse import SparseTensor
 from radar import transforms
@@ -79,7 +80,12 @@ class EraseNet:
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
                  score_threshold: float = 0.3, max_objects: int = 32,
                  doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
-                 region_config: RegionGrowingConfig | None = None, device: str | torch.device = "cpu"):
+                 region_config: RegionGrowingConfig | None = None, device: str | torch.device = "cpu",
+                 frozen_detector: bool = True):
+        """``frozen_detector``: run a detector that has a ``decode`` through
+        :class:`models.detector.inference.FrozenDetector` (traced for this preset's input, BatchNorms folded,
+        channels_last; a copy of its weights taken now). ``self.detector`` stays the eager module (its
+        parameters and MACs are the ones reported)."""
         self.profile = get_profile(profile)
         self.class_names = tuple(class_names or self.profile.all_class_names)
         if len(self.class_names) != self.profile.num_classes:
@@ -96,6 +102,10 @@ class EraseNet:
         # The detector's Doppler passes a 1x1 compression of D bins to 3 channels: refine it from the cube
         # (radar.doppler; None keeps the detector's own estimate).
         self.doppler_refinement = doppler_refinement
+        n_range, n_angle, n_doppler = self.profile.shape
+        self._run_detector: nn.Module = self.detector
+        if frozen_detector and callable(getattr(self.detector, "decode", None)):
+            self._run_detector = FrozenDetector(self.detector, (1, n_doppler, n_range, n_angle), self.device)
         self._detector_counter = ComputeCounter(self.detector)
         self.params = {"detector": count_params(self.detector), "segmenter": count_params(self.segmenter)}
 
@@ -145,12 +155,14 @@ class EraseNet:
         seconds: dict[str, float] = {}
         with _stage(seconds, "transform"):
             log_power = cube.astype(np.float32, copy=False) if is_log_power else transforms.log_power(cube)
-            net_input = (log_power - self.mean_db) / self.std_db
-            x = torch.from_numpy(np.ascontiguousarray(net_input.transpose(2, 0, 1)))[None].to(self.device)
+            # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.
+            cube_view = torch.from_numpy(log_power).to(self.device)[None].permute(0, 3, 1, 2)
+            x = (cube_view - self.mean_db) * (1.0 / self.std_db)
         with _stage(seconds, "detect"):
             if centres is None:
-                outputs = self.detector(x)
-                decoded = self.detector.decode(outputs, k=self.max_objects, score_threshold=self.score_threshold)[0]
+                outputs = self._run_detector(x)
+                decoded = self._run_detector.decode(outputs, k=self.max_objects,
+                                                    score_threshold=self.score_threshold)[0]
                 centres = Centres.from_mapping(decoded)
                 if self.doppler_refinement is not None:
                     centres = refine_doppler(log_power, centres, self.doppler_refinement)
@@ -160,15 +172,20 @@ class EraseNet:
         with _stage(seconds, "grow"):
             regions = grow_regions(log_power, centres, self.profile, self.region_config)
         with _stage(seconds, "segment"):
-            voxel_classes, segment_macs = self._segment_voxels(regions, log_power)
+            voxel_classes, segment_macs, segment_executed = self._segment_voxels(regions, log_power)
         with _stage(seconds, "project"):
             labels = np.zeros(self.profile.shape, np.uint8)
             labels[tuple(regions.voxels.T)] = voxel_classes
-            ra_mask = transforms.project_ra(labels, self.profile.num_classes)
-            rd_mask = transforms.project_rd(labels, self.profile.num_classes)
+            # Background everywhere outside the ROI: project the ROI voxels alone.
+            shape, num_classes = self.profile.shape, self.profile.num_classes
+            ra_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 2, num_classes)
+            rd_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 1, num_classes)
             objects = self._objects(regions, voxel_classes, centres)
         compute = {
             "macs": {"detect": detect_macs, "grow": 0, "segment": segment_macs, "total": detect_macs + segment_macs},
+            # what the kernels ran: the sparse GEMM path also multiplies the zeros of missing neighbours
+            "executed_macs": {"detect": detect_macs, "segment": segment_executed,
+                              "total": detect_macs + segment_executed},
             "params": {**self.params, "total": sum(self.params.values())},
             "seconds": {**{name: seconds.get(name, 0.0) for name in STAGES}, "total": sum(seconds.values())},
             "roi_voxels": len(regions),
@@ -177,10 +194,10 @@ class EraseNet:
         }
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute)
 
-    def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int]:
-        """Class of every ROI voxel (N,) uint8 and the segmenter's MACs."""
+    def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """Class of every ROI voxel (N,) uint8 and the segmenter's useful and executed MACs."""
         if len(regions) == 0:
-            return np.zeros(0, np.uint8), 0
+            return np.zeros(0, np.uint8), 0, 0
         points = roi_points(regions.voxels, log_power, self.profile, mean_db=self.mean_db, std_db=self.std_db)
         feats = torch.from_numpy(points.features).to(self.device)
         coords = torch.from_numpy(points.coords).to(self.device)
@@ -191,7 +208,8 @@ class EraseNet:
             else:
                 logits = self.segmenter(SparseTensor(torch.cat([batch[:, None], coords], dim=1), feats))
         classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
-        return classes[points.inverse], recorder.report().macs
+        report = recorder.report()
+        return classes[points.inverse], report.macs, report.executed
 
     def _objects(self, regions: Regions, voxel_classes: np.ndarray, centres: Centres) -> list[SegmentedObject]:
         """One object per seed whose region holds foreground voxels; class by majority vote."""

@@ -117,6 +117,22 @@ class Regions:
         return int(np.count_nonzero(instances[tuple(self.voxels.T)])) / n_truth
 
 
+def dilate6(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """Binary dilation of a 3-D mask by the 6-connected cross, ``iterations`` times, zero outside the array:
+    the same as ``ndimage.binary_dilation(mask, SIX_CONNECTED, iterations)`` in 6 shifted ORs per iteration,
+    3-5x faster than scipy's general structuring-element loop on ROI boxes."""
+    out = mask.copy()
+    for _ in range(iterations):
+        previous = out.copy()
+        for axis in range(3):
+            lead = [slice(None)] * 3
+            lag = [slice(None)] * 3
+            lead[axis], lag[axis] = slice(1, None), slice(None, -1)
+            out[tuple(lead)] |= previous[tuple(lag)]
+            out[tuple(lag)] |= previous[tuple(lead)]
+    return out
+
+
 def _seed_voxels(seeds: Centres | np.ndarray, log_power: np.ndarray, search: tuple[int, int, int]) -> np.ndarray:
     """Integer seed voxels (S, 3): each seed rounded, then moved to the brightest voxel near it (a
     predicted centre is the mean of an object's voxels and may fall between its scatterers)."""
@@ -179,8 +195,7 @@ def grow_regions(log_power: np.ndarray, seeds: Centres | np.ndarray, profile: Ra
         candidates = (box >= threshold) & disc[:, :, None]
         seed_local = (r0 - r_lo, a0 - a_lo, d0)
         if config.bridge:  # connect across one-voxel gaps, then keep only real candidates
-            linked = ndimage.binary_dilation(candidates, structure=SIX_CONNECTED,
-                                             iterations=config.bridge) & disc[:, :, None]
+            linked = dilate6(candidates, config.bridge) & disc[:, :, None]
             region = flood(linked, seed_local, connectivity=1) & candidates
         else:
             region = flood(candidates, seed_local, connectivity=1)
@@ -189,7 +204,7 @@ def grow_regions(log_power: np.ndarray, seeds: Centres | np.ndarray, profile: Ra
         lo = np.maximum(local.min(axis=0) - 1, 0)
         hi = np.minimum(local.max(axis=0) + 2, region.shape)
         crop = tuple(slice(a, b) for a, b in zip(lo, hi, strict=True))
-        examined = np.argwhere(ndimage.binary_dilation(region[crop], structure=SIX_CONNECTED)) + lo
+        examined = np.argwhere(dilate6(region[crop])) + lo
         offset = np.array([r_lo, a_lo, 0])
         members.append(np.ravel_multi_index(tuple((local + offset).T), shape))
         owners.append(np.full(len(local), i, np.int64))

@@ -13,8 +13,20 @@ def power(cube: np.ndarray) -> np.ndarray:
 
 
 def log_power(cube: np.ndarray) -> np.ndarray:
-    """The model input ``10*log10(|I|^2 + 1)`` in dB, float32, same shape (R, A, D)."""
-    return 10.0 * np.log10(power(cube) + 1.0)
+    """The model input ``10*log10(|I|^2 + 1)`` in dB, float32, same shape (R, A, D).
+
+    One new array, every later step in place (abs, square, +1, log2, scale): about half the time of
+    the expression form, which allocates a temporary per operation.
+    """
+    if np.iscomplexobj(cube) and cube.dtype == np.complex64:
+        out = np.abs(cube)  # float32
+        np.square(out, out=out)
+    else:
+        out = power(cube)
+    out += 1.0
+    np.log2(out, out=out)
+    out *= np.float32(10.0 * np.log10(2.0))
+    return out
 
 
 def ra_view(cube: np.ndarray, *, is_log_power: bool = False) -> np.ndarray:
@@ -45,6 +57,31 @@ def _project(labels: np.ndarray, axis: int, num_classes: int) -> np.ndarray:
     counts = np.stack([(labels == c).sum(axis=axis) for c in range(1, num_classes)], axis=0)
     best = counts.argmax(axis=0) + 1
     return np.where(counts.max(axis=0) > 0, best, 0).astype(np.uint8)
+
+
+def project_voxels(voxels: np.ndarray, classes: np.ndarray, shape: tuple[int, int, int], axis: int,
+                   num_classes: int) -> np.ndarray:
+    """``_project`` of a cube that is background except at ``voxels``, reading only those voxels.
+
+    Args:
+        voxels: (N, 3) int (range, angle, Doppler) bins, unique.
+        classes: (N,) class of each voxel (0 = background).
+        shape: the cube's (R, A, D).
+        axis: the axis projected away (2: RA mask, 1: RD mask).
+        num_classes: classes, background included.
+
+    Returns:
+        The 2-D mask (uint8), equal to ``_project`` of the dense cube (ties to the lower class id).
+    """
+    kept = [a for a in range(3) if a != axis]
+    plane = (shape[kept[0]], shape[kept[1]])
+    foreground = classes > 0
+    cells = voxels[foreground][:, kept[0]] * plane[1] + voxels[foreground][:, kept[1]]
+    counts = np.bincount(cells * num_classes + classes[foreground].astype(np.int64),
+                         minlength=plane[0] * plane[1] * num_classes).reshape(plane[0] * plane[1], num_classes)
+    best = counts[:, 1:].argmax(axis=1) + 1  # argmax keeps the first maximum: the lower class id
+    mask = np.where(counts[:, 1:].max(axis=1) > 0, best, 0).astype(np.uint8)
+    return mask.reshape(plane)
 
 
 def project_ra(labels: np.ndarray, num_classes: int) -> np.ndarray:

@@ -247,3 +247,20 @@ def test_registry_errors():
         register_model("centre_detector")(lambda **cfg: torch.nn.Identity())
     with pytest.raises(ValueError, match="non-empty"):
         register_model("")
+
+
+def test_frozen_detector_equals_the_eager_one_and_folds_every_batch_norm():
+    from models.detector.inference import FrozenDetector
+
+    torch.manual_seed(0)
+    detector = create_model("centre_detector_tiny", preset="small").eval()
+    batch_norms = sum(isinstance(m, torch.nn.BatchNorm2d) for m in detector.modules())
+    log_power = torch.randn(1, 32, 128, 128)
+    frozen = FrozenDetector(detector, tuple(log_power.shape))
+    assert frozen.folded_batch_norms == batch_norms > 0
+    with torch.no_grad():
+        expected, got = detector(log_power), frozen(log_power)
+    for name in expected:
+        torch.testing.assert_close(got[name], expected[name], rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="traced for input"):
+        frozen(torch.randn(1, 32, 64, 128))

@@ -106,3 +106,14 @@ def test_a_cube_described_for_another_radar_is_refused_by_name(frame):
     with pytest.raises(SchemaMismatch, match=r"range.step: expected 0.390625 m, got 0.1953125"):
         net.segment(frame.cube, schema=cube_schema(CARRADA))
     assert net.segment(frame.cube, schema=net.schema()).labels.shape == frame.profile.shape
+
+
+def test_frozen_detector_gives_the_eager_detectors_answer(frame):
+    frozen, eager = _net(score_threshold=0.0, max_objects=3), _net(score_threshold=0.0, max_objects=3,
+                                                                  frozen_detector=False)
+    a, b = frozen.segment(frame.cube), eager.segment(frame.cube)
+    np.testing.assert_allclose(a.centres.bins, b.centres.bins, atol=1e-4)
+    assert np.array_equal(a.labels, b.labels)
+    executed = a.compute["executed_macs"]
+    assert executed["segment"] >= a.compute["macs"]["segment"] > 0
+    assert executed["total"] == executed["detect"] + executed["segment"]

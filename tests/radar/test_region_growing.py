@@ -93,3 +93,15 @@ def test_overlapping_regions_keep_the_first_seed_and_bad_input_is_refused():
         grow_regions(lp, np.array([[np.nan, 1, 1]]), SMALL)
     with pytest.raises(ValueError, match="distance_m"):
         RegionGrowingConfig(distance_m=0)
+
+
+def test_dilate6_equals_scipys_binary_dilation():
+    from scipy import ndimage
+
+    from radar.region_growing import SIX_CONNECTED, dilate6
+
+    mask = np.random.default_rng(4).random((9, 7, 5)) > 0.85
+    mask[0, 0, 0] = mask[-1, -1, -1] = True  # corners: nothing may wrap around
+    for iterations in (1, 2, 3):
+        expected = ndimage.binary_dilation(mask, structure=SIX_CONNECTED, iterations=iterations)
+        assert np.array_equal(dilate6(mask, iterations), expected)

@@ -29,3 +29,26 @@ def test_projection_takes_the_majority_class_along_the_axis():
     assert ra[0, 1] == 2 and ra[1, 2] == 3 and ra[0, 0] == 0
     rd = transforms.project_rd(labels, num_classes=4)
     assert rd[0, 0] == 2 and rd[0, 3] == 1 and rd[1, 0] == 3 and rd[1, 1] == 0
+
+
+def test_log_power_equals_the_formula_to_float_rounding():
+    rng = np.random.default_rng(2)
+    cube = ((rng.normal(size=(8, 6, 4)) + 1j * rng.normal(size=(8, 6, 4))) * 300).astype(np.complex64)
+    expected = 10.0 * np.log10(np.abs(cube.astype(np.complex128)) ** 2 + 1.0)
+    for given in (cube, np.abs(cube), cube.astype(np.complex128)):
+        result = transforms.log_power(given)
+        assert result.dtype == np.float32 and result.shape == cube.shape
+        np.testing.assert_allclose(result, expected, rtol=1e-5, atol=1e-5)
+
+
+def test_projection_of_voxels_equals_the_projection_of_their_cube():
+    rng = np.random.default_rng(3)
+    shape, num_classes = (12, 10, 6), 4
+    flat = rng.choice(np.prod(shape), size=300, replace=False)
+    voxels = np.stack(np.unravel_index(flat, shape), axis=1)
+    classes = rng.integers(0, num_classes, size=len(voxels)).astype(np.uint8)
+    labels = np.zeros(shape, np.uint8)
+    labels[tuple(voxels.T)] = classes
+    for axis, dense in ((2, transforms.project_ra), (1, transforms.project_rd)):
+        projected = transforms.project_voxels(voxels, classes, shape, axis, num_classes)
+        assert np.array_equal(projected, dense(labels, num_classes))
