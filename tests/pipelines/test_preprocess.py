@@ -94,7 +94,7 @@ def test_ray_job_submit_on_a_local_cluster(ray_head, tmp_path):
     assert result["written"] == 24 and result["quarantined"] == 0 and result["shards_run"] == 3
     assert_store_matches_simulator(out, preset="small", sequences=3, frames=8, seed=11)
     attrs = open_store(out).attrs.asdict()
-    assert attrs["job"]["address"] is None and attrs["normalisation"]["frames"] == 16
+    assert attrs["job"]["address"] is None and attrs["normalisation"]["frames"] == 8  # 3 sequences: 1/1/1
 
 
 @pytest.fixture(scope="module")
