@@ -141,12 +141,15 @@ class TrainConfig:
             raise ValueError(f"{name} takes no view (it predicts what it predicts), got {self.view!r}")
 
     def hyper(self) -> Hyper:
-        """The profile's hyperparameters with every override that is not None."""
+        """The profile's hyperparameters with every override that is not None (another ``model`` without a
+        ``model_config`` is built with its builder's defaults: the profile's arguments belong to its own model)."""
         base = PROFILES[self.stage][self.profile]
         overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr", "optimizer")
                      if getattr(self, name) is not None}
         if self.model_config is not None:
             overrides["model_config"] = dict(self.model_config)
+        elif self.model is not None and self.model != base.model:  # the profile's builder arguments are its model's
+            overrides["model_config"] = {}
         if self.jitter_std is not None:
             overrides["jitter_std"] = tuple(self.jitter_std)
         return dataclasses.replace(base, **overrides)

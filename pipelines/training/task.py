@@ -43,7 +43,11 @@ class Task:
         return config
 
     def build_model(self) -> nn.Module:
-        return create_model(self.hyper.model, **self.model_config())
+        try:
+            return create_model(self.hyper.model, **self.model_config())
+        except TypeError as exc:  # an argument the builder does not take: the user's --model-config
+            raise ValueError(f"model {self.hyper.model!r} cannot be built with {self.model_config()}: {exc} "
+                             "(check --model-config)") from None
 
     def prepare(self, model: nn.Module, rank: int) -> None:
         """One-off work before training (rank 0 writes files; every rank must end up with the same state)."""
