@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -60,7 +61,8 @@ def main() -> None:
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "end_to_end.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    results = {"threads": args.threads, "runs": {}}
+    # the machine may be shared: the load average is recorded beside the figures
+    results = {"threads": args.threads, "load_average_before": os.getloadavg(), "runs": {}}
     print(f"{'preset':8} {'segmenter':9} {'seeds':9} {'roi':>7} {'det G':>6} {'seg G':>6} "
           + " ".join(f"{s[:7]:>8}" for s in (*STAGES, "total")) + "   (ms)")
     for preset in ("small", "carrada"):
@@ -72,6 +74,7 @@ def main() -> None:
                 print(f"{preset:8} {segmenter:9} {mode.split('_')[0]:9} {m['roi_voxels']:7.0f} "
                       f"{m['macs']['detect'] / 1e9:6.2f} {m['macs']['segment'] / 1e9:6.2f} "
                       + " ".join(f"{m['seconds'][s] * 1e3:8.1f}" for s in (*STAGES, "total")))
+    results["load_average_after"] = os.getloadavg()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))
     print(f"written to {args.out}")
