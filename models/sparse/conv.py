@@ -249,15 +249,20 @@ GEMM_MIN_FILL = 0.25
 """Smallest fill (pairs / (N_out x K)) at which the GEMM path runs: it executes 1 / fill times the useful
 MACs. On uniformly scattered voxels (fill 0.08) the per-offset path wins."""
 GEMM_MAX_IN_CHANNELS = 16
-"""Widest input of a submanifold (K = 27) conv run by the GEMM path."""
+"""Widest input of a submanifold (K = 27) or transposed conv run by the GEMM path. 24 and 32 measured in the
+second session: training steps at ratio 0.25 within 6 % of 16 (and 64 worse at ratio 0.37), so 16 stays."""
 
 
 def choose_path(kernel_map: KernelMap, in_channels: int, out_channels: int, *, transposed: bool) -> str:
     """The rule measured on the shipped MinkUNet's ROIs (2 x 25k voxels, fill 0.45-0.85 at every stride;
     best of 5 interleaved runs, forward + backward, one thread; `/work/notes/issue16.md`):
 
-    - down/up-sampling (K = 8): GEMM at every width (0.3-0.7x the per-offset time): 8 offsets make the
+    - down-sampling (K = 8): GEMM at every width (0.3-0.7x the per-offset time): 8 offsets make the
       per-offset path pay 24 small operations for about one product per input voxel;
+    - up-sampling (transposed, K = 8): GEMM up to 16 input channels, per-offset above (second session,
+      thread CPU time, fwd + bwd on the same ROI pair: 24 -> 24 at stride 2 5.3 ms against 8.9, 32 -> 24 at
+      stride 4 1.6 against 3.2, 35 -> 35 13.9 against 20.1, 47 -> 35 4.0 against 6.8, equal at 47-94 channels
+      on under 1 k voxels): its GEMM multiplies all 8 children of every coarse voxel, about 2.2x the pairs;
     - submanifold (K = 27): GEMM up to 16 input channels (8 -> 8: 0.45-0.8x at strides 1-4), per-offset
       above (32 -> 24 even, 64 -> 64: per-offset 0.8x the GEMM's time): once a chunk's gathered rows are wide
       the GEMM's wasted MACs (1 / fill - 1 per useful one) cost more than the per-offset overhead;
@@ -267,7 +272,7 @@ def choose_path(kernel_map: KernelMap, in_channels: int, out_channels: int, *, t
     fill = kernel_map.num_pairs / max(1, kernel_map.num_out * kernel_map.num_offsets)
     if fill < GEMM_MIN_FILL:
         return "per_offset"
-    if kernel_map.stride == 1 and in_channels > GEMM_MAX_IN_CHANNELS:
+    if (kernel_map.stride == 1 or transposed) and in_channels > GEMM_MAX_IN_CHANNELS:
         return "per_offset"
     return "gemm"
 

@@ -282,3 +282,23 @@ def test_grid_index_and_hashing_build_the_same_maps(kernel_size, stride):
     centred = list(itertools.product(range(-(kernel_size // 2), kernel_size // 2 + 1), repeat=3))
     offsets = centred if stride == 1 else list(itertools.product(range(stride), repeat=3))
     assert maps[0].num_pairs == brute_force_pairs(coords, out_coords, offsets, stride)
+
+
+def test_choose_path_follows_the_measured_rule():
+    from models.sparse import choose_path
+    from models.sparse.conv import GEMM_MAX_IN_CHANNELS
+    from models.sparse.kernel_map import VoxelIndex, build_kernel_map, downsample_coords
+
+    generator = torch.Generator().manual_seed(3)
+    coords = random_coords(generator, num_per_sample=500, extent=9, batch_size=1)  # dense blob: fill >= 0.25
+    index = VoxelIndex(coords)
+    sub = build_kernel_map(index, coords, 3, 1, same_coords=True)
+    down = build_kernel_map(index, downsample_coords(coords, 2), 2, 2, same_coords=False)
+    narrow, wide = GEMM_MAX_IN_CHANNELS, GEMM_MAX_IN_CHANNELS + 8
+    assert choose_path(sub, narrow, narrow, transposed=False) == "gemm"
+    assert choose_path(sub, wide, wide, transposed=False) == "per_offset"
+    assert choose_path(down, wide, wide, transposed=False) == "gemm"  # down-sampling: GEMM at every width
+    assert choose_path(down, narrow, narrow, transposed=True) == "gemm"
+    assert choose_path(down, wide, wide, transposed=True) == "per_offset"  # up-sampling wide: per offset
+    sparse = build_kernel_map(VoxelIndex(coords[::9] * 3), coords[::9] * 3, 3, 1, same_coords=True)
+    assert choose_path(sparse, narrow, narrow, transposed=False) == "per_offset"  # fill < GEMM_MIN_FILL
