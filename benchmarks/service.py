@@ -54,6 +54,7 @@ RESULTS = REPO / "benchmarks" / "results" / "service.json"
 STAGES = ("transform", "detect", "grow", "segment", "project")
 CLASSES = ("background", "pedestrian", "cyclist", "car")
 SHIPPED = ("checkpoints/detector.pt", "checkpoints/segmenter.pt")
+PAUSE_S = 0.25  # between the interleaved runs of the stages part
 
 
 def _untrained(preset: str, out: Path) -> dict:
@@ -205,13 +206,18 @@ def run_stages(url: str, model: dict, frames: int) -> dict:
     with httpx.Client(timeout=600) as http:
         _one(http, url, "small", _npy(cubes[0]))
         for cube in cubes:
-            timings = {"plain_main_thread": net.segment(cube).compute["seconds"],
-                       "plain_inference_thread": inference_thread.submit(net.segment, cube).result().compute["seconds"]}
+            # a pause after each run: an OpenMP team spins for a while after its work, and the next run (in this
+            # process or in the server) would otherwise share the cores with it
+            timings = {"plain_main_thread": net.segment(cube).compute["seconds"]}
+            time.sleep(PAUSE_S)
+            timings["plain_inference_thread"] = inference_thread.submit(net.segment, cube).result().compute["seconds"]
+            time.sleep(PAUSE_S)
             start = time.perf_counter()
             r = http.post(f"{url}/v1/segment?model=small", content=_npy(cube),
                           headers={"content-type": "application/x-npy"})
             client.append(time.perf_counter() - start)
             timings["service"] = _server_timing(r.headers["server-timing"])
+            time.sleep(PAUSE_S)
             for column, timing in timings.items():
                 for stage in STAGES:
                     seconds[column][stage].append(timing[stage])
