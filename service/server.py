@@ -4,6 +4,8 @@ What an ASGI app cannot do itself, because it happens before a request reaches i
 
 - the port is bound before the models load, so a second server on a busy port fails at once (exit 2)
   instead of loading every model first;
+- a request head must be complete within ``header_timeout_s`` of its first byte (or of the connection): 408, so that
+  a client trickling its headers holds no connection for long (uvicorn times out only idle keep-alive connections);
 - the request head is bounded: more than ``max_header_bytes`` of request line and headers, or more than
   ``max_headers`` headers, is answered 431 (a request line alone over the bound: 414) as soon as the bound
   is passed, without buffering the rest (uvicorn's httptools parser has no such bound: one 32 MiB header was
@@ -15,6 +17,7 @@ What an ASGI app cannot do itself, because it happens before a request reaches i
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import logging
 import socket
@@ -45,6 +48,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
     max_header_bytes = 65536
     max_headers = 100
+    header_timeout_s = 30.0
     linger_s = 2.0  # after refusing, read and drop what the client still sends for this long before closing
 
     def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 (uvicorn's signature)
@@ -55,9 +59,33 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         self._header_count = 0
         self._url_bytes = 0
         self._refused = False
+        self._head_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm_head_timer()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel_head_timer()
+        super().connection_lost(exc)
+
+    def _arm_head_timer(self) -> None:
+        if self._head_timer is None:
+            self._head_timer = self.loop.call_later(self.header_timeout_s, self._head_timed_out)
+
+    def _cancel_head_timer(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _head_timed_out(self) -> None:
+        self._head_timer = None
+        if self._reading_head and (self.cycle is None or self.cycle.response_complete):
+            self._refuse(408, f"request head not complete within {self.header_timeout_s:g} s")
 
     def on_message_begin(self) -> None:
         super().on_message_begin()
+        self._arm_head_timer()
         self._reading_head = True
         self._head_content = self._header_count = self._url_bytes = 0
 
@@ -78,6 +106,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         super().on_header(name, value)
 
     def on_headers_complete(self) -> None:
+        self._cancel_head_timer()
         self._reading_head = False
         self._head_bytes = 0
         super().on_headers_complete()
@@ -123,7 +152,8 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self.cycle.disconnected = True
             self.cycle.message_event.set()
         body = json.dumps({"error": ERROR_TYPES.get(status, "bad_request"), "detail": detail}).encode()
-        reason = {400: b"Bad Request", 414: b"URI Too Long", 431: b"Request Header Fields Too Large"}[status]
+        reason = {400: b"Bad Request", 408: b"Request Timeout", 414: b"URI Too Long",
+                  431: b"Request Header Fields Too Large"}[status]
         self.transport.write(b"".join([
             b"HTTP/1.1 %d %s\r\n" % (status, reason),
             *[name + b": " + value + b"\r\n" for name, value in self.server_state.default_headers],
@@ -139,7 +169,8 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 def guarded_protocol(settings: Settings) -> type[GuardedHttpToolsProtocol]:
     """The protocol class with this service's head limits."""
     return type("ServiceHttpProtocol", (GuardedHttpToolsProtocol,),
-                {"max_header_bytes": settings.max_header_bytes, "max_headers": settings.max_headers})
+                {"max_header_bytes": settings.max_header_bytes, "max_headers": settings.max_headers,
+                 "header_timeout_s": settings.header_timeout_s})
 
 
 class PortInUse(OSError):

@@ -80,6 +80,7 @@ class Settings(BaseSettings):
     # HTTP head limits (the `service.server` runner enforces them before the app sees a request): 431 beyond
     max_header_bytes: Annotated[int, Field(ge=1024, le=2**20)] = 65536  # request line and headers together
     max_headers: Annotated[int, Field(ge=8, le=1000)] = 100
+    header_timeout_s: Annotated[float, Field(ge=0.5, le=600)] = 30.0  # a request head complete within this (408)
     max_json_depth: Annotated[int, Field(ge=2, le=64)] = 16  # nesting of a JSON header (X-Cube-Schema)
 
     api_keys: dict[SecretStr, str] = {}  # key -> tenant; none configured = one anonymous tenant

@@ -35,6 +35,7 @@ ADMIN = {"authorization": f"Bearer {ADMIN_KEY}"}
 LIMITS = {  # small limits so that slow clients are cut off within seconds
     "RADARSEG_BODY_GRACE_S": "1", "RADARSEG_BODY_MIN_RATE": "65536", "RADARSEG_BODY_TIMEOUT_S": "4",
     "RADARSEG_MAX_UPLOADS": "14", "RADARSEG_MAX_HEADER_BYTES": "16384", "RADARSEG_MAX_HEADERS": "50",
+    "RADARSEG_HEADER_TIMEOUT_S": "3",
 }
 
 
@@ -136,6 +137,16 @@ def test_truncated_chunked_body_is_answered_408(server, cube_body):
     head = _head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"})
     status, headers, body = raw_exchange(server.port, [head + b"1000\r\n" + cube_body[:300]])
     _json_error(status, headers, body, 408)
+
+
+def test_a_head_trickled_byte_by_byte_is_cut_off_with_408(server):
+    """Slow headers (before the app sees a request): one byte each half second, answered 408 once the head is
+    not complete within header_timeout_s; the server still answers others."""
+    head = _head("/v1/usage", ACME, method="GET")
+    status, headers, body = raw_exchange(server.port, [head[i:i + 1] for i in range(len(head))], pause_s=0.5)
+    answer = _json_error(status, headers, body, 408)
+    assert "request head not complete within 3 s" in answer["detail"]
+    assert httpx.get(f"{server.url}/healthz", timeout=30).status_code == 200
 
 
 def test_uploads_beyond_the_bound_are_503_with_retry_after(server, cube_body):
