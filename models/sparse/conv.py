@@ -252,6 +252,11 @@ GEMM_MAX_IN_CHANNELS = 16
 """Widest input of a submanifold (K = 27) or transposed conv run by the GEMM path. 24 and 32 measured in the
 second session: training steps at ratio 0.25 within 6 % of 16 (and 64 worse at ratio 0.37), so 16 stays."""
 
+GEMM_WIDE_MIN_FILL = 0.65
+GEMM_WIDE_MIN_VOXELS = 16384
+"""A submanifold map with at least this fill and this many outputs takes the GEMM path at any width: the
+per-offset path's gathers and scatters no longer fit in cache, and the GEMM wastes under 1 / 0.65 - 1 = 54 %."""
+
 
 def choose_path(kernel_map: KernelMap, in_channels: int, out_channels: int, *, transposed: bool) -> str:
     """The rule measured on the shipped MinkUNet's ROIs (2 x 25k voxels, fill 0.45-0.85 at every stride;
@@ -266,12 +271,19 @@ def choose_path(kernel_map: KernelMap, in_channels: int, out_channels: int, *, t
     - submanifold (K = 27): GEMM up to 16 input channels (8 -> 8: 0.45-0.8x at strides 1-4), per-offset
       above (32 -> 24 even, 64 -> 64: per-offset 0.8x the GEMM's time): once a chunk's gathered rows are wide
       the GEMM's wasted MACs (1 / fill - 1 per useful one) cost more than the per-offset overhead;
+    - except on large, well-filled maps (at least `GEMM_WIDE_MIN_VOXELS` outputs and fill >= `GEMM_WIDE_MIN_FILL`),
+      where the GEMM wins at every width (second session, 20 k blob voxels, fill 0.77, fwd + bwd: 32 ch 75 ms
+      against 101, 64 ch 256 against 326); on the shipped ROIs (fill 0.5 at strides 1-2, 0.7 on under 4 k
+      voxels at strides 4-8) per-offset stays as fast or faster above 16 channels;
     - either, only while fill >= `GEMM_MIN_FILL`.
     """
     # The same fill for a transposed conv: it computes K products per coarse voxel and keeps num_pairs.
     fill = kernel_map.num_pairs / max(1, kernel_map.num_out * kernel_map.num_offsets)
     if fill < GEMM_MIN_FILL:
         return "per_offset"
+    if kernel_map.stride == 1 and not transposed and fill >= GEMM_WIDE_MIN_FILL \
+            and kernel_map.num_out >= GEMM_WIDE_MIN_VOXELS:
+        return "gemm"
     if (kernel_map.stride == 1 or transposed) and in_channels > GEMM_MAX_IN_CHANNELS:
         return "per_offset"
     return "gemm"

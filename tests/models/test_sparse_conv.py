@@ -302,3 +302,19 @@ def test_choose_path_follows_the_measured_rule():
     assert choose_path(down, wide, wide, transposed=True) == "per_offset"  # up-sampling wide: per offset
     sparse = build_kernel_map(VoxelIndex(coords[::9] * 3), coords[::9] * 3, 3, 1, same_coords=True)
     assert choose_path(sparse, narrow, narrow, transposed=False) == "per_offset"  # fill < GEMM_MIN_FILL
+
+
+def test_choose_path_takes_the_gemm_on_large_well_filled_maps_at_any_width():
+    from models.sparse import choose_path
+    from models.sparse.conv import GEMM_WIDE_MIN_VOXELS
+    from models.sparse.kernel_map import VoxelIndex, build_kernel_map
+
+    side = 27  # a solid cube of 27^3 voxels: fill about 0.9
+    xyz = torch.stack(torch.meshgrid(*[torch.arange(side)] * 3, indexing="ij"), dim=-1).reshape(-1, 3)
+    coords = torch.cat([torch.zeros(len(xyz), 1, dtype=torch.int64), xyz], dim=1)
+    assert len(coords) >= GEMM_WIDE_MIN_VOXELS
+    solid = build_kernel_map(VoxelIndex(coords), coords, 3, 1, same_coords=True)
+    assert choose_path(solid, 64, 64, transposed=False) == "gemm"
+    half = coords[: GEMM_WIDE_MIN_VOXELS // 2]  # as well filled, too few voxels: per offset above 16 channels
+    small = build_kernel_map(VoxelIndex(half), half, 3, 1, same_coords=True)
+    assert choose_path(small, 64, 64, transposed=False) == "per_offset"
