@@ -126,10 +126,11 @@ class ServedModel:
 
     async def run(self, cube: np.ndarray, *, is_log_power: bool, adc_compensation: bool | None = None
                   ) -> SegmentationResult:
-        """Segment on a worker thread; the slot (taken by :meth:`acquire`) is released when inference ends,
+        """Segment on an inference thread; the slot (taken by :meth:`acquire`) is released when inference ends,
         even if the awaiting request was cancelled. ``adc_compensation`` not None: ``cube`` holds raw ADC
         samples, processed into the RAD cube first (with or without TDM compensation; timed as transform)."""
         if self._executor is None:
+            self.release()
             raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
         future = self._executor.submit(self._segment, cube, is_log_power, adc_compensation)
         future.add_done_callback(lambda _: self.release())

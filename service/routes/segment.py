@@ -147,21 +147,26 @@ async def _read_body(request: Request, state: ServiceState, expected: ExpectedCu
     return cube, time.perf_counter() - start
 
 
-async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, tdm_compensation: bool,
-                 state: ServiceState) -> SegmentationResult:
-    """Inference in a model slot (taken here, released by the model when inference ends); 503 when saturated."""
-    retry = {"Retry-After": str(state.settings.retry_after_s)}
+def _take_slot(served: ServedModel, state: ServiceState) -> None:
+    """A slot of the model (released by the model when the inference ends); 503 when every slot is taken."""
     try:
         served.acquire()
     except Saturated as exc:
         state.metrics.rejected.labels(served.spec.name, "saturated").inc()
-        raise ApiError(503, f"{exc}; try again later", error="saturated", headers=retry) from None
+        raise ApiError(503, f"{exc}; try again later", error="saturated",
+                       headers={"Retry-After": str(state.settings.retry_after_s)}) from None
     state.metrics.queue.labels(served.spec.name).set(served.held)
+
+
+async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, tdm_compensation: bool,
+                 state: ServiceState) -> SegmentationResult:
+    """Inference in the slot taken by :func:`_take_slot` (the model releases it when inference ends)."""
     try:
         return await served.run(cube, is_log_power=input_kind is InputKind.log_power,
                                 adc_compensation=tdm_compensation if input_kind is InputKind.adc else None)
     except NotReady as exc:
-        raise ApiError(503, str(exc), error="not_ready", headers=retry) from None
+        raise ApiError(503, str(exc), error="not_ready",
+                       headers={"Retry-After": str(state.settings.retry_after_s)}) from None
     finally:
         state.metrics.queue.labels(served.spec.name).set(served.held)
 
@@ -196,7 +201,7 @@ async def segment(
     stage, parameters, latency per stage, ROI voxels and visited points (also in ``X-Compute-*`` and
     ``Server-Timing`` headers), and the tenant's running totals for the day.
 
-    The body is read first (a slow upload holds no model slot), then the request takes a model slot and a
+    The body is read first (a slow upload holds no model slot), then the request takes a model slot, then a
     lease on the tenant's quota, runs, and is billed."""
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
@@ -208,7 +213,12 @@ async def segment(
     shape = adc_shape(served.net.profile) if input_kind is InputKind.adc else served.net.profile.shape
     cube, decode_s = await _read_body(request, state, ExpectedCube(name, shape, input_kind), content_length)
 
-    lease = await state.billing.reserve(caller.tenant, served)
+    _take_slot(served, state)  # a saturated model answers 503 before the quota is touched
+    try:
+        lease = await state.billing.reserve(caller.tenant, served)
+    except BaseException:
+        served.release()
+        raise
     try:
         result = await _infer(served, cube, input_kind, tdm_compensation, state)
     except BaseException:
