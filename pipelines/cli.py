@@ -142,19 +142,17 @@ def _cmd_models_summary(args: argparse.Namespace) -> int:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
+    """Become ``python -m service.server`` (same pid, so whoever started us stops the server by it): the service's
+    own runner binds the port before the models load and bounds request heads. By module name, so that pipelines
+    never imports the service; its settings (RADARSEG_*) and their defaults are the service's."""
     import os
 
-    import uvicorn
-
-    # The service reads its settings (RADARSEG_*) from the environment; the flags override host and port.
-    # By import string, so that pipelines never imports the service.
-    for name in ("host", "port"):
-        if getattr(args, name) is not None:
-            os.environ[f"RADARSEG_{name.upper()}"] = str(getattr(args, name))
-    host = os.environ.get("RADARSEG_HOST", "127.0.0.1")
-    port = int(os.environ.get("RADARSEG_PORT", "8000"))
-    uvicorn.run("service.main:create_app", factory=True, host=host, port=port, log_level=args.log_level)
-    return 0
+    argv = [sys.executable, "-m", "service.server", "--log-level", args.log_level]
+    argv += [f"--{name}={getattr(args, name)}" for name in ("host", "port") if getattr(args, name) is not None]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execv(sys.executable, argv)
+    return 1  # not reached
 
 
 def _cmd_radar_show(args: argparse.Namespace) -> int:

@@ -45,3 +45,19 @@ def test_job_commands_hand_their_arguments_to_the_jobs_parsers(capsys):
     with pytest.raises(SystemExit):
         main(["simulate", "--out", "x", "--bogus"])
     assert "unrecognized arguments: --bogus" in capsys.readouterr().err
+
+
+def test_serve_becomes_the_services_runner_and_refuses_a_busy_port_before_loading_models():
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "pipelines.cli", "serve", "--port", str(port)],
+                              capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert str(port) in proc.stderr and "Traceback" not in proc.stderr
+    assert "loaded" not in proc.stderr.lower()  # refused before any model was loaded
