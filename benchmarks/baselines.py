@@ -16,12 +16,11 @@ import argparse
 import json
 import os
 import platform
-import statistics
-import time
 from pathlib import Path
 
 import torch
 
+from benchmarks.timing import time_call
 from models.compute import count_macs
 from models.registry import create_model
 from radar.profiles import get_profile
@@ -61,13 +60,7 @@ def latency(key: str, preset: str, repeats: int) -> dict:
     name, config = MODELS[key]
     model = create_model(name, preset=preset, **config).eval()
     inputs = [torch.randn(shape) for shape in input_shapes(model, preset)]
-    model(*inputs)  # warm-up
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        model(*inputs)
-        times.append(time.perf_counter() - started)
-    return {"median_s": statistics.median(times), "min_s": min(times), "repeats": repeats}
+    return time_call(lambda: model(*inputs), repeats)
 
 
 def main() -> None:

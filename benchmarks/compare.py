@@ -34,6 +34,7 @@ import numpy as np
 import torch
 
 from benchmarks.baselines import MODELS, input_shapes, latency
+from benchmarks.timing import time_call
 from models.checkpoint import load_checkpoint
 from models.compute import count_macs
 from models.detector.inference import fold_batch_norms
@@ -102,14 +103,7 @@ def optimised_latency(key: str, preset: str, repeats: int) -> dict:
         warnings.simplefilter("ignore", DeprecationWarning)
         warnings.simplefilter("ignore", torch.jit.TracerWarning)
         graph = torch.jit.trace(model, inputs, strict=False)
-    graph(*inputs)  # warm-up
-    times = []
-    for _ in range(repeats):
-        started = time.perf_counter()
-        graph(*inputs)
-        times.append(time.perf_counter() - started)
-    return {"median_s": statistics.median(times), "min_s": min(times), "repeats": repeats,
-            "folded_batch_norms": folded}
+    return {**time_call(lambda: graph(*inputs), repeats), "folded_batch_norms": folded}
 
 
 def baseline_run(key: str, preset: str, repeats: int) -> dict:
