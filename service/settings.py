@@ -30,6 +30,10 @@ ANONYMOUS_TENANT = "anonymous"
 # The shipped checkpoints of the `small` preset (committed under checkpoints/ by the training issue).
 DEFAULT_DETECTOR = "checkpoints/detector.pt"
 DEFAULT_SEGMENTER = "checkpoints/segmenter.pt"
+# Their slimmed twin (pruned at ratio 0.4 and fine-tuned; reports in the README's "Network slimming"), served beside
+# them by default as ?model=small-p40.
+TWIN_DETECTOR = "checkpoints/detector-p40.pt"
+TWIN_SEGMENTER = "checkpoints/segmenter-p40.pt"
 
 
 def resolve_path(path: str | Path) -> Path:
@@ -58,7 +62,8 @@ class Settings(BaseSettings):
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 8000
     models: Annotated[list[ModelSpec], Field(min_length=1)] = [
-        ModelSpec(name="small", detector=Path(DEFAULT_DETECTOR), segmenter=Path(DEFAULT_SEGMENTER))
+        ModelSpec(name="small", detector=Path(DEFAULT_DETECTOR), segmenter=Path(DEFAULT_SEGMENTER)),
+        ModelSpec(name="small-p40", detector=Path(TWIN_DETECTOR), segmenter=Path(TWIN_SEGMENTER)),
     ]
     default_model: str | None = None  # None: the first of `models`
     replicas: Annotated[int, Field(ge=1, le=16)] = 1  # model instances per model (each runs one request at a time)
