@@ -136,7 +136,8 @@ def test_truncated_chunked_body_is_answered_408(server, cube_body):
     """A chunk announced as 4096 bytes, 300 sent, the connection left open: before issue 17 it got no answer."""
     head = _head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"})
     status, headers, body = raw_exchange(server.port, [head + b"1000\r\n" + cube_body[:300]])
-    _json_error(status, headers, body, 408)
+    answer = _json_error(status, headers, body, 408)
+    assert answer["error"] == "body_timeout" and headers["connection"] == "close"
 
 
 def test_a_head_trickled_byte_by_byte_is_cut_off_with_408(server):
