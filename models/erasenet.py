@@ -21,8 +21,6 @@ from torch import nn
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import ComputeCounter, MacRecorder, count_params
 from models.detector.inference import FrozenDetector
-from models.segmenter.spvcnn import SPVCNN, PointTensor
-from models.sparse import SparseTensor
 from radar import transforms
 from radar.detections import Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
@@ -76,7 +74,7 @@ class EraseNet:
     """The two-stage segmenter. Thread-safe for concurrent ``segment`` calls only if the caller
     serialises them (the segmenter's per-layer MAC counters are per call)."""
 
-    def __init__(self, detector: nn.Module, segmenter: nn.Module, profile: RadarProfile | str, *,
+    def __init__(self, detector: nn.Module | None, segmenter: nn.Module, profile: RadarProfile | str, *,
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
                  score_threshold: float = 0.3, max_objects: int = 32,
                  doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
@@ -85,7 +83,8 @@ class EraseNet:
         """``frozen_detector``: run a detector that has a ``decode`` through
         :class:`models.detector.inference.FrozenDetector` (traced for this preset's input, BatchNorms folded,
         channels_last; a copy of its weights taken now). ``self.detector`` stays the eager module (its
-        parameters and MACs are the ones reported)."""
+        parameters and MACs are the ones reported). ``detector`` None: the seeds always come from the
+        caller (``segment(..., centres=...)``, e.g. CFAR); the detector then counts 0 parameters."""
         self.profile = get_profile(profile)
         self.class_names = tuple(class_names or self.profile.all_class_names)
         if len(self.class_names) != self.profile.num_classes:
@@ -93,7 +92,7 @@ class EraseNet:
         if std_db <= 0:
             raise ValueError(f"std_db must be > 0, got {std_db}")
         self.device = torch.device(device)
-        self.detector = detector.to(self.device).eval()
+        self.detector = None if detector is None else detector.to(self.device).eval()
         self.segmenter = segmenter.to(self.device).eval()
         self.mean_db, self.std_db = float(mean_db), float(std_db)
         self.score_threshold = score_threshold
@@ -103,11 +102,12 @@ class EraseNet:
         # (radar.doppler; None keeps the detector's own estimate).
         self.doppler_refinement = doppler_refinement
         n_range, n_angle, n_doppler = self.profile.shape
-        self._run_detector: nn.Module = self.detector
+        self._run_detector: nn.Module | None = self.detector
         if frozen_detector and callable(getattr(self.detector, "decode", None)):
             self._run_detector = FrozenDetector(self.detector, (1, n_doppler, n_range, n_angle), self.device)
-        self._detector_counter = ComputeCounter(self.detector)
-        self.params = {"detector": count_params(self.detector), "segmenter": count_params(self.segmenter)}
+        self._detector_counter = None if self.detector is None else ComputeCounter(self.detector)
+        self.params = {"detector": 0 if self.detector is None else count_params(self.detector),
+                       "segmenter": count_params(self.segmenter)}
 
     @classmethod
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
@@ -132,7 +132,9 @@ class EraseNet:
         return cube_schema(self.profile, content)
 
     def detector_macs(self) -> int:
-        """Detector MACs per frame (analytic, cached per input shape)."""
+        """Detector MACs per frame (analytic, cached per input shape); 0 without a detector."""
+        if self._detector_counter is None:
+            return 0
         n_range, n_angle, n_doppler = self.profile.shape
         return self._detector_counter.report((1, n_doppler, n_range, n_angle)).macs
 
@@ -149,6 +151,8 @@ class EraseNet:
         if schema is not None:
             content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
             check_schema(self.schema(content), schema)
+        if centres is None and self._run_detector is None:
+            raise ValueError("this EraseNet has no detector: give the seeds as centres=")
         if cube.shape != self.profile.shape:
             raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "
                              f"got {cube.shape}")
@@ -203,10 +207,7 @@ class EraseNet:
         coords = torch.from_numpy(points.coords).to(self.device)
         batch = torch.zeros(len(coords), dtype=torch.int64, device=self.device)
         with MacRecorder(self.segmenter) as recorder:
-            if isinstance(self.segmenter, SPVCNN):
-                logits = self.segmenter(PointTensor(batch, coords.to(torch.float32) + 0.5, feats))
-            else:
-                logits = self.segmenter(SparseTensor(torch.cat([batch[:, None], coords], dim=1), feats))
+            logits = self.segmenter(self.segmenter.make_input(torch.cat([batch[:, None], coords], dim=1), feats))
         classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
         report = recorder.report()
         return classes[points.inverse], report.macs, report.executed

@@ -12,9 +12,9 @@ Three steps, as in Liu et al. (2017) and the paper:
    is the largest ``|gamma|`` over the group's BatchNorms (a tied channel is only removed when every
    BatchNorm carrying it says so). One global threshold over all groups removes the ``ratio`` least
    important channels (:func:`select_channels`), or the ratio is searched for a params/MACs budget
-   (:func:`prune_to_budget`). A group never loses its last ``min_channels`` channels; groups without a
-   BatchNorm (detector heads, SE bottlenecks, transposed convs of the baselines, ASPP image pooling)
-   are kept whole.
+   (:func:`prune_checkpoint` with ``params=`` or ``macs=``). A group never loses its last
+   ``min_channels`` channels; groups without a BatchNorm (detector heads, SE bottlenecks, transposed convs
+   of the baselines, ASPP image pooling) are kept whole.
 3. **Surgery**: :func:`prune_model` slices every weight, bias and running statistic of the members
    along the kept indices (concatenated inputs, as in U-Net skips and the multi-view decoders, take
    each part's kept indices at its offset), giving a genuinely narrower network, not a mask.
@@ -49,8 +49,9 @@ C_out]``, our sparse convs (SPEC section 11). We wrote the surgery ourselves bec
   at once (``'SparseTensor' object has no attribute 'grad_fn'``) before any custom pruner could help;
 - no new dependency in the service image, and the same code serves the trainers' L1 penalty.
 
-The cost is that a new architecture needs its tracer (:data:`TRACERS`); :func:`trace_channels` refuses a
-model it does not know instead of guessing.
+The cost is that a new architecture needs its tracer (:data:`TRACERS`, named by the class's
+``channel_tracer``: :mod:`models.capabilities`); :func:`trace_channels` refuses a model it does not know
+instead of guessing.
 """
 
 from __future__ import annotations
@@ -64,19 +65,15 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from models.baselines.mvnet import MultiViewNet
-from models.baselines.unet import UNet
+from models.capabilities import dense_input_shapes
 from models.channel_surgery import NORM_TYPES, channel_table, out_size, slice_module
 from models.checkpoint import Checkpoint
 from models.compute import count_macs, count_params
 from models.detector.bifpn import BiFPNNeck
-from models.detector.centre_detector import CentreDetector
 from models.detector.efficientnet import EfficientNetBackbone
 from models.layers import SeparableConv2d
 from models.registry import create_model
-from models.segmenter.minkunet import MinkUNet
-from models.segmenter.spvcnn import FUSE_AFTER_DECODER_STAGE, SPVCNN
-from radar.profiles import get_profile
+from models.segmenter.spvcnn import FUSE_AFTER_DECODER_STAGE
 
 log = logging.getLogger(__name__)
 
@@ -93,11 +90,6 @@ def slimming_penalty(model: nn.Module) -> Tensor:
     if not scales:
         raise ValueError(f"{type(model).__name__} has no BatchNorm: nothing to slim")
     return torch.stack(scales).sum()
-
-
-def bn_scales(model: nn.Module) -> Tensor:
-    """All BatchNorm scales ``|gamma|`` of ``model`` concatenated, detached: (total channels,)."""
-    return torch.cat([m.weight.detach().abs().flatten() for _, m in batch_norms(model)])
 
 
 # --------------------------------------------------------------------------- channel groups
@@ -253,8 +245,8 @@ def _residual_stack(t: _Tracer, stack: nn.Sequential, cur: Space, name: str) -> 
     return cur
 
 
-def _trace_segmenter(model: nn.Module, t: _Tracer) -> None:
-
+def _trace_segmenter(model: nn.Module, t: _Tracer, *, points: bool = False) -> None:
+    """MinkUNet; with ``points`` SPVCNN (its point MLPs add into the bottleneck and decoder spaces)."""
     first = t.produced("stem.0", model.stem[0][0], model.stem[0][1])
     t.consume(first, model.stem[1][0])
     cur = t.produced("stem.1", model.stem[1][0], model.stem[1][1])
@@ -264,8 +256,7 @@ def _trace_segmenter(model: nn.Module, t: _Tracer) -> None:
         down = t.produced(f"encoder{i}.down", stage[0][0], stage[0][1])
         cur = _residual_stack(t, stage[1], down, f"encoder{i}")
         skips.append(cur)
-    spv = isinstance(model, SPVCNN)
-    if spv:  # point MLP 0: stem features (devoxelised) -> added to the bottleneck features
+    if points:  # point MLP 0: stem features (devoxelised) -> added to the bottleneck features
         mlp = model.point_mlps[0]
         t.consume(skips[0], mlp[0].linear)
         t.produce(cur, mlp[0].linear, mlp[1])
@@ -274,7 +265,7 @@ def _trace_segmenter(model: nn.Module, t: _Tracer) -> None:
         t.consume(cur, stage.up[0])
         up = t.produced(f"decoder{i}.up", stage.up[0], stage.up[1])
         cur = _residual_stack(t, stage.fuse, up + skip, f"decoder{i}")
-        mlp_index = FUSE_AFTER_DECODER_STAGE.get(i) if spv else None
+        mlp_index = FUSE_AFTER_DECODER_STAGE.get(i) if points else None
         if mlp_index is not None:
             mlp = model.point_mlps[mlp_index]
             t.consume(point_space, mlp[0].linear)
@@ -339,23 +330,29 @@ def _trace_unet(model: nn.Module, t: _Tracer) -> None:
     t.consume(cur, model.classifier)
 
 
-def _tracers() -> list[tuple[type, Callable[[nn.Module, _Tracer], None]]]:
-
-    return [(CentreDetector, _trace_detector), (MinkUNet, _trace_segmenter), (MultiViewNet, _trace_multiview),
-            (UNet, _trace_unet)]
+def _trace_points_segmenter(model: nn.Module, t: _Tracer) -> None:
+    _trace_segmenter(model, t, points=True)
 
 
-TRACERS = "CentreDetector, MinkUNet (and SPVCNN), MultiViewNet (TMVA-Net, SMVA-Net), UNet"
+# A model names its tracer by its class attribute ``channel_tracer`` (models.capabilities).
+TRACERS: dict[str, Callable[[nn.Module, _Tracer], None]] = {
+    "detector": _trace_detector,  # CentreDetector
+    "sparse_unet": _trace_segmenter,  # MinkUNet
+    "sparse_unet_points": _trace_points_segmenter,  # SPVCNN
+    "multiview": _trace_multiview,  # TMVA-Net, SMVA-Net
+    "unet": _trace_unet,
+}
+SUPPORTED = "CentreDetector, MinkUNet, SPVCNN, MultiViewNet (TMVA-Net, SMVA-Net), UNet"
 
 
 def trace_channels(model: nn.Module) -> list[ChannelGroup]:
     """The channel groups of a supported model (see the module docstring); raises ``ValueError`` otherwise."""
-    for cls, tracer in _tracers():
-        if isinstance(model, cls):
-            t = _Tracer()
-            tracer(model, t)
-            return t.groups
-    raise ValueError(f"slimming does not know {type(model).__name__}: supported are {TRACERS}")
+    tracer = TRACERS.get(getattr(model, "channel_tracer", None))
+    if tracer is None:
+        raise ValueError(f"slimming does not know {type(model).__name__}: supported are {SUPPORTED}")
+    t = _Tracer()
+    tracer(model, t)
+    return t.groups
 
 
 # --------------------------------------------------------------------------- selection
@@ -446,22 +443,6 @@ class PruneReport:
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (dict(v) if isinstance(v, dict) else v) for k, v in self.__dict__.items()}
-
-
-def dense_input_shapes(model: nn.Module, preset: str) -> tuple[tuple[int, ...], ...] | None:
-    """Batch-1 input shapes of a dense model at ``preset`` (None for the sparse segmenters, whose MACs
-    depend on the ROI)."""
-
-    profile = get_profile(preset)
-    r, a, d = profile.n_range, profile.n_angle, profile.n_doppler
-    if isinstance(model, CentreDetector):
-        return ((1, d, r, a),)
-    if isinstance(model, MultiViewNet):
-        t = model.n_frames
-        return ((1, t, r, d), (1, t, r, a), (1, t, a, d))
-    if isinstance(model, UNet):
-        return ((1, 1, r, a if model.view == "ra" else d),)
-    return None
 
 
 def _macs(model: nn.Module, shapes: tuple[tuple[int, ...], ...] | None) -> int | None:

@@ -38,6 +38,7 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -46,10 +47,10 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from models.capabilities import Role, dense_input_shapes
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet import EraseNet
-from models.slimming import dense_input_shapes
 from pipelines.jobs import run_module
 from pipelines.report import fmt_num, fmt_pct, md_table
 from pipelines.scoring import ViewConfusion, predicted_views, view_summary
@@ -64,7 +65,18 @@ from radar.profiles import resolve_profile
 
 log = logging.getLogger(__name__)
 
-KINDS = ("erasenet", "cfar", "baseline")
+
+
+class Entry(StrEnum):
+    """What a row of the comparison is (its ``kind`` in compare.json) and the checkpoints it takes."""
+
+    ERASENET = "erasenet"  # (detector, segmenter)
+    CFAR = "cfar"  # (segmenter,): CFAR seeds in place of the detector
+    BASELINE = "baseline"  # (multi-view network,) or a U-Net pair
+
+
+KINDS = tuple(Entry)
+CHECKPOINTS_TAKEN = {Entry.ERASENET: (2,), Entry.CFAR: (1,), Entry.BASELINE: (1, 2)}
 CFAR_NAME = "CFAR + ERASE-Net segmenter"
 VIEWS = ("RD", "RA")  # the paper's column order
 PAPER_CARRADA = {  # SPEC section 12: mIoU % RD / RA, MACs G (paper's counter); other data, for context only
@@ -81,21 +93,22 @@ class ModelSpec:
     two single-view U-Nets (RD and RA, either order)."""
 
     name: str
-    kind: str
+    kind: Entry
     checkpoints: tuple[str, ...]
 
     def __post_init__(self) -> None:
         if not self.name.strip():
             raise ValueError("a model needs a non-empty name")
         if self.kind not in KINDS:
-            raise ValueError(f"model kind must be one of {KINDS}, got {self.kind!r}")
-        expected = {"erasenet": (2,), "cfar": (1,), "baseline": (1, 2)}[self.kind]
+            raise ValueError(f"model kind must be one of {[str(k) for k in KINDS]}, got {self.kind!r}")
+        object.__setattr__(self, "kind", Entry(self.kind))
+        expected = CHECKPOINTS_TAKEN[self.kind]
         if len(self.checkpoints) not in expected or not all(self.checkpoints):
             raise ValueError(f"{self.name!r}: a {self.kind} model takes {' or '.join(map(str, expected))} "
                              f"checkpoint(s), got {list(self.checkpoints)}")
 
 
-def parse_model(text: str, kind: str, *, default_name: str | None = None) -> ModelSpec:
+def parse_model(text: str, kind: Entry, *, default_name: str | None = None) -> ModelSpec:
     """``"NAME=CKPT[,CKPT]"`` as a :class:`ModelSpec` (``NAME=`` may be left out when ``default_name`` is given)."""
     name, sep, paths = text.partition("=")
     if not sep:
@@ -146,7 +159,7 @@ class Prediction:
     macs_paper: float
 
 
-def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: str, preset: str, class_names: Sequence[str]) -> None:
+def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: Role, preset: str, class_names: Sequence[str]) -> None:
     found = checkpoint.extra.get("stage")
     if found != stage:
         raise ValueError(f"{path}: expected a {stage} checkpoint, found stage {found!r} ({checkpoint.model_name})")
@@ -165,25 +178,25 @@ class EraseNetPredictor:
                  score_threshold: float | None = None) -> None:
         self.spec = spec
         kwargs = {} if score_threshold is None else {"score_threshold": score_threshold}
-        if spec.kind == "erasenet":
+        if spec.kind is Entry.ERASENET:
             det, seg = (load_checkpoint(p) for p in spec.checkpoints)
-            _check_checkpoint(det, spec.checkpoints[0], "detector", preset, class_names)
-            _check_checkpoint(seg, spec.checkpoints[1], "segmenter", preset, class_names)
+            _check_checkpoint(det, spec.checkpoints[0], Role.DETECTOR, preset, class_names)
+            _check_checkpoint(seg, spec.checkpoints[1], Role.SEGMENTER, preset, class_names)
             self.net = EraseNet.from_checkpoints(det, seg, device=device, **kwargs)
             r, a, d = self.net.profile.shape
             detector = count_macs(self.net.detector, (1, d, r, a))
             self.paper_extra = detector.macs_paper - detector.macs  # per frame, the detector always runs
         else:
             seg = load_checkpoint(spec.checkpoints[0])
-            _check_checkpoint(seg, spec.checkpoints[0], "segmenter", preset, class_names)
+            _check_checkpoint(seg, spec.checkpoints[0], Role.SEGMENTER, preset, class_names)
             profile = resolve_profile(seg.preset, seg.extra.get("radar_file"), source="segmenter checkpoint")
-            # The detector never runs (CFAR gives the centres): an empty module keeps EraseNet's interface.
-            self.net = EraseNet(nn.Identity(), seg.build(), profile, class_names=seg.class_names,
+            # No detector: CFAR gives the centres of every frame.
+            self.net = EraseNet(None, seg.build(), profile, class_names=seg.class_names,
                                 mean_db=seg.normalisation.get("mean", 0.0), std_db=seg.normalisation.get("std", 1.0),
                                 device=device, **kwargs)
             self.paper_extra = 0
         self.params = sum(self.net.params.values())
-        self.macs_note = ("mean per frame, detector + segmenter (ROI-dependent)" if spec.kind == "erasenet"
+        self.macs_note = ("mean per frame, detector + segmenter (ROI-dependent)" if spec.kind is Entry.ERASENET
                           else "mean per frame, segmenter only (CFAR not counted)")
 
     def bind(self, store: str, split: str | None, targets: np.ndarray) -> None:
@@ -191,7 +204,7 @@ class EraseNetPredictor:
 
     def __call__(self, slot: int, log_power: np.ndarray) -> Prediction:
         started = time.perf_counter()
-        centres = cfar_centres(log_power, self.net.profile) if self.spec.kind == "cfar" else None
+        centres = cfar_centres(log_power, self.net.profile) if self.spec.kind is Entry.CFAR else None
         result = self.net.segment(log_power, is_log_power=True, centres=centres)
         seconds = time.perf_counter() - started
         macs = float(result.compute["macs"]["total"])
@@ -207,7 +220,7 @@ class BaselinePredictor:
         self.models: list[tuple[nn.Module, ViewStats]] = []  # (network, its view scaling)
         for path in spec.checkpoints:
             model, checkpoint, stats = load_baseline(path, device=device)  # ValueError if not a baseline
-            _check_checkpoint(checkpoint, path, "baseline", preset, class_names)
+            _check_checkpoint(checkpoint, path, Role.BASELINE, preset, class_names)
             self.models.append((model, stats))
         views = [view for model, _ in self.models for view in predicted_views(model)]
         if sorted(views) != ["ra", "rd"]:
@@ -249,7 +262,7 @@ class BaselinePredictor:
 
 def build_predictor(spec: ModelSpec, preset: str, class_names: Sequence[str],
                     cfg: CompareConfig) -> EraseNetPredictor | BaselinePredictor:
-    if spec.kind == "baseline":
+    if spec.kind is Entry.BASELINE:
         return BaselinePredictor(spec, preset, class_names, device=cfg.device)
     return EraseNetPredictor(spec, preset, class_names, device=cfg.device, score_threshold=cfg.score_threshold)
 
@@ -340,7 +353,8 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
     for predictor in predictors:
         tally = tallies[predictor.spec.name]
         rows.append({
-            "name": predictor.spec.name, "kind": predictor.spec.kind, "checkpoints": list(predictor.spec.checkpoints),
+            "name": predictor.spec.name, "kind": str(predictor.spec.kind),
+            "checkpoints": list(predictor.spec.checkpoints),
             "n_frames": predictor.n_frames, "frames_scored": len(targets),
             "frames_usable_alone": scored_frames(cfg.store, cfg.split, predictor.n_frames),
             **{view: view_summary(tally.confusion.matrices[view.lower()], class_names) for view in VIEWS},
@@ -444,10 +458,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_from_args(args: argparse.Namespace) -> CompareConfig:
-    models = [parse_model(text, "erasenet") for text in args.erasenet]
-    models += [parse_model(text, "baseline") for text in args.baseline]
+    models = [parse_model(text, Entry.ERASENET) for text in args.erasenet]
+    models += [parse_model(text, Entry.BASELINE) for text in args.baseline]
     if args.cfar_segmenter:
-        models.append(parse_model(args.cfar_segmenter, "cfar", default_name=CFAR_NAME))
+        models.append(parse_model(args.cfar_segmenter, Entry.CFAR, default_name=CFAR_NAME))
     return CompareConfig(store=args.store, out=args.out, models=tuple(models),
                          split=None if args.split == "all" else args.split, max_frames=args.max_frames,
                          pictures=args.pictures, score_threshold=args.score_threshold, threads=args.threads,

@@ -38,9 +38,10 @@ from typing import Any
 
 import torch
 
+from models.capabilities import Role, dense_input_shapes, role_of
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.compute import count_macs
-from models.slimming import dense_input_shapes, prune_checkpoint
+from models.slimming import prune_checkpoint
 from pipelines.evaluate import EvaluateConfig, evaluate
 from pipelines.jobs import run_module
 from pipelines.report import fmt_pct
@@ -55,6 +56,10 @@ log = logging.getLogger(__name__)
 
 PAPER_RATIOS = (0.1, 0.3, 0.4, 0.6, 0.7)
 SEGMENTERS = {"minkunet": "ERASE-Net (M)", "spvcnn": "ERASE-Net (S)"}
+# The sweep's checkpoint arguments and the role (models.capabilities) each one's model must declare:
+# scoring, fine-tuning and the learning rate follow the role.
+SLOTS: dict[str, Role] = {"detector": Role.DETECTOR, "minkunet": Role.SEGMENTER, "spvcnn": Role.SEGMENTER,
+                          "smvanet": Role.BASELINE}
 
 
 @dataclass(frozen=True)
@@ -89,8 +94,8 @@ class SweepConfig:
             raise ValueError("max_frames and finetune steps must be >= 0")
 
     def steps(self, kind: str) -> int:
-        """Fine-tuning steps after pruning for a model kind."""
-        if kind == "smvanet" and self.finetune_steps_baseline is not None:
+        """Fine-tuning steps after pruning for the checkpoint given as ``--<kind>``."""
+        if SLOTS[kind] is Role.BASELINE and self.finetune_steps_baseline is not None:
             return self.finetune_steps_baseline
         return self.finetune_steps
 
@@ -131,21 +136,21 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
 
     ``run`` belongs to the sweep: a run left there by an earlier sweep is replaced."""
     shutil.rmtree(run, ignore_errors=True)
-    stage = {"detector": "detector", "smvanet": "baseline"}.get(kind, "segmenter")
-    train(TrainConfig(stage=stage, model=load_checkpoint(pruned).model_name if stage == "baseline" else None,
+    role = SLOTS[kind]
+    train(TrainConfig(stage=role.value, model=load_checkpoint(pruned).model_name if role is Role.BASELINE else None,
                       store=cfg.store, out=str(run), init=str(pruned),
-                      lr=cfg.lr_baseline if stage == "baseline" else cfg.lr_erasenet, epochs=10_000,
+                      lr=cfg.lr_baseline if role is Role.BASELINE else cfg.lr_erasenet, epochs=10_000,
                       batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None, seed=cfg.seed,
                       threads=cfg.threads, progress=False,
-                      jitter_std=(1.0, 1.0, 0.5) if stage == "segmenter" else None))
+                      jitter_std=(1.0, 1.0, 0.5) if role is Role.SEGMENTER else None))
     return run / "model.pt"  # without validation model.pt holds the latest weights
 
 
 # --------------------------------------------------------------------------- the sweep
 def _score(kind: str, path: Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
-    if kind == "detector":
+    if SLOTS[kind] is Role.DETECTOR:
         return score_detector_checkpoint(path, cfg)
-    if kind == "smvanet":
+    if SLOTS[kind] is Role.BASELINE:
         return score_smvanet(path, cfg)
     return score_segmenter(path, cfg, tag)
 
@@ -157,6 +162,10 @@ def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
     pruning and again after fine-tuning: keys ``pruned_<metric>`` hold the first scores.
     """
     checkpoint: Checkpoint = load_checkpoint(path)
+    role = role_of(checkpoint.build())
+    if role is not SLOTS[kind]:
+        raise ValueError(f"--{kind} {path}: expected a {SLOTS[kind]} checkpoint, got a {role} "
+                         f"({checkpoint.model_name})")
     work = Path(cfg.work) / kind
     rows = []
     for ratio in sorted({0.0, *cfg.ratios}):
@@ -183,7 +192,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
 
     def what(kind: str) -> str:
         steps = cfg.steps(kind)
-        lr = cfg.lr_baseline if kind == "smvanet" else cfg.lr_erasenet
+        lr = cfg.lr_baseline if SLOTS[kind] is Role.BASELINE else cfg.lr_erasenet
         return (f"pruned, then fine-tuned for {steps} optimiser steps (batch {cfg.batch_size}, lr {lr:g})" if steps
                 else "pruned only, **not fine-tuned**")
 
@@ -204,9 +213,9 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
     lines += ["Input checkpoints: " + ", ".join(f"{k} `{getattr(cfg, k)}`" for k in kinds), ""]
     if cfg.notes:
         lines += [cfg.notes, ""]
-    det = [r for r in rows if r["model"] == "detector"]
+    det = [r for r in rows if SLOTS[r["model"]] is Role.DETECTOR]
     if det:
-        tuned = cfg.steps("detector") > 0
+        tuned = cfg.steps(det[0]["model"]) > 0
         lines += ["## Detector", "", "| ratio | params (M) | GMACs | AP@1 | AP@3 | AP@5 | mAP |"
                   + (" mAP before fine-tuning |" if tuned else ""),
                   "|---|---|---|---|---|---|---|" + ("---|" if tuned else "")]
@@ -216,7 +225,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
             lines.append(f"| {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {r['macs'] / 1e9:.3f} | {ap} |{before}")
         lines += ["", "Paper (NXP, 50-epoch fine-tunes), ratio 0/0.1/0.3/0.4/0.6/0.7: params "
                   "2.08/1.87/1.45/1.25/0.83/0.62 M, mAP 0.853/0.82/0.83/0.84/0.79/0.13.", ""]
-    seg = [r for r in rows if r["model"] != "detector"]
+    seg = [r for r in rows if SLOTS[r["model"]] is not Role.DETECTOR]
     if seg:
         lines += ["## Segmentation (mIoU %, background included)", "",
                   "| model | ratio | params (M) | GMACs | RA mIoU | RD mIoU | RA / RD before fine-tuning |",
@@ -234,7 +243,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
 
 def plot(rows: list[dict[str, Any]], path: Path) -> Path | None:
     """RA and RD mIoU against the parameters left, one line per segmentation model."""
-    seg = [r for r in rows if r["model"] != "detector"]
+    seg = [r for r in rows if SLOTS[r["model"]] is not Role.DETECTOR]
     if not seg:
         return None
     import matplotlib
@@ -267,7 +276,7 @@ def main(cfg: SweepConfig, command: str | None = None) -> dict[str, Any]:
     torch.set_num_threads(max(1, cfg.threads))
     started = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    for kind in ("detector", "minkunet", "spvcnn", "smvanet"):
+    for kind in SLOTS:
         path = getattr(cfg, kind)
         if path:
             rows += sweep_model(kind, path, cfg)
@@ -290,7 +299,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True, help="preprocessed store (zarr) to score (and fine-tune) on")
     parser.add_argument("--out", default="reports", help="where slimming.md/.png/.json go")
     parser.add_argument("--work", default="out/slim-sweep", help="pruned checkpoints and fine-tune runs")
-    for kind in ("detector", "minkunet", "spvcnn", "smvanet"):
+    for kind in SLOTS:
         parser.add_argument(f"--{kind}", help=f"{kind} checkpoint (trained with --slim-lambda, ideally)")
     parser.add_argument("--ratios", type=float, nargs="+", default=list(PAPER_RATIOS))
     parser.add_argument("--split", default="test")

@@ -18,12 +18,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from models.capabilities import Role, dense_input_shapes, role_of
 from models.checkpoint import load_checkpoint
 from models.compute import MacRecorder, count_macs, count_params
 from models.registry import create_model
-from models.segmenter.spvcnn import SPVCNN, PointTensor
-from models.sparse import SparseTensor
-from radar.profiles import get_profile
 from radar.region_growing import grow_regions
 from radar.roi import roi_points
 from radar.simulate import simulate_sequence
@@ -47,22 +45,19 @@ def _reference_roi(preset: str, seed: int = 0):
 
 @torch.no_grad()
 def _row(model: nn.Module, name: str, preset: str, source: str) -> dict:
-    """One row for a built model: a detector (it decodes centres) on its preset's input, else a sparse
+    """One row for a built model: a dense model (the detector) on its preset's input, else a sparse
     segmenter on the reference ROI."""
     model = model.eval()
-    n_range, n_angle, n_doppler = get_profile(preset).shape
-    if hasattr(model, "decode"):
-        report = count_macs(model, (1, n_doppler, n_range, n_angle))
+    shapes = dense_input_shapes(model, preset)
+    if shapes is not None:
+        report = count_macs(model, *shapes)
         return {"model": name, "source": source, "preset": preset, "params": report.params, "macs": report.macs,
-                "macs_paper": report.macs_paper, "input": f"1x{n_doppler}x{n_range}x{n_angle}"}
+                "macs_paper": report.macs_paper, "input": " + ".join("x".join(map(str, s)) for s in shapes)}
     points = _reference_roi(preset)
     coords, feats = torch.from_numpy(points.coords), torch.from_numpy(points.features)
     batch = torch.zeros(len(coords), dtype=torch.int64)
     with MacRecorder(model) as recorder:
-        if isinstance(model, SPVCNN):
-            model(PointTensor(batch, coords.float() + 0.5, feats))
-        else:
-            model(SparseTensor(torch.cat([batch[:, None], coords], 1), feats))
+        model(model.make_input(torch.cat([batch[:, None], coords], 1), feats))
     report = recorder.report()
     return {"model": name, "source": source, "preset": preset, "params": count_params(model), "macs": report.macs,
             "macs_paper": report.macs_paper, "input": f"{len(points)} ROI voxels (true centres, seed 0)"}
@@ -82,7 +77,7 @@ def checkpoint_rows(paths: tuple[str | Path, ...]) -> list[dict]:
     for path in paths:
         checkpoint = load_checkpoint(path)
         model = checkpoint.build()
-        if not hasattr(model, "decode") and not isinstance(model, SPVCNN) and "minkunet" not in checkpoint.model_name:
+        if role_of(model) not in (Role.DETECTOR, Role.SEGMENTER):
             raise ValueError(f"{path}: model {checkpoint.model_name!r}; expected a detector or a sparse segmenter "
                              f"checkpoint (the 2-D baselines are counted by radarseg compare)")
         rows.append(_row(model, checkpoint.model_name, checkpoint.preset, _shown(path)))

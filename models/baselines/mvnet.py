@@ -34,11 +34,14 @@ PyTorch defaults for everything else.
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from models.baselines.blocks import ConvBnLeaky, TemporalDoubleConv, double_conv_leaky
+from models.capabilities import InputShapes, Role
 
 MVRSS_WIDTH = 128
 TEMPORAL_FRAMES = 5  # two unpadded 3x3x3 convs consume exactly five frames
@@ -129,6 +132,14 @@ class MultiViewNet(nn.Module):
 
     Inputs ``(B, T, H, W)`` as in the module docstring; R and A must be multiples of 4.
     """
+
+    role: ClassVar[Role] = Role.BASELINE
+    channel_tracer: ClassVar[str] = "multiview"
+
+    def dense_input_shapes(self, profile: Any) -> InputShapes:
+        """The three views of ``n_frames`` frames: ``((1, T, R, D), (1, T, R, A), (1, T, A, D))``."""
+        t, r, a, d = self.n_frames, profile.n_range, profile.n_angle, profile.n_doppler
+        return ((1, t, r, d), (1, t, r, a), (1, t, a, d))
 
     def __init__(self, *, num_classes: int, temporal: bool, n_frames: int | None = None,
                  width: int = MVRSS_WIDTH) -> None:

@@ -10,12 +10,14 @@ the upsampled map to its skip connection, so any ``H, W >= 16`` works.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any, ClassVar
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from models.baselines.blocks import ConvBnReLU
+from models.capabilities import InputShapes, Role
 
 CLASSIC_WIDTHS = (64, 128, 256, 512, 1024)
 UNET_VIEWS = ("ra", "rd")
@@ -50,6 +52,13 @@ class UNet(nn.Module):
     ``view`` names the output (``"ra"`` or ``"rd"``) so the multi-view losses and evaluation treat a
     U-Net like one branch of the multi-view networks.
     """
+
+    role: ClassVar[Role] = Role.BASELINE
+    channel_tracer: ClassVar[str] = "unet"
+
+    def dense_input_shapes(self, profile: Any) -> InputShapes:
+        """Its one view: ``((1, 1, R, A),)`` or ``((1, 1, R, D),)``."""
+        return ((1, 1, profile.n_range, profile.n_angle if self.view == "ra" else profile.n_doppler),)
 
     def __init__(self, *, num_classes: int, view: str = "ra", in_channels: int = 1,
                  widths: Sequence[int] = CLASSIC_WIDTHS) -> None:

@@ -24,12 +24,14 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.capabilities import InputShapes, Role
 from models.channel_surgery import apply_channel_table
 from models.detector.bifpn import BiFPNNeck
 from models.detector.centernet import CentreNetHead
@@ -106,6 +108,13 @@ class CentreDetector(nn.Module):
     In training mode a batch of 1 at 128 x 128 fails in BatchNorm: P7 is then 1 x 1 (one value per
     channel). Train with batches of 2 or more there.
     """
+
+    role: ClassVar[Role] = Role.DETECTOR
+    channel_tracer: ClassVar[str] = "detector"
+
+    def dense_input_shapes(self, profile: RadarProfile) -> InputShapes:
+        """One frame's log power as the detector reads it: ``((1, D, R, A),)``."""
+        return ((1, profile.n_doppler, profile.n_range, profile.n_angle),)
 
     def __init__(
         self,

@@ -9,10 +9,11 @@ classifier per voxel.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Self
+from typing import Any, ClassVar, Self
 
 from torch import Tensor, nn
 
+from models.capabilities import InputShapes, Role
 from models.segmenter.blocks import DownBlock, UpBlock, submanifold_bn_relu
 from models.sparse import PointwiseConv, SparseTensor
 
@@ -41,6 +42,17 @@ class MinkUNet(nn.Module):
     `forward(x)` maps a `SparseTensor` with features (N, in_channels) at tensor stride 1 to logits
     (N, num_classes), row `i` for voxel `x.coords[i]`.
     """
+
+    role: ClassVar[Role] = Role.SEGMENTER
+    channel_tracer: ClassVar[str] = "sparse_unet"
+
+    def make_input(self, coords: Tensor, feats: Tensor) -> SparseTensor:
+        """Input for ROI points: ``coords`` (N, 4) int64 (batch, range, angle, Doppler bins), ``feats`` (N, F)."""
+        return SparseTensor(coords, feats)
+
+    def dense_input_shapes(self, profile: Any) -> InputShapes | None:
+        """None: the cost depends on the ROI (count a real forward with ``MacRecorder``)."""
+        return None
 
     def __init__(
         self,

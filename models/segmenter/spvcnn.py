@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
@@ -123,6 +124,12 @@ class SPVCNN(MinkUNet):
     Unlike spvnas, the stem output feeds encoder stage 1 directly instead of being devoxelised and
     re-voxelised first (the same thing when points sit at voxel centres, the RAD-bin case).
     """
+
+    channel_tracer: ClassVar[str] = "sparse_unet_points"
+
+    def make_input(self, coords: Tensor, feats: Tensor) -> PointTensor:  # type: ignore[override]
+        """Points at the voxel centres of ``coords`` (N, 4) int64 (batch, range, angle, Doppler bins)."""
+        return PointTensor(coords[:, 0].contiguous(), coords[:, 1:].to(feats.dtype) + 0.5, feats)
 
     def __init__(
         self,

@@ -16,8 +16,6 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
-from models.segmenter.spvcnn import SPVCNN, PointTensor
-from models.sparse import SparseTensor
 from pipelines.jobs import smoke_mode
 from pipelines.scoring import ViewConfusion, frame_centres
 from pipelines.spread import subset
@@ -34,13 +32,12 @@ JITTER_FRAMES = 96  # validation frames on which --jitter-from measures the dete
 WEIGHT_FRAMES = 64  # training frames whose ROI voxels give the class weights
 
 
-def sparse_input(model: nn.Module, batch: dict[str, Any], device: torch.device) -> SparseTensor | PointTensor:
-    """The segmenter's input for a collated ROI batch: a SparseTensor, or a PointTensor for SPVCNN."""
+def sparse_input(model: nn.Module, batch: dict[str, Any], device: torch.device) -> Any:
+    """The segmenter's input for a collated ROI batch, made by the model (``make_input``: a SparseTensor,
+    or a PointTensor for SPVCNN)."""
     coords = batch["coords"].to(device)  # (N, 4) int64: batch, range, angle, Doppler bins
     feats = batch["features"].to(device)  # (N, 4)
-    if isinstance(unwrap(model), SPVCNN):
-        return PointTensor(coords[:, 0].contiguous(), coords[:, 1:].to(feats.dtype) + 0.5, feats)
-    return SparseTensor(coords, feats)
+    return unwrap(model).make_input(coords, feats)
 
 
 class RoiDataset(Dataset):
