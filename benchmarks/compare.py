@@ -76,13 +76,13 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
             started = time.perf_counter()
             result = net.segment(cube, is_log_power=True)
             times.append(time.perf_counter() - started)
-        macs.append(result.compute["macs"]["total"])
-        executed.append(result.compute["executed_macs"]["total"])
-        macs_paper.append(result.compute["macs"]["total"] + detector.macs_paper - detector.macs)
+        macs.append(result.compute.macs_total)
+        executed.append(result.compute.executed_macs_total)
+        macs_paper.append(result.compute.macs_total + detector.macs_paper - detector.macs)
     return {"median_s": statistics.median(times), "min_s": min(times), "runs": len(times),
             "macs": float(np.mean(macs)), "macs_paper": float(np.mean(macs_paper)),
             "executed_macs": float(np.mean(executed)),
-            "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute["roi_voxels"]),
+            "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute.roi_voxels),
             "weights": "random, top-K seeds" if random_weights else "checkpoints/detector.pt + segmenter.pt"}
 
 

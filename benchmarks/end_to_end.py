@@ -35,10 +35,10 @@ def run(preset: str, segmenter: str, n_frames: int) -> dict:
     rows = {"detector_seeds": [], "true_seeds": []}
     for frame in frames:
         net.max_objects = max(1, len(frame.objects))
-        rows["detector_seeds"].append(net.segment(frame.cube).compute)
+        rows["detector_seeds"].append(net.segment(frame.cube).compute.to_dict())
         seeds = Centres.from_bins(np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin]
                                             for o in frame.objects if o.n_voxels]).reshape(-1, 3))
-        full = net.segment(frame.cube, centres=seeds).compute
+        full = net.segment(frame.cube, centres=seeds).compute.to_dict()
         full["macs"]["detect"] = net.detector_macs()  # seeded pass skipped the detector: count what it costs
         full["macs"]["total"] = full["macs"]["detect"] + full["macs"]["segment"]
         rows["true_seeds"].append(full)

@@ -28,11 +28,10 @@ import torch
 from models.detector.targets import build_centre_targets
 from models.registry import create_model
 from pipelines.preprocess import PreprocessConfig, main
-from pipelines.sharded_job import OBJECT_STORE_BYTES
-from pipelines.store import OBJECT_FIELDS, StoreDataset
+from pipelines.ray_runtime import init_ray
+from pipelines.store import CENTRE_COLUMNS, StoreDataset
 
 RESULTS = Path(__file__).parent / "results" / "preprocess.json"
-COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
 
 
 def run_job(out: Path, preset: str, frames: int, shard_frames: int, tasks: int) -> dict:
@@ -68,7 +67,7 @@ def detector_train_rate(store: Path, batch_size: int = 8, steps: int = 3) -> flo
     ds = StoreDataset(store, None, fields=("input", "heatmap"))
     batch = [ds[i % len(ds)] for i in range(batch_size)]
     inputs = torch.stack([s["input"] for s in batch])
-    centres = [s["objects"][: int(s["n_objects"])][:, [COL["range_bin"], COL["angle_bin"], COL["doppler_bin"]]]
+    centres = [s["objects"][: int(s["n_objects"])][:, CENTRE_COLUMNS]
                .double().numpy() for s in batch]
     targets = build_centre_targets(centres, (128, 128))
 
@@ -90,9 +89,7 @@ def main_bench() -> dict:
     parser.add_argument("--frames-small", type=int, default=64)
     parser.add_argument("--frames-carrada", type=int, default=16)
     args = parser.parse_args()
-    os.environ.setdefault("RAY_AUTH_MODE", "disabled")
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    ray.init(address="local", num_cpus=2, object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False)
+    init_ray(None, num_cpus=2)
     work = Path(tempfile.mkdtemp(prefix="bench-preprocess-"))
     machine = {"cpu": platform.machine(), "cores": os.cpu_count(), "python": platform.python_version(),
                "ray": ray.__version__, "load_average_at_start": os.getloadavg()}

@@ -43,9 +43,9 @@ from models.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
 from models.registry import create_model  # noqa: E402
 from pipelines.preprocess import PreprocessConfig  # noqa: E402
 from pipelines.preprocess import main as preprocess  # noqa: E402
+from pipelines.ray_runtime import init_ray  # noqa: E402
 from pipelines.segment_batch import SegmentBatchConfig, main  # noqa: E402
 from pipelines.serve_process import free_port  # noqa: E402
-from pipelines.sharded_job import OBJECT_STORE_BYTES  # noqa: E402
 from radar.simulate import simulate_sequence  # noqa: E402
 from service.settings import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, resolve_path  # noqa: E402
 
@@ -156,7 +156,7 @@ def main_bench() -> None:
         ckpt = checkpoints(tmp)
         store = build_store(tmp / "store.zarr", args.frames)
         results["models"] = {k: ckpt[k] for k in ("kind", "score_threshold", "max_objects")}
-        ray.init(address="local", num_cpus=2, object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False)
+        init_ray(None, num_cpus=2)
         batch: dict[int, list[dict]] = {1: [], 2: []}
         for _ in range(args.rounds):
             for workers in (1, 2):

@@ -36,12 +36,13 @@ from torch import nn
 
 from models.registry import create_model
 from models.sparse import SparseTensor
+from pipelines.training.config import DEFAULT_JITTER_STD
 from radar.region_growing import grow_regions
 from radar.roi import roi_points
 from radar.simulate import simulate_sequence
 
 RESULTS = Path(__file__).parent / "results" / "segmenter_train.json"
-JITTER_STD_BINS = (1.0, 1.0, 0.5)  # pipelines.train's default seed errors (range, angle, Doppler bins)
+JITTER_STD_BINS = DEFAULT_JITTER_STD  # pipelines.train's default seed errors (range, angle, Doppler bins)
 
 
 @dataclass(frozen=True)

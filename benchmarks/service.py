@@ -208,9 +208,10 @@ def run_stages(url: str, model: dict, frames: int) -> dict:
         for cube in cubes:
             # a pause after each run: an OpenMP team spins for a while after its work, and the next run (in this
             # process or in the server) would otherwise share the cores with it
-            timings = {"plain_main_thread": net.segment(cube).compute["seconds"]}
+            timings = {"plain_main_thread": net.segment(cube).compute.seconds_by_stage()}
             time.sleep(PAUSE_S)
-            timings["plain_inference_thread"] = inference_thread.submit(net.segment, cube).result().compute["seconds"]
+            threaded = inference_thread.submit(net.segment, cube).result()
+            timings["plain_inference_thread"] = threaded.compute.seconds_by_stage()
             time.sleep(PAUSE_S)
             start = time.perf_counter()
             r = http.post(f"{url}/v1/segment?model=small", content=_npy(cube),

@@ -18,12 +18,13 @@ import torch
 from torch import nn
 
 from models.registry import create_model
+from radar.errors import UserError
 
 FORMAT = "radarseg.checkpoint"
 VERSION = 1
 
 
-class CheckpointError(ValueError):
+class CheckpointError(UserError):
     """A checkpoint file that is missing, unreadable or not a radarseg checkpoint."""
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,16 +20,17 @@ from torch import nn
 
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import ComputeCounter, MacRecorder, count_params
+from models.compute_report import STAGES, FrameCompute
+from models.detection import MAX_OBJECTS, decode_centres, normalise_log_power
 from models.detector.inference import FrozenDetector
 from radar import transforms
 from radar.detections import Centres
-from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
+from radar.errors import UserError
 from radar.profiles import RadarProfile, get_profile, resolve_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
 from radar.schema import check_schema, cube_schema
-
-STAGES = ("transform", "detect", "grow", "segment", "project")
 
 
 @dataclass(frozen=True)
@@ -60,7 +61,7 @@ class SegmentationResult:
     objects: list[SegmentedObject]
     centres: Centres
     regions: Regions
-    compute: dict[str, Any] = field(default_factory=dict)
+    compute: FrameCompute
 
 
 @contextmanager
@@ -76,7 +77,7 @@ class EraseNet:
 
     def __init__(self, detector: nn.Module | None, segmenter: nn.Module, profile: RadarProfile | str, *,
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
-                 score_threshold: float = 0.3, max_objects: int = 32,
+                 score_threshold: float = 0.3, max_objects: int = MAX_OBJECTS,
                  doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
                  region_config: RegionGrowingConfig | None = None, device: str | torch.device = "cpu",
                  frozen_detector: bool = True):
@@ -117,7 +118,7 @@ class EraseNet:
         det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
         seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
         if det.preset != seg.preset:
-            raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
+            raise UserError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
         # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
         profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
         for ckpt, what in ((det, "detector"), (seg, "segmenter")):
@@ -161,15 +162,12 @@ class EraseNet:
             log_power = cube.astype(np.float32, copy=False) if is_log_power else transforms.log_power(cube)
             # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.
             cube_view = torch.from_numpy(log_power).to(self.device)[None].permute(0, 3, 1, 2)
-            x = (cube_view - self.mean_db) * (1.0 / self.std_db)
+            x = normalise_log_power(cube_view, self.mean_db, self.std_db)
         with _stage(seconds, "detect"):
             if centres is None:
-                outputs = self._run_detector(x)
-                decoded = self._run_detector.decode(outputs, k=self.max_objects,
-                                                    score_threshold=self.score_threshold)[0]
-                centres = Centres.from_mapping(decoded)
-                if self.doppler_refinement is not None:
-                    centres = refine_doppler(log_power, centres, self.doppler_refinement)
+                centres = decode_centres(self._run_detector, self._run_detector(x), [log_power], k=self.max_objects,
+                                         score_threshold=self.score_threshold,
+                                         doppler_refinement=self.doppler_refinement)[0]
                 detect_macs = self.detector_macs()
             else:
                 detect_macs = 0
@@ -185,17 +183,11 @@ class EraseNet:
             ra_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 2, num_classes)
             rd_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 1, num_classes)
             objects = self._objects(regions, voxel_classes, centres)
-        compute = {
-            "macs": {"detect": detect_macs, "grow": 0, "segment": segment_macs, "total": detect_macs + segment_macs},
-            # what the kernels ran: the sparse GEMM path also multiplies the zeros of missing neighbours
-            "executed_macs": {"detect": detect_macs, "segment": segment_executed,
-                              "total": detect_macs + segment_executed},
-            "params": {**self.params, "total": sum(self.params.values())},
-            "seconds": {**{name: seconds.get(name, 0.0) for name in STAGES}, "total": sum(seconds.values())},
-            "roi_voxels": len(regions),
-            "visited_points": regions.visited,
-            "detections": len(centres),
-        }
+        compute = FrameCompute(
+            detect_macs=detect_macs, segment_macs=segment_macs, segment_executed_macs=segment_executed,
+            detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],
+            seconds={name: seconds.get(name, 0.0) for name in STAGES}, roi_voxels=len(regions),
+            visited_points=regions.visited, detections=len(centres))
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute)
 
     def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int, int]:

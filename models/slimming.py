@@ -74,6 +74,7 @@ from models.detector.efficientnet import EfficientNetBackbone
 from models.layers import SeparableConv2d
 from models.registry import create_model
 from models.segmenter.spvcnn import FUSE_AFTER_DECODER_STAGE
+from radar.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -470,7 +471,7 @@ def prune_checkpoint(checkpoint: Any, *, ratio: float | None = None, params: int
     """
 
     if sum(v is not None for v in (ratio, params, macs)) != 1:
-        raise ValueError("give exactly one of ratio, params or macs")
+        raise UserError("give exactly one of ratio, params or macs")
     model = checkpoint.build()
     shapes = dense_input_shapes(model, checkpoint.preset)
     if ratio is None:
@@ -500,10 +501,10 @@ def _budget_ratio(model: nn.Module, *, params: int | None, macs: int | None, sha
     """Smallest global ratio whose pruned model fits the budget (bisection; cost falls with the ratio)."""
 
     if macs is not None and shapes is None:
-        raise ValueError(f"{type(model).__name__}: MACs depend on the input voxels; give a params budget")
+        raise UserError(f"{type(model).__name__}: MACs depend on the input voxels; give a params budget")
     budget = params if params is not None else macs
     if budget is None or budget < 1:
-        raise ValueError(f"budget must be a positive count, got {budget}")
+        raise UserError(f"budget must be a positive count, got {budget}")
 
     def cost(ratio: float) -> int:
         pruned = prune(model, ratio, min_channels=min_channels)[0]
@@ -513,7 +514,7 @@ def _budget_ratio(model: nn.Module, *, params: int | None, macs: int | None, sha
         return 0.0
     low, high = 0.0, 0.99
     if cost(high) > budget:
-        raise ValueError(f"budget {budget} is below what pruning can reach ({cost(high)} at ratio {high})")
+        raise UserError(f"budget {budget} is below what pruning can reach ({cost(high)} at ratio {high})")
     for _ in range(iterations):
         mid = (low + high) / 2
         if cost(mid) <= budget:

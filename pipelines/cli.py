@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import sys
+from typing import Any
 
 from pipelines.jobs import USER_ERRORS, report_error, run_job
 from radar.profiles import BUILTIN_PRESETS
@@ -209,7 +210,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="radarseg", description="ERASE-Net radar semantic segmentation")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
     sub = parser.add_subparsers(dest="command", required=True)
+    _add_data_commands(sub)
+    _add_frame_commands(sub)
+    _add_model_commands(sub)
+    return parser
 
+
+def _add_data_commands(sub: Any) -> None:
+    """simulate, the jobs, prune, store."""
     sim = sub.add_parser("simulate", help="simulate a labelled recording with the FMCW scene simulator")
     sim.add_argument("--preset", default="small", help="carrada, nxp, small, or a .toml/.json profile file")
     sim.add_argument("--sequences", type=int, default=2)
@@ -243,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(func=_cmd_store_info)
 
+
+def _add_frame_commands(sub: Any) -> None:
+    """segment, radar, process-adc: one frame or one profile."""
     seg = sub.add_parser("segment", help="run ERASE-Net on one .npy cube and print objects and compute")
     seg.add_argument("cube", help=".npy file: complex RAD cube (R, A, D) of the checkpoint's preset")
     seg.add_argument("--detector", required=True, help="detector checkpoint")
@@ -273,6 +284,9 @@ def build_parser() -> argparse.ArgumentParser:
     adc.add_argument("--out", required=True, help="output .npy (complex64 (R, A, D))")
     adc.set_defaults(func=_cmd_process_adc)
 
+
+def _add_model_commands(sub: Any) -> None:
+    """upload-check, models, serve, demo."""
     upload = sub.add_parser("upload-check", help="what `ray job submit --working-dir DIR` would upload; a one-line "
                                                  "error over Ray's limit (HTTP 413) naming the largest files")
     from pipelines import upload_check
@@ -300,7 +314,6 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")
     demo.add_argument("--out", default="out/demo")
     demo.set_defaults(func=_cmd_demo)
-    return parser
 
 
 def _command_index(argv: list[str]) -> int | None:

@@ -60,6 +60,7 @@ from pipelines.store_info import StoreInfo
 from pipelines.training.baselines import load_baseline
 from pipelines.views import ViewDataset, ViewStats, collate_views, model_inputs, scored_frames, split_windows
 from radar.cfar import cfar_centres
+from radar.errors import UserError
 from radar.metrics import consistency, consistency_counts
 from radar.profiles import resolve_profile
 
@@ -162,11 +163,11 @@ class Prediction:
 def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: Role, preset: str, class_names: Sequence[str]) -> None:
     found = checkpoint.extra.get("stage")
     if found != stage:
-        raise ValueError(f"{path}: expected a {stage} checkpoint, found stage {found!r} ({checkpoint.model_name})")
+        raise UserError(f"{path}: expected a {stage} checkpoint, found stage {found!r} ({checkpoint.model_name})")
     if checkpoint.preset != preset:
-        raise ValueError(f"{path}: the model is for preset {checkpoint.preset!r}, the store is {preset!r}")
+        raise UserError(f"{path}: the model is for preset {checkpoint.preset!r}, the store is {preset!r}")
     if tuple(checkpoint.class_names) != tuple(class_names):
-        raise ValueError(f"{path}: classes {list(checkpoint.class_names)}, the store's {list(class_names)}")
+        raise UserError(f"{path}: classes {list(checkpoint.class_names)}, the store's {list(class_names)}")
 
 
 class EraseNetPredictor:
@@ -207,7 +208,7 @@ class EraseNetPredictor:
         centres = cfar_centres(log_power, self.net.profile) if self.spec.kind is Entry.CFAR else None
         result = self.net.segment(log_power, is_log_power=True, centres=centres)
         seconds = time.perf_counter() - started
-        macs = float(result.compute["macs"]["total"])
+        macs = float(result.compute.macs_total)
         return Prediction(result.ra_mask, result.rd_mask, seconds, macs, macs + self.paper_extra)
 
 
@@ -226,7 +227,7 @@ class BaselinePredictor:
         if sorted(views) != ["ra", "rd"]:
             kinds = ", ".join(f"{path} ({'/'.join(predicted_views(model))})"
                               for path, (model, _) in zip(spec.checkpoints, self.models, strict=True))
-            raise ValueError(f"{spec.name!r}: expected one network predicting RD and RA (TMVA-Net, SMVA-Net) or a "
+            raise UserError(f"{spec.name!r}: expected one network predicting RD and RA (TMVA-Net, SMVA-Net) or a "
                              f"U-Net pair NAME=RD.pt,RA.pt (one per view), got {kinds}")
         self.n_frames = max(model.n_frames for model, _ in self.models)
         self.params = sum(count_params(model) for model, _ in self.models)
@@ -311,35 +312,17 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
     if cfg.max_frames:
         targets = targets[spread(len(targets), cfg.max_frames)]
     if len(targets) == 0:
-        raise ValueError(f"split {split_name!r} of {cfg.store} has no frame with {window - 1} earlier frames of its "
+        raise UserError(f"split {split_name!r} of {cfg.store} has no frame with {window - 1} earlier frames of its "
                          f"sequence (the window of the longest-window model): nothing to score")
     for predictor in predictors:
         predictor.bind(cfg.store, cfg.split, targets)
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
 
-    root = open_store(cfg.store)
-    arrays = {name: root[name] for name in ("input", "ra_mask", "rd_mask")}
     picture_slots = [int(targets[i]) for i in spread(len(targets), cfg.pictures)]
-    pictures: dict[int, dict[str, Any]] = {}
     tallies = {p.spec.name: _Tally(num_classes) for p in predictors}
     truth_tally = _Tally(num_classes)
-    for slot in tqdm(targets.tolist(), desc=f"compare {split_name}", unit="frame", disable=not cfg.progress):
-        log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
-        truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
-        truth_tally.add(truth, truth["ra"], truth["rd"])
-        keep = slot in picture_slots
-        if keep:
-            pictures[slot] = {"log_power": log_power, "ground truth": (truth["ra"], truth["rd"])}
-        for predictor in predictors:
-            prediction = predictor(slot, log_power)
-            tally = tallies[predictor.spec.name]
-            tally.add(truth, prediction.ra_mask, prediction.rd_mask)
-            tally.seconds.append(prediction.seconds)
-            tally.macs.append(prediction.macs)
-            tally.macs_paper.append(prediction.macs_paper)
-            if keep:
-                pictures[slot][predictor.spec.name] = (prediction.ra_mask, prediction.rd_mask)
+    pictures = _score_frames(cfg, predictors, targets, tallies, truth_tally, picture_slots)
 
     figure = None
     if pictures:
@@ -349,23 +332,8 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
              for slot in picture_slots], profile, out / "compare_frames.png",
             title=f"{preset} / {split_name}: the same frames, ground truth first")
 
-    rows = []
-    for predictor in predictors:
-        tally = tallies[predictor.spec.name]
-        rows.append({
-            "name": predictor.spec.name, "kind": str(predictor.spec.kind),
-            "checkpoints": list(predictor.spec.checkpoints),
-            "n_frames": predictor.n_frames, "frames_scored": len(targets),
-            "frames_usable_alone": scored_frames(cfg.store, cfg.split, predictor.n_frames),
-            **{view: view_summary(tally.confusion.matrices[view.lower()], class_names) for view in VIEWS},
-            "params": int(predictor.params),
-            "macs": float(np.mean(tally.macs)), "macs_paper": float(np.mean(tally.macs_paper)),
-            "macs_note": predictor.macs_note,
-            "consistency": consistency(tally.inconsistent, tally.present),
-            "inconsistent": tally.inconsistent, "present": tally.present,
-            "occupancy_consistency": consistency(tally.occupancy_inconsistent, tally.occupancy_present),
-            "seconds_per_frame": float(np.mean(tally.seconds)), "seconds_median": float(np.median(tally.seconds)),
-        })
+    rows = [_model_row(cfg, predictor, tallies[predictor.spec.name], class_names, len(targets))
+            for predictor in predictors]
     result: dict[str, Any] = {
         "store": str(cfg.store), "out": str(cfg.out), "split": split_name, "preset": preset,
         "classes": list(class_names), "frames": len(targets), "frames_usable": usable, "window": window,
@@ -381,6 +349,50 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
     (out / "compare.json").write_text(json.dumps(result, indent=2))
     (out / "compare.md").write_text(render_compare(result))
     return result
+
+
+def _score_frames(cfg: CompareConfig, predictors: list, targets: np.ndarray, tallies: dict[str, _Tally],
+                  truth_tally: _Tally, picture_slots: list[int]) -> dict[int, dict[str, Any]]:
+    """Every model on every target frame, summed into its tally; the masks of the picture frames."""
+    root = open_store(cfg.store)
+    arrays = {name: root[name] for name in ("input", "ra_mask", "rd_mask")}
+    pictures: dict[int, dict[str, Any]] = {}
+    for slot in tqdm(targets.tolist(), desc=f"compare {cfg.split or 'all'}", unit="frame", disable=not cfg.progress):
+        log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
+        truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
+        truth_tally.add(truth, truth["ra"], truth["rd"])
+        keep = slot in picture_slots
+        if keep:
+            pictures[slot] = {"log_power": log_power, "ground truth": (truth["ra"], truth["rd"])}
+        for predictor in predictors:
+            prediction = predictor(slot, log_power)
+            tally = tallies[predictor.spec.name]
+            tally.add(truth, prediction.ra_mask, prediction.rd_mask)
+            tally.seconds.append(prediction.seconds)
+            tally.macs.append(prediction.macs)
+            tally.macs_paper.append(prediction.macs_paper)
+            if keep:
+                pictures[slot][predictor.spec.name] = (prediction.ra_mask, prediction.rd_mask)
+    return pictures
+
+
+def _model_row(cfg: CompareConfig, predictor: EraseNetPredictor | BaselinePredictor, tally: _Tally,
+               class_names: Sequence[str], frames_scored: int) -> dict[str, Any]:
+    """One model's entry of compare.json."""
+    return {
+        "name": predictor.spec.name, "kind": str(predictor.spec.kind),
+        "checkpoints": list(predictor.spec.checkpoints),
+        "n_frames": predictor.n_frames, "frames_scored": frames_scored,
+        "frames_usable_alone": scored_frames(cfg.store, cfg.split, predictor.n_frames),
+        **{view: view_summary(tally.confusion.matrices[view.lower()], class_names) for view in VIEWS},
+        "params": int(predictor.params),
+        "macs": float(np.mean(tally.macs)), "macs_paper": float(np.mean(tally.macs_paper)),
+        "macs_note": predictor.macs_note,
+        "consistency": consistency(tally.inconsistent, tally.present),
+        "inconsistent": tally.inconsistent, "present": tally.present,
+        "occupancy_consistency": consistency(tally.occupancy_inconsistent, tally.occupancy_present),
+        "seconds_per_frame": float(np.mean(tally.seconds)), "seconds_median": float(np.median(tally.seconds)),
+    }
 
 
 def _frames_rule(split: str, window: int, scored: int, usable: int) -> str:

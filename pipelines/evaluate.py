@@ -26,7 +26,7 @@ import json
 import logging
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -35,18 +35,19 @@ import torch
 from tqdm import tqdm
 
 from models.checkpoint import load_checkpoint
+from models.detection import detect_centres
 from models.erasenet import EraseNet
 from pipelines.jobs import run_module
 from pipelines.scoring import DetectionScorer, ViewConfusion
 from pipelines.spread import spread
-from pipelines.store import OBJECT_FIELDS, frames_of_split, open_store
+from pipelines.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
 from radar.detections import Centres
-from radar.doppler import DOPPLER_REFINEMENT, refine_doppler
+from radar.doppler import DOPPLER_REFINEMENT
+from radar.errors import UserError
 from radar.region_growing import RegionGrowingConfig, grow_regions
 
 log = logging.getLogger(__name__)
 
-COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
 AP_SCORE_THRESHOLD = 0.01  # detections kept for the PR curve
 D_THRESH_SWEEP_M = (4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
 
@@ -95,9 +96,28 @@ class _RecallCounter:
                 "visited_mean": self.visited / frames, "roi_voxels_mean": self.roi / frames, "frames": self.frames}
 
 
+@dataclass
+class _Tallies:
+    """Everything :func:`evaluate` sums over the frames."""
+
+    detection: DetectionScorer
+    confusion: ViewConfusion
+    oracle_confusion: ViewConfusion
+    sweep: dict[tuple[str, float], _RecallCounter]
+    predicted_seeds: _RecallCounter = field(default_factory=_RecallCounter)
+    truth_seeds: _RecallCounter = field(default_factory=_RecallCounter)
+    macs: dict[str, list[float]] = field(default_factory=dict)
+    seconds: dict[str, list[float]] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, profile: Any, distances: tuple[float, ...]) -> _Tallies:
+        num_classes = profile.num_classes
+        return cls(DetectionScorer(profile), ViewConfusion(num_classes), ViewConfusion(num_classes),
+                   {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in distances})
+
+
 def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     """Run the evaluation; writes ``metrics.json``, ``report.md`` and pictures into ``cfg.out``; returns the metrics."""
-    from pipelines.figures import plot_confusion, plot_pr_curves, plot_truth_vs_prediction
     from pipelines.report import write_report
 
     if cfg.threads:
@@ -108,114 +128,142 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
     net = EraseNet.from_checkpoints(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
-    profile, class_names, num_classes = net.profile, net.class_names, net.profile.num_classes
-    root = open_store(cfg.store)
-    if root.attrs["preset"] != profile.name:
-        raise ValueError(f"store {cfg.store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
-    frames = frames_of_split(root, cfg.split)
+    root, frames = _frames(cfg, net.profile)
     split_name = cfg.split or "all"
-    if cfg.max_frames:
-        frames = frames[spread(len(frames), cfg.max_frames)]
-    if len(frames) == 0:
-        raise ValueError(f"split {cfg.split!r} of {cfg.store} has no frames")
     arrays = {name: root[name] for name in ("input", "instances", "ra_mask", "rd_mask", "objects", "n_objects")}
     picture_frames = {int(frames[i]) for i in spread(len(frames), cfg.pictures)}
     sweep_frames = {int(frames[i]) for i in spread(len(frames), cfg.sweep_frames)}
-
-    detection = DetectionScorer(profile)
-    confusion, oracle_confusion = ViewConfusion(num_classes), ViewConfusion(num_classes)
-    predicted_seeds, truth_seeds = _RecallCounter(), _RecallCounter()
-    sweep = {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in cfg.sweep}
-    macs: dict[str, list[float]] = {}
-    seconds: dict[str, list[float]] = {}
+    tallies = _Tallies.empty(net.profile, cfg.sweep)
     pictures: list[str] = []
     started = time.perf_counter()
     for slot in tqdm(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
-        log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
-        instances = arrays["instances"][slot]
-        truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
-        table = arrays["objects"][slot][: int(arrays["n_objects"][slot])].astype(np.float64)
-        truth_bins = table[:, [COL["range_bin"], COL["angle_bin"], COL["doppler_bin"]]]
-
-        # detection AP: the detector's scored centres down to a low threshold
-        x = torch.from_numpy(np.ascontiguousarray(((log_power - net.mean_db) / net.std_db).transpose(2, 0, 1)))
-        with torch.no_grad():
-            decoded = net.detector.decode(net.detector(x[None].to(net.device)), k=net.max_objects,
-                                          score_threshold=AP_SCORE_THRESHOLD)[0]
-        scored = Centres.from_mapping(decoded)
-        if net.doppler_refinement is not None:  # AP of what the product outputs
-            scored = refine_doppler(log_power, scored, net.doppler_refinement)
-        detection.add(scored, table)
-
-        # the whole chain at the operating threshold
-        result = net.segment(log_power, is_log_power=True)
-        confusion.add_masks(truth, result.ra_mask, result.rd_mask)
-        predicted_seeds.add(result.regions, instances)
-        for name, value in result.compute["macs"].items():
-            macs.setdefault(name, []).append(value)
-        for name, value in result.compute["seconds"].items():
-            seconds.setdefault(name, []).append(value)
-
-        truth_centres = Centres.from_bins(truth_bins)
-        truth_regions = grow_regions(log_power, truth_centres, profile, net.region_config)
-        truth_seeds.add(truth_regions, instances)
-        if cfg.oracle:
-            oracle = net.segment(log_power, is_log_power=True, centres=truth_centres)
-            oracle_confusion.add_masks(truth, oracle.ra_mask, oracle.rd_mask)
-        if slot in sweep_frames:
-            for (seeds, distance), counter in sweep.items():
-                config = RegionGrowingConfig(**{**asdict(net.region_config), "distance_m": distance})
-                centres = result.centres if seeds == "predicted" else truth_centres
-                counter.add(grow_regions(log_power, centres, profile, config), instances)
+        frame = {name: array[slot] for name, array in arrays.items()}
+        picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames)
         if slot in picture_frames:
-            truth_notes = [(class_names[int(row[COL["class_id"]])], row[COL["x"]], row[COL["y"]],
-                            float(profile.velocity_mps(row[COL["doppler_bin"]]))) for row in table]
-            pred_notes = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in result.objects]
-            path = plot_truth_vs_prediction(
-                log_power, profile, (truth["ra"], truth["rd"]), (result.ra_mask, result.rd_mask),
-                out / f"frame_{slot:05d}.png", truth_objects=truth_notes, predicted_objects=pred_notes,
-                title=f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)")
-            pictures.append(path.name)
+            title = f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)"
+            pictures.append(_frame_picture(net, picture, out / f"frame_{slot:05d}.png", title=title))
+    pictures = _summary_pictures(tallies, net.class_names, out, f"{split_name}, {len(frames)} frames") + pictures
+    metrics = _metrics(cfg, net, (det_ckpt, seg_ckpt), tallies, split_name, len(frames))
+    metrics.update(seconds=time.perf_counter() - started, pictures=pictures)  # in their place among the keys
+    if cfg.oracle:
+        metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
+                                               in tallies.oracle_confusion.summary(net.class_names).items()}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_report(metrics, out / "report.md")
+    return metrics
 
+
+def _frames(cfg: EvaluateConfig, profile: Any) -> tuple[Any, np.ndarray]:
+    """The store (checked against the model's preset) and the slots to score."""
+    root = open_store(cfg.store)
+    if root.attrs["preset"] != profile.name:
+        raise UserError(f"store {cfg.store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
+    frames = frames_of_split(root, cfg.split)
+    if cfg.max_frames:
+        frames = frames[spread(len(frames), cfg.max_frames)]
+    if len(frames) == 0:
+        raise UserError(f"split {cfg.split!r} of {cfg.store} has no frames")
+    return root, frames
+
+
+def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: dict[str, np.ndarray], *,
+                 in_sweep: bool) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, Any]:
+    """Add one frame to every tally; returns what its picture needs: log power, truth masks, object table,
+    the segmentation result."""
+    profile = net.profile
+    log_power = frame["input"].astype(np.float32)  # (R, A, D) dB
+    instances = frame["instances"]
+    truth = {"ra": frame["ra_mask"], "rd": frame["rd_mask"]}
+    table = frame["objects"][: int(frame["n_objects"])].astype(np.float64)
+
+    # detection AP: the detector's scored centres down to a low threshold
+    frame_dra = torch.from_numpy(np.ascontiguousarray(log_power.transpose(2, 0, 1)))[None]  # (1, D, R, A)
+    with torch.no_grad():  # Doppler refined as the product refines it: AP of what it outputs
+        scored = detect_centres(net.detector, frame_dra, mean_db=net.mean_db, std_db=net.std_db,
+                                k=net.max_objects, score_threshold=AP_SCORE_THRESHOLD,
+                                doppler_refinement=net.doppler_refinement, device=net.device)[1][0]
+    tallies.detection.add(scored, table)
+
+    # the whole chain at the operating threshold
+    result = net.segment(log_power, is_log_power=True)
+    tallies.confusion.add_masks(truth, result.ra_mask, result.rd_mask)
+    tallies.predicted_seeds.add(result.regions, instances)
+    for name, value in result.compute.macs_by_stage().items():
+        tallies.macs.setdefault(name, []).append(value)
+    for name, value in result.compute.seconds_by_stage().items():
+        tallies.seconds.setdefault(name, []).append(value)
+
+    truth_centres = Centres.from_bins(table[:, CENTRE_COLUMNS])
+    tallies.truth_seeds.add(grow_regions(log_power, truth_centres, profile, net.region_config), instances)
+    if cfg.oracle:
+        oracle = net.segment(log_power, is_log_power=True, centres=truth_centres)
+        tallies.oracle_confusion.add_masks(truth, oracle.ra_mask, oracle.rd_mask)
+    if in_sweep:
+        for (seeds, distance), counter in tallies.sweep.items():
+            config = RegionGrowingConfig(**{**asdict(net.region_config), "distance_m": distance})
+            centres = result.centres if seeds == "predicted" else truth_centres
+            counter.add(grow_regions(log_power, centres, profile, config), instances)
+    return log_power, truth, table, result
+
+
+def _frame_picture(net: EraseNet, picture: tuple, path: Path, *, title: str) -> str:
+    """Ground truth against prediction for one frame, objects annotated; the file's name."""
+    from pipelines.figures import plot_truth_vs_prediction
+
+    log_power, truth, table, result = picture
+    profile, col = net.profile, OBJECT_COLUMN
+    truth_notes = [(net.class_names[int(row[col["class_id"]])], row[col["x"]], row[col["y"]],
+                    float(profile.velocity_mps(row[col["doppler_bin"]]))) for row in table]
+    pred_notes = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in result.objects]
+    return plot_truth_vs_prediction(log_power, profile, (truth["ra"], truth["rd"]), (result.ra_mask, result.rd_mask),
+                                    path, truth_objects=truth_notes, predicted_objects=pred_notes, title=title).name
+
+
+def _summary_pictures(tallies: _Tallies, class_names: Any, out: Path, what: str) -> list[str]:
+    """The PR curves and one confusion matrix per view."""
+    from pipelines.figures import plot_confusion, plot_pr_curves
+
+    curves = tallies.detection.curves()
+    names = [plot_pr_curves({f"k = {k:g}": (c.recall, c.precision, c.ap) for k, c in curves.items()},
+                            out / "pr_curves.png").name]
+    for view, matrix in tallies.confusion.matrices.items():
+        names.append(plot_confusion(matrix, class_names, out / f"confusion_{view}.png",
+                                    title=f"{view.upper()} confusion ({what})").name)
+    return names
+
+
+def _metrics(cfg: EvaluateConfig, net: EraseNet, checkpoints: tuple[Any, Any], tallies: _Tallies, split_name: str,
+             n_frames: int) -> dict[str, Any]:
+    """metrics.json but for the figures only the caller knows: ``seconds``, ``pictures`` (placeholders here)
+    and ``segmentation_truth_seeds``."""
+    det_ckpt, seg_ckpt = checkpoints
+    class_names, detection = net.class_names, tallies.detection
     curves = detection.curves()
-    summary_pictures = [plot_pr_curves({f"k = {k:g}": (c.recall, c.precision, c.ap) for k, c in curves.items()},
-                                       out / "pr_curves.png").name]
-    for view, matrix in confusion.matrices.items():
-        summary_pictures.append(plot_confusion(matrix, class_names, out / f"confusion_{view}.png",
-                                               title=f"{view.upper()} confusion ({split_name}, {len(frames)} frames)"
-                                               ).name)
-    pictures = summary_pictures + pictures
-    summary = detection.summary()
-    metrics: dict[str, Any] = {
-        "store": str(cfg.store), "out": str(cfg.out), "split": split_name, "frames": len(frames),
-        "preset": profile.name,
+    return {
+        "store": str(cfg.store), "out": str(cfg.out), "split": split_name, "frames": n_frames,
+        "preset": net.profile.name,
         "detector": str(cfg.detector), "segmenter": str(cfg.segmenter),
         "models": {"detector": det_ckpt.model_name, "segmenter": seg_ckpt.model_name},
         "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
         "score_threshold": net.score_threshold, "classes": list(class_names),
         "doppler_refinement": None if net.doppler_refinement is None else asdict(net.doppler_refinement),
-        "detection": {**summary, "n_truth": detection.n_truth,
+        "detection": {**detection.summary(), "n_truth": detection.n_truth,
                       "n_predictions": int(len(next(iter(curves.values())).score)) if curves else 0,
                       "ap_score_threshold": AP_SCORE_THRESHOLD},
         "region_growing": {
             "config": asdict(net.region_config),
-            "predicted_seeds": predicted_seeds.summary(), "truth_seeds": truth_seeds.summary(),
-            "sweep": [{"seeds": seeds, "distance_m": d, **counter.summary()} for (seeds, d), counter in sweep.items()],
+            "predicted_seeds": tallies.predicted_seeds.summary(), "truth_seeds": tallies.truth_seeds.summary(),
+            "sweep": [{"seeds": seeds, "distance_m": d, **counter.summary()}
+                      for (seeds, d), counter in tallies.sweep.items()],
         },
-        "segmentation": {view.upper(): summary for view, summary in confusion.summary(class_names).items()},
+        "segmentation": {view.upper(): summary for view, summary in tallies.confusion.summary(class_names).items()},
         "cost": {"params": net.params | {"total": sum(net.params.values())},
-                 "macs_mean": {k: float(np.mean(v)) for k, v in macs.items()},
-                 "seconds_mean": {k: float(np.mean(v)) for k, v in seconds.items()}},
-        "seconds": time.perf_counter() - started,
-        "pictures": pictures,
+                 "macs_mean": {k: float(np.mean(v)) for k, v in tallies.macs.items()},
+                 "seconds_mean": {k: float(np.mean(v)) for k, v in tallies.seconds.items()}},
+        "seconds": 0.0,
+        "pictures": [],
     }
-    if cfg.oracle:
-        metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
-                                               in oracle_confusion.summary(class_names).items()}
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-    write_report(metrics, out / "report.md")
-    return metrics
 
 
 def _training_info(extra: dict[str, Any]) -> dict[str, Any]:

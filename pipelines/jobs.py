@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
+import logging
 import os
 import shlex
 import sys
@@ -22,10 +23,12 @@ from collections.abc import Sequence
 from types import ModuleType
 from typing import Any
 
-from radar.io.errors import DataError
+from radar.errors import UserError
 from radar.profiles import UnknownPresetError
 
 CONTRACT = ("add_arguments", "config_from_args", "main", "format_result")
+
+log = logging.getLogger(__name__)
 
 
 def job_module(name: str) -> ModuleType:
@@ -49,7 +52,12 @@ def parse_config(module: ModuleType, argv: Sequence[str] | None, prog: str) -> A
     argv = list(sys.argv[1:] if argv is None else argv)
     args = job_parser(module, prog).parse_args(argv)
     args.command_line = shlex.join([*prog.split(), *argv])
-    return module.config_from_args(args)
+    try:
+        return module.config_from_args(args)
+    except ValueError as exc:  # the config refused an argument: the user's mistake, whatever its type
+        if isinstance(exc, UserError):
+            raise
+        raise UserError(str(exc)) from exc
 
 
 # Smoke mode (RADARSEG_SMOKE=1): every job runs its command on tiny sizes, so that the README's commands run
@@ -89,6 +97,10 @@ def smoke_config(cfg: Any) -> Any:
         changes["threads"] = 1
     if "in_process" in fields:  # sharded jobs: every shard in this process, no Ray start (tests/deploy runs Ray)
         changes["in_process"] = True
+    if getattr(cfg, "jitter_from", None):  # a detector trained for smoke-sized steps matches nothing to measure
+        changes["jitter_from"] = None
+        log.warning("smoke mode: the errors of --jitter-from %s are not measured; seeds get Gaussian errors, as "
+                    "with --jitter-std", cfg.jitter_from)
     return dataclasses.replace(cfg, **changes)
 
 
@@ -112,7 +124,8 @@ def run_module(name: str, argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-USER_ERRORS = (DataError, ValueError, FileExistsError, FileNotFoundError, UnknownPresetError)
+# Reported as one line (exit status 2); any other exception, a plain ValueError included, is a bug: traceback.
+USER_ERRORS = (UserError, FileExistsError, FileNotFoundError, UnknownPresetError)
 
 
 def report_error(command: str, exc: BaseException) -> int:

@@ -78,10 +78,10 @@ def encode_prediction(result: Any, layout: PredictionLayout) -> dict[str, np.nda
     for k, obj in enumerate(result.objects[: layout.max_objects]):
         table[k] = [getattr(obj, name) for name in PREDICTION_OBJECT_FIELDS]
     compute = result.compute
-    values = {**{f"macs_{k}": v for k, v in compute["macs"].items()},
-              **{f"seconds_{k}": v for k, v in compute["seconds"].items()},
-              "roi_voxels": compute["roi_voxels"], "visited_points": compute["visited_points"],
-              "detections": compute["detections"]}
+    values = {**{f"macs_{k}": v for k, v in compute.macs_by_stage().items()},
+              **{f"seconds_{k}": v for k, v in compute.seconds_by_stage().items()},
+              "roi_voxels": compute.roi_voxels, "visited_points": compute.visited_points,
+              "detections": compute.detections}
     return {
         "labels": result.labels,
         "ra_mask": result.ra_mask,

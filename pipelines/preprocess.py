@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from pipelines import sharded_job
+from pipelines import shard_frames, sharded_job
 from pipelines.jobs import run_module
 from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import (
@@ -56,6 +56,7 @@ from pipelines.store import (
     create_store,
     encode_frame,
 )
+from radar.errors import UserError
 from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
 from radar.io.errors import DataError
@@ -172,19 +173,19 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
     DataError saying what is wrong; nothing is written."""
     kind, _, location = cfg.source.partition(":")
     if kind not in SOURCE_KINDS or (kind == "sim") != (location == ""):
-        raise ValueError(f"--source must be 'sim', 'recording:DIR', 'adc-recording:DIR' or 'carrada:ROOT', "
+        raise UserError(f"--source must be 'sim', 'recording:DIR', 'adc-recording:DIR' or 'carrada:ROOT', "
                          f"got {cfg.source!r}")
     for name in ("tasks", "shard_frames", "max_objects"):
         value = getattr(cfg, name)
         if value is not None and value < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
     if cfg.split_fractions is not None:
         fractions = tuple(float(f) for f in cfg.split_fractions)
         if len(fractions) != 3 or min(fractions) < 0 or abs(sum(fractions) - 1) > 1e-6 or fractions[0] <= 0:
-            raise ValueError(f"--split-fractions must be 3 non-negative numbers (train > 0) summing to 1, "
+            raise UserError(f"--split-fractions must be 3 non-negative numbers (train > 0) summing to 1, "
                              f"got {list(cfg.split_fractions)}")
     if not cfg.out:
-        raise ValueError("--out must name the store path")
+        raise UserError("--out must name the store path")
 
     splits: dict[str, str]
     if kind == "sim":
@@ -192,22 +193,22 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         try:
             get_profile(preset)
         except (UnknownPresetError, ProfileError) as exc:
-            raise ValueError(f"--preset: {exc}") from None
+            raise UserError(f"--preset: {exc}") from None
         n_sequences = 2 if cfg.sequences is None else cfg.sequences
         n_frames = 8 if cfg.frames is None else cfg.frames
         if n_sequences < 1 or n_frames < 1:
-            raise ValueError(f"--sequences and --frames must be >= 1, got {n_sequences} and {n_frames}")
+            raise UserError(f"--sequences and --frames must be >= 1, got {n_sequences} and {n_frames}")
         source = sharded_job.SourceSpec("sim", None, preset, cfg.seed)
         frame_counts = {sequence_name(i): n_frames for i in range(n_sequences)}
     else:
         given = [f"--{n}" for n in ("preset", "sequences", "frames") if getattr(cfg, n) is not None]
         if given or cfg.seed != 0:
-            raise ValueError(f"{', '.join(given + (['--seed'] if cfg.seed else []))}: only with --source sim "
+            raise UserError(f"{', '.join(given + (['--seed'] if cfg.seed else []))}: only with --source sim "
                              f"(the {kind} source fixes them)")
         root = Path(location).expanduser().absolute()
         reader = CarradaReader(root) if kind == "carrada" else Recording(root)
         if kind == "adc-recording" and reader.content != "adc":
-            raise ValueError(f"--source {cfg.source!r}: {root} holds RAD cubes, not ADC samples (use recording:DIR)")
+            raise UserError(f"--source {cfg.source!r}: {root} holds RAD cubes, not ADC samples (use recording:DIR)")
         # the store records a seed for any source
         source = sharded_job.SourceSpec(kind, str(root), reader.profile.name, seed=0)
         frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
@@ -229,7 +230,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
     else:
         split_rule = {"rule": "carrada data_seq_ref.json"}
     if not any(splits[s] == "train" and frame_counts[s] for s in names):
-        raise ValueError(f"the split rule {split_rule} leaves the train split empty ({len(names)} sequences); "
+        raise UserError(f"the split rule {split_rule} leaves the train split empty ({len(names)} sequences); "
                          "the normalisation statistics need train frames")
 
     slots: list[Slot] = []
@@ -301,7 +302,7 @@ def process_shard(job: sharded_job.ShardJob) -> dict[str, Any]:
     reasons, class voxel counts per split, and the train frames' ``input`` moments per Doppler bin.
     """
     layout = job.layout
-    buffers, quarantined = sharded_job.fill_shard(job, _source_frames(job.source, job.frames),
+    buffers, quarantined = shard_frames.fill_shard(job, _source_frames(job.source, job.frames),
                                       lambda frame: encode_frame(frame, layout))
     start, _ = layout.shard_bounds(job.shard)
     num_classes = layout.profile.num_classes

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from radar.errors import UserError
 from radar.io.recording import RecordingWriter
 from radar.profiles import get_profile
 from radar.simulate import SimulatorConfig, simulate_sequence
@@ -19,7 +20,7 @@ def simulate_recording(*, preset: str, sequences: int, frames: int, seed: int, o
     """Simulate ``sequences`` x ``frames`` labelled frames into the recording layout at ``out``
     (``adc``: store the raw ADC samples instead of the RAD cubes)."""
     if sequences < 1 or frames < 1:
-        raise ValueError(f"sequences and frames must be >= 1, got {sequences} and {frames}")
+        raise UserError(f"sequences and frames must be >= 1, got {sequences} and {frames}")
     profile = get_profile(preset)
     config = config or SimulatorConfig()
     source = {"kind": "sim", "seed": seed, "simulator": config.to_dict()}

@@ -28,9 +28,16 @@ def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
 
 def render_report(metrics: dict[str, Any]) -> str:
     """The markdown text of a report (see the module docstring)."""
-    det, rg, seg, cost = metrics["detection"], metrics["region_growing"], metrics["segmentation"], metrics["cost"]
-    classes = metrics["classes"]
-    macs = cost["macs_mean"]
+    lines = [*_summary(metrics), *_detection(metrics["detection"]), *_segmentation(metrics),
+             *_region_growing(metrics["region_growing"]), *_cost(metrics["cost"]), *_training(metrics)]
+    lines += ["", "## Pictures", ""]
+    lines += [f"![{name}]({name})" for name in metrics["pictures"]]
+    return "\n".join(lines) + "\n"
+
+
+def _summary(metrics: dict[str, Any]) -> list[str]:
+    det, rg, seg = metrics["detection"], metrics["region_growing"], metrics["segmentation"]
+    macs = metrics["cost"]["macs_mean"]
     lines = [
         f"# ERASE-Net evaluation: {metrics['preset']} / {metrics['split']}",
         "",
@@ -51,15 +58,22 @@ def render_report(metrics: dict[str, Any]) -> str:
     lines += ["", "Paper, ERASE-Net (M), for context (other radars and data, not comparable figures): "
               + "; ".join(f"{name} RD {ref['RD']} / RA {ref['RA']} mIoU, mAP {ref['mAP']}, MACs {ref['macs_g']} G"
                           for name, ref in PAPER_REFERENCE.items()) + ".", ""]
+    return lines
 
-    lines += ["## Detection", "",
+
+def _detection(det: dict[str, Any]) -> list[str]:
+    lines = ["## Detection", "",
               "A prediction matches a ground-truth centre within k metres (Cartesian) and k Doppler bins; "
               f"greedy by score; COCO-interpolated AP; {det['n_truth']} objects, {det['n_predictions']} "
               f"detections down to score {det['ap_score_threshold']}.", ""]
     lines += md_table(["k", "1", "3", "5", "mAP"],
                     [["AP", fmt_num(det["AP@1"]), fmt_num(det["AP@3"]), fmt_num(det["AP@5"]), fmt_num(det["mAP"])]])
+    return lines
 
-    lines += ["", "## Segmentation (one confusion matrix per view over the split)", ""]
+
+def _segmentation(metrics: dict[str, Any]) -> list[str]:
+    seg, classes = metrics["segmentation"], metrics["classes"]
+    lines = ["", "## Segmentation (one confusion matrix per view over the split)", ""]
     header = ["view", *[f"IoU {c}" for c in classes], "mIoU"]
     rows = [[view, *[fmt_pct(seg[view]["iou"][c]) for c in classes], fmt_pct(seg[view]["mIoU"])]
             for view in ("RA", "RD")]
@@ -68,9 +82,12 @@ def render_report(metrics: dict[str, Any]) -> str:
         rows += [[f"{view} (true centres as seeds)", *[fmt_pct(oracle[view]["iou"][c]) for c in classes],
                   fmt_pct(oracle[view]["mIoU"])] for view in ("RA", "RD")]
     lines += md_table(header, rows)
+    return lines
 
+
+def _region_growing(rg: dict[str, Any]) -> list[str]:
     config = rg["config"]
-    lines += ["", "## Region growing", "",
+    lines = ["", "## Region growing", "",
               f"Recall = ground-truth object voxels inside the ROI / all of them (pooled over frames). "
               f"D_thresh {config['distance_m']} m, I_thresh ratio {config['intensity_ratio']}, floor "
               f"{config['min_snr_db']} dB above the noise, bridge {config['bridge']}.", ""]
@@ -89,9 +106,12 @@ def render_report(metrics: dict[str, Any]) -> str:
                           fmt_num(by[("predicted", d)]["visited_mean"], ".0f"),
                           fmt_num(by[("truth", d)]["recall"]), fmt_num(by[("truth", d)]["visited_mean"], ".0f")]
                          for d in distances])
+    return lines
 
-    seconds = cost["seconds_mean"]
-    lines += ["", "## Cost per frame (mean)", ""]
+
+def _cost(cost: dict[str, Any]) -> list[str]:
+    macs, seconds = cost["macs_mean"], cost["seconds_mean"]
+    lines = ["", "## Cost per frame (mean)", ""]
     lines += md_table(["stage", "params", "MACs (G)", "seconds"],
                     [["transform", "-", "-", fmt_num(seconds.get("transform"), ".4f")],
                      ["detect", f"{cost['params']['detector']:,}", fmt_num(macs.get("detect", 0) / 1e9, ".4f"),
@@ -102,7 +122,11 @@ def render_report(metrics: dict[str, Any]) -> str:
                      ["project", "-", "-", fmt_num(seconds.get("project"), ".4f")],
                      ["total", f"{cost['params']['total']:,}", fmt_num(macs.get("total", 0) / 1e9, ".4f"),
                       fmt_num(seconds.get("total"), ".4f")]])
+    return lines
 
+
+def _training(metrics: dict[str, Any]) -> list[str]:
+    lines: list[str] = []
     training = metrics.get("training", {})
     if training:
         lines += ["", "## Training (from the checkpoints)", ""]
@@ -112,10 +136,7 @@ def render_report(metrics: dict[str, Any]) -> str:
                           ", ".join(f"{k.removeprefix('val_')} {fmt_num(v)}" for k, v in info.items()
                                     if k.startswith("val_") and isinstance(v, float))]
                          for stage, info in training.items()])
-
-    lines += ["", "## Pictures", ""]
-    lines += [f"![{name}]({name})" for name in metrics["pictures"]]
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def write_report(metrics: dict[str, Any], path: str | Path) -> Path:

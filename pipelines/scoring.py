@@ -14,17 +14,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from models.detection import detect_centres
 from models.detector.targets import build_centre_targets
 from pipelines.spread import subset
-from pipelines.store import OBJECT_FIELDS, StoreDataset
+from pipelines.store import CENTRE_COLUMNS, OBJECT_COLUMN, StoreDataset
 from pipelines.views import ViewDataset, collate_views, masks_of, model_inputs
 from radar.detections import Centres
-from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, mean_iou
 from radar.profiles import RadarProfile
 
-COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
-CENTRE_COLUMNS = [COL["range_bin"], COL["angle_bin"], COL["doppler_bin"]]
 VIEWS = ("ra", "rd")
 
 
@@ -48,8 +47,9 @@ class DetectionScorer:
         """``centres``: the frame's scored detections; ``objects``: its (N, 10) object table (true objects)."""
         table = np.asarray(objects, np.float64)
         pred_xy = np.stack(self.profile.xy(centres.range_bin, centres.angle_bin), axis=1)
-        self.evaluator.add(pred_xy, centres.doppler_bin, centres.score, table[:, [COL["x"], COL["y"]]],
-                           table[:, COL["doppler_bin"]])
+        truth_xy = table[:, [OBJECT_COLUMN["x"], OBJECT_COLUMN["y"]]]
+        truth_doppler = table[:, OBJECT_COLUMN["doppler_bin"]]
+        self.evaluator.add(pred_xy, centres.doppler_bin, centres.score, truth_xy, truth_doppler)
 
     def summary(self) -> dict[str, float]:
         return self.evaluator.summary()
@@ -80,17 +80,14 @@ def score_detector(detector: nn.Module, store: str, split: str, profile: RadarPr
     for start in range(0, len(indices), batch_size):
         samples = [dataset[i] for i in indices[start:start + batch_size]]
         log_power = torch.stack([s["input"] for s in samples])  # (B, D, R, A) dB
-        outputs = detector(((log_power - normalisation["mean"]) / normalisation["std"]).to(device))
+        outputs, frames = detect_centres(detector, log_power, mean_db=normalisation["mean"],
+                                         std_db=normalisation["std"], score_threshold=score_threshold,
+                                         doppler_refinement=doppler_refinement, device=device)
         if with_loss:
             targets = build_centre_targets([frame_centres(s) for s in samples], (profile.n_range, profile.n_angle))
             loss = detector.compute_loss(outputs, {k: v.to(device) for k, v in targets.items()})["total"]
             loss_sum += float(loss) * len(samples)
-        for sample, decoded in zip(samples, detector.decode(outputs, k=20, score_threshold=score_threshold),
-                                   strict=True):
-            centres = Centres.from_mapping(decoded)
-            if doppler_refinement is not None:  # (D, R, A) -> (R, A, D) dB
-                centres = refine_doppler(sample["input"].float().numpy().transpose(1, 2, 0), centres,
-                                         doppler_refinement)
+        for sample, centres in zip(samples, frames, strict=True):
             scorer.add(centres, sample["objects"][:int(sample["n_objects"])])
     result = dict(scorer.summary())
     if with_loss:

@@ -25,5 +25,5 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
         log_power = cube.astype(np.float32) if is_log_power else transforms.log_power(cube)
         plot_prediction(log_power, net.profile, result.ra_mask, result.rd_mask, result.objects, png,
                         title=f"ERASE-Net on {Path(cube_path).name}")
-    return {"objects": [o.to_dict() for o in result.objects], "compute": result.compute,
+    return {"objects": [o.to_dict() for o in result.objects], "compute": result.compute.to_dict(),
             "png": None if png is None else str(png)}

@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from pipelines import sharded_job
+from pipelines import shard_frames, sharded_job
 from pipelines.jobs import run_module
 from pipelines.predictions_store import (
     COMPUTE_FIELDS,
@@ -56,6 +56,7 @@ from pipelines.predictions_store import (
 )
 from pipelines.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.store import frames_of_split, open_store
+from radar.errors import UserError
 from radar.io.errors import DataError
 from radar.io.recording import Recording
 
@@ -161,21 +162,21 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
 
     kind, _, location = cfg.source.partition(":")
     if kind not in SOURCE_KINDS or not location:
-        raise ValueError(f"--source must be 'store:STORE.zarr' or 'recording:DIR', got {cfg.source!r}")
+        raise UserError(f"--source must be 'store:STORE.zarr' or 'recording:DIR', got {cfg.source!r}")
     for name in ("workers", "shard_frames", "max_objects", "limit", "torch_threads"):
         value = getattr(cfg, name)
         if value is not None and value < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
     if cfg.cpus_per_worker <= 0:
-        raise ValueError(f"--cpus-per-worker must be > 0, got {cfg.cpus_per_worker}")
+        raise UserError(f"--cpus-per-worker must be > 0, got {cfg.cpus_per_worker}")
     if not 0.0 <= cfg.score_threshold <= 1.0:
-        raise ValueError(f"--score-threshold must be in [0, 1], got {cfg.score_threshold}")
+        raise UserError(f"--score-threshold must be in [0, 1], got {cfg.score_threshold}")
     if kind == "recording" and cfg.split is not None:
-        raise ValueError("--split: only with a store source (a recording is segmented whole)")
+        raise UserError("--split: only with a store source (a recording is segmented whole)")
 
     det, seg = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
     if det.preset != seg.preset:
-        raise ValueError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
+        raise UserError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
                          f"for {seg.preset!r}")
     root_path = Path(location).expanduser().absolute()
     frames: list[FrameRef] = []
@@ -199,7 +200,7 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
                 running += 1
         frames = frames[: cfg.limit]
     if preset != det.preset:
-        raise ValueError(f"the source {root_path} holds {preset!r} frames but the checkpoints are for {det.preset!r}")
+        raise UserError(f"the source {root_path} holds {preset!r} frames but the checkpoints are for {det.preset!r}")
     if not frames:
         raise DataError(root_path, f"no valid frame to segment (split {cfg.split or 'all'})")
     layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects)
@@ -278,7 +279,7 @@ class ShardSegmenter:
             seconds.append(time.perf_counter() - tick)
             return encode_prediction(result, layout)
 
-        buffers, quarantined = sharded_job.fill_shard(job, _source_cubes(job.source, job.frames), segment)
+        buffers, quarantined = shard_frames.fill_shard(job, _source_cubes(job.source, job.frames), segment)
         write_shard_arrays(job.store, layout, job.shard, buffers)
         valid = buffers["valid"].astype(bool)
         summary = {

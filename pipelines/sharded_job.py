@@ -16,75 +16,28 @@ hands the runner a :class:`ShardedJob`. The runner
    (``finish``), writes them with the code version and, last, ``complete``.
 
 Every shard summary holds ``shard`` and ``frames`` (slots in the shard). Also here, shared by both jobs:
-the source spec and frame slots a stage reads, :func:`fill_shard` (a shard's buffers, bad frames
-quarantined), the execution arguments, :func:`init_ray` (embedded local Ray unless told otherwise) and
-:func:`code_version`.
+the execution arguments. Elsewhere: what a stage reads and writes per shard (:mod:`pipelines.shard_frames`),
+the Ray start-up (:mod:`pipelines.ray_runtime`) and the code version (:mod:`pipelines.provenance`).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.metadata
 import logging
-import os
-import subprocess
 import time
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from tqdm import tqdm
 
+from pipelines.provenance import code_version
+from pipelines.ray_runtime import init_ray
+from pipelines.shard_frames import FrameSlot, ShardJob, SourceSpec
 from pipelines.sharded_store import Sharded, done_shards, finish_store
-from radar.io.errors import DataError
 
 log = logging.getLogger(__name__)
-
-OBJECT_STORE_BYTES = 256 * 2**20  # embedded Ray: results are small summaries, the data goes to disk
-
-
-@dataclass(frozen=True)
-class SourceSpec:
-    """Where a stage gets its frames: enough to reopen the source inside a Ray worker."""
-
-    kind: str  # the job's source kinds ("sim", "recording", "store", ...)
-    path: str | None  # absolute; None for the simulator
-    preset: str
-    seed: int | None = None  # the simulator's scene seed (preprocessing records it for every source)
-
-    def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
-        if self.seed is None:
-            del data["seed"]
-        return data
-
-
-@dataclass(frozen=True)
-class FrameSlot:
-    """One frame of the job's source and the store slot it takes."""
-
-    slot: int
-    sequence_id: int  # index into the store's ``sequences`` attribute
-    sequence: str
-    index: int  # frame index within its sequence
-
-    def slot_arrays(self) -> dict[str, int]:
-        """What the store records in this slot, whether or not the frame turns out good."""
-        return {"sequence_id": self.sequence_id, "frame_index": self.index}
-
-
-@dataclass(frozen=True)
-class ShardJob:
-    """The payload of one shard: where to write and what each of its slots holds."""
-
-    store: str
-    layout: Sharded
-    source: SourceSpec
-    shard: int
-    frames: tuple[FrameSlot, ...]  # one per slot of the shard, in slot order
-
 
 Stage = Callable[[ShardJob], dict[str, Any]]
 
@@ -162,36 +115,6 @@ def add_execution_arguments(parser: argparse.ArgumentParser, *, shard_frames: in
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     parser.add_argument("--in-process", action="store_true",
                         help="run every shard in this process, without Ray (smoke runs and tests)")
-
-
-def fill_shard(job: ShardJob, frames: Iterable[tuple[FrameSlot, Any]],
-               encode: Callable[[Any], dict[str, np.ndarray]]) -> tuple[dict[str, np.ndarray], list[dict[str, Any]]]:
-    """Buffers of every array of ``job``'s shard, and its quarantined frames.
-
-    ``frames`` yields each slot with its frame, or with the DataError that reading it raised; ``encode``
-    returns a frame's arrays or raises ValueError (DataError is one). A bad frame is quarantined: its slot
-    keeps the fill values but for :meth:`FrameSlot.slot_arrays`, ``valid`` stays 0, the reason is kept and
-    the shard carries on.
-    """
-    buffers = job.layout.empty_shard(job.shard)
-    start, _ = job.layout.shard_bounds(job.shard)
-    quarantined = []
-    for ref, frame in frames:
-        k = ref.slot - start
-        for name, value in ref.slot_arrays().items():
-            buffers[name][k] = value
-        try:
-            if isinstance(frame, DataError):
-                raise frame
-            encoded = encode(frame)
-        except ValueError as exc:
-            log.warning("quarantined %s/%d: %s", ref.sequence, ref.index, exc)
-            quarantined.append({"frame": ref.slot, "sequence": ref.sequence, "index": ref.index, "reason": str(exc)})
-            continue
-        for name, value in encoded.items():
-            buffers[name][k] = value
-        buffers["valid"][k] = 1
-    return buffers, quarantined
 
 
 def run_sharded(job: ShardedJob, execution: Execution) -> ShardedRun:
@@ -303,44 +226,3 @@ class _OnRay:
             ray.kill(actor)
         if self.connected:
             ray.shutdown()
-
-
-def init_ray(address: str | None) -> bool:
-    """Connect to Ray unless already connected; returns True when this call connected (so the caller shuts down).
-
-    ``address`` None and no ``RAY_ADDRESS``: a new embedded local Ray (never a cluster that happens
-    to run on this machine), object store capped, token auth and usage stats off. Under ``ray job
-    submit`` the job's ``RAY_ADDRESS`` names the cluster.
-    """
-    import ray
-
-    if ray.is_initialized():
-        return False
-    if address is None and not os.environ.get("RAY_ADDRESS"):
-        os.environ.setdefault("RAY_AUTH_MODE", "disabled")
-        os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-        ray.init(address="local", object_store_memory=OBJECT_STORE_BYTES, include_dashboard=False,
-                 logging_level=logging.WARNING)
-    else:
-        ray.init(address=address, logging_level=logging.WARNING)
-    return True
-
-
-def code_version() -> dict[str, Any]:
-    """Package version and, when run from a git checkout, the commit (and whether the tree is dirty)."""
-    try:
-        package = importlib.metadata.version("radarseg")
-    except importlib.metadata.PackageNotFoundError:
-        package = None
-    repo = Path(__file__).resolve().parent.parent
-    commit = dirty = None
-    if (repo / ".git").exists():
-        try:
-            commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True,
-                                    check=True, timeout=10).stdout.strip()
-            dirty = bool(subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
-                                        capture_output=True, text=True, check=True, timeout=10).stdout.strip())
-        except (OSError, subprocess.SubprocessError):
-            commit = dirty = None
-    return {"package": package, "git_commit": commit, "git_dirty": dirty}
-

@@ -23,6 +23,7 @@ import numpy as np
 import zarr
 from zarr.codecs import ZstdCodec
 
+from radar.errors import UserError
 from radar.io.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -80,20 +81,20 @@ def check_resumable_out(out: Path, *, store_format: str, identity: Any, what: st
     if not out.exists():
         return
     if not out.is_dir():
-        raise ValueError(f"--out {out} exists and is not a directory")
+        raise UserError(f"--out {out} exists and is not a directory")
     meta = out / "zarr.json"
     if not meta.is_file():
         if any(out.iterdir()):
-            raise ValueError(f"--out {out} exists and is not a {what}; choose another path")
+            raise UserError(f"--out {out} exists and is not a {what}; choose another path")
         return
     try:
         attrs = json.loads(meta.read_text()).get("attributes", {})
     except json.JSONDecodeError as exc:
         raise DataError(meta, f"not valid JSON ({exc})") from None
     if attrs.get("format") != store_format:
-        raise ValueError(f"--out {out} is a zarr store but not a {what}; choose another path")
+        raise UserError(f"--out {out} is a zarr store but not a {what}; choose another path")
     if attrs.get("plan") != identity:
-        raise ValueError(f"--out {out} holds a {what} written with other arguments (it can only be resumed "
+        raise UserError(f"--out {out} holds a {what} written with other arguments (it can only be resumed "
                          f"with the same ones); choose another path or remove it")
 
 

@@ -48,9 +48,10 @@ from pipelines.report import fmt_pct
 from pipelines.scoring import score_baseline, score_detector
 from pipelines.store_info import StoreInfo
 from pipelines.training.baselines import load_baseline
-from pipelines.training.config import TrainConfig
+from pipelines.training.config import DEFAULT_JITTER_STD, TrainConfig
 from pipelines.training.loop import train
 from pipelines.views import ViewDataset
+from radar.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -142,7 +143,7 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
                       lr=cfg.lr_baseline if role is Role.BASELINE else cfg.lr_erasenet, epochs=10_000,
                       batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None, seed=cfg.seed,
                       threads=cfg.threads, progress=False,
-                      jitter_std=(1.0, 1.0, 0.5) if role is Role.SEGMENTER else None))
+                      jitter_std=DEFAULT_JITTER_STD if role is Role.SEGMENTER else None))
     return run / "model.pt"  # without validation model.pt holds the latest weights
 
 
@@ -164,7 +165,7 @@ def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
     checkpoint: Checkpoint = load_checkpoint(path)
     role = role_of(checkpoint.build())
     if role is not SLOTS[kind]:
-        raise ValueError(f"--{kind} {path}: expected a {SLOTS[kind]} checkpoint, got a {role} "
+        raise UserError(f"--{kind} {path}: expected a {SLOTS[kind]} checkpoint, got a {role} "
                          f"({checkpoint.model_name})")
     work = Path(cfg.work) / kind
     rows = []
@@ -281,7 +282,7 @@ def main(cfg: SweepConfig, command: str | None = None) -> dict[str, Any]:
         if path:
             rows += sweep_model(kind, path, cfg)
     if not rows:
-        raise ValueError("give at least one checkpoint (--detector, --minkunet, --spvcnn, --smvanet)")
+        raise UserError("give at least one checkpoint (--detector, --minkunet, --spvcnn, --smvanet)")
     seconds = time.perf_counter() - started
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

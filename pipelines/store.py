@@ -55,7 +55,8 @@ SPLIT_CODE = {name: code for code, name in enumerate(SPLITS)}
 NO_SPLIT = 255
 OBJECT_FIELDS = ("instance_id", "class_id", "range_bin", "angle_bin", "doppler_bin",
                  "offset_range", "offset_angle", "x", "y", "n_voxels")
-_COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
+OBJECT_COLUMN = {name: i for i, name in enumerate(OBJECT_FIELDS)}  # column of each field in ``objects``
+CENTRE_COLUMNS = [OBJECT_COLUMN["range_bin"], OBJECT_COLUMN["angle_bin"], OBJECT_COLUMN["doppler_bin"]]
 MAX_OBJECTS = 32
 
 # Arrays holding one value per RAD voxel, RA cell, ... (sharded, one inner chunk per frame) and the
@@ -188,13 +189,13 @@ def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: 
     if "objects" in sample:
         table = sample["objects"].clone()
         n = int(sample["n_objects"])
-        angle = n_angle - table[:n, _COL["angle_bin"]].double()
-        table[:n, _COL["angle_bin"]] = angle.float()
-        table[:n, _COL["x"]] = -table[:n, _COL["x"]]
-        table[:n, _COL["offset_angle"]] = (angle / output_stride - torch.floor(angle / output_stride)).float()
+        angle = n_angle - table[:n, OBJECT_COLUMN["angle_bin"]].double()
+        table[:n, OBJECT_COLUMN["angle_bin"]] = angle.float()
+        table[:n, OBJECT_COLUMN["x"]] = -table[:n, OBJECT_COLUMN["x"]]
+        table[:n, OBJECT_COLUMN["offset_angle"]] = (angle / output_stride - torch.floor(angle / output_stride)).float()
         out["objects"] = table
         if "heatmap" in sample:
-            centres = table[:n, [_COL["range_bin"], _COL["angle_bin"], _COL["doppler_bin"]]].double().numpy()
+            centres = table[:n, CENTRE_COLUMNS].double().numpy()
             heatmap = render_heatmap(centres, (profile.n_range, n_angle), output_stride=output_stride)
             out["heatmap"] = torch.from_numpy(heatmap)[None]
     return out

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from pipelines.store import open_store
+from radar.errors import UserError
 from radar.profiles import RadarProfile, get_profile
 
 
@@ -30,6 +31,6 @@ class StoreInfo:
         profile = get_profile(attrs["preset"])
         names = tuple(attrs.get("class_names") or profile.all_class_names)
         if len(names) != profile.num_classes:
-            raise ValueError(f"store {path}: {len(names)} class names, preset {profile.name} has "
+            raise UserError(f"store {path}: {len(names)} class names, preset {profile.name} has "
                              f"{profile.num_classes} classes")
         return cls(str(path), profile, names, normalisation)

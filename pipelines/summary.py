@@ -22,6 +22,7 @@ from models.capabilities import Role, dense_input_shapes, role_of
 from models.checkpoint import load_checkpoint
 from models.compute import MacRecorder, count_macs, count_params
 from models.registry import create_model
+from radar.errors import UserError
 from radar.region_growing import grow_regions
 from radar.roi import roi_points
 from radar.simulate import simulate_sequence
@@ -78,7 +79,7 @@ def checkpoint_rows(paths: tuple[str | Path, ...]) -> list[dict]:
         checkpoint = load_checkpoint(path)
         model = checkpoint.build()
         if role_of(model) not in (Role.DETECTOR, Role.SEGMENTER):
-            raise ValueError(f"{path}: model {checkpoint.model_name!r}; expected a detector or a sparse segmenter "
+            raise UserError(f"{path}: model {checkpoint.model_name!r}; expected a detector or a sparse segmenter "
                              f"checkpoint (the 2-D baselines are counted by radarseg compare)")
         rows.append(_row(model, checkpoint.model_name, checkpoint.preset, _shown(path)))
     return rows

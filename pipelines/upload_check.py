@@ -12,12 +12,14 @@ import argparse
 import logging
 from pathlib import Path
 
+from radar.errors import UserError
+
 # The dashboard's aiohttp body limit for package uploads (ray_constants.DASHBOARD_CLIENT_MAX_SIZE).
 UPLOAD_LIMIT_BYTES = 100 * 1024**2
 MIB = 1024**2
 
 
-class UploadTooLargeError(ValueError):
+class UploadTooLargeError(UserError):
     """The working directory would exceed the job-submission upload limit."""
 
 

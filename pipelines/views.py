@@ -32,6 +32,7 @@ from torch.utils.data import Dataset
 from pipelines.spread import spread
 from pipelines.store import frames_of_split, open_store
 from radar import transforms
+from radar.errors import UserError
 
 VIEWS = ("rd", "ra", "ad")
 MASK_VIEWS = ("rd", "ra")
@@ -140,7 +141,7 @@ class ViewStats:
         root = open_store(path)
         slots = frames_of_split(root, split)
         if not len(slots):
-            raise ValueError(f"store {path}: split {split!r} has no valid frames to take view statistics from")
+            raise UserError(f"store {path}: split {split!r} has no valid frames to take view statistics from")
         picked = slots[spread(len(slots), max_frames)]
         low = {view: np.inf for view in VIEWS}
         high = {view: -np.inf for view in VIEWS}

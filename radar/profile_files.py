@@ -26,13 +26,14 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+from radar.errors import UserError
 from radar.radar_profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
 
 WINDOWS = ("hann", "rect")
 EXPECT_TOLERANCE = 0.005  # relative
 
 
-class ProfileError(ValueError):
+class ProfileError(UserError):
     """A radar profile file that is missing, malformed or physically inconsistent."""
 
 

@@ -19,11 +19,12 @@ from typing import Any, TypeVar
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
+from models.compute_report import FrameCompute
 from service.errors import ApiError
 from service.inference import ServedModel
 from service.ledger import DayTotals, Lease, Ledger, QuotaExceeded
 from service.metrics import ServiceMetrics
-from service.schemas import Compute, RequestUsage
+from service.schemas import RequestUsage
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -100,18 +101,18 @@ class Billing:
         if lease is not None:
             await self._call(self.ledger.release, lease)
 
-    async def settle(self, tenant: str, lease: Lease | None, *, model: str, compute: Compute, compute_us: int,
+    async def settle(self, tenant: str, lease: Lease | None, *, model: str, compute: FrameCompute,
                      request_id: str) -> RequestUsage:
-        """Bill the request and end its lease; the tenant's day after it. ApiError 429 (nothing billed) when
-        its actual MACs no longer fit the quota."""
+        """Bill the request (its MACs and compute time, ``compute.compute_us``) and end its lease; the tenant's
+        day after it. ApiError 429 (nothing billed) when its actual MACs no longer fit the quota."""
         quota = self.settings.quota_for(tenant)
         billed = await self._call(
-            self.ledger.settle, tenant, model=model, macs=compute.macs.total, compute_us=compute_us,
+            self.ledger.settle, tenant, model=model, macs=compute.macs_total, compute_us=compute.compute_us,
             roi_voxels=compute.roi_voxels, lease=lease, limit=quota, request_id=request_id)
         if isinstance(billed, QuotaExceeded):
             self.metrics.rejected.labels(model, "quota_at_settlement").inc()
             raise quota_error(billed)
-        self._ledger_max[model] = max(self._ledger_max.get(model, 0), compute.macs.total)
+        self._ledger_max[model] = max(self._ledger_max.get(model, 0), compute.macs_total)
         return request_usage(billed, quota)
 
 

@@ -111,7 +111,7 @@ class ServedModel:
         cubes += [frame.cube for frame in simulate_sequence(profile, 1, seed=0)]
         for cube in cubes:
             result = net.segment(cube)
-            self.segment_macs_high = max(self.segment_macs_high, result.compute["macs"]["segment"])
+            self.segment_macs_high = max(self.segment_macs_high, result.compute.segment_macs)
 
     def acquire(self) -> None:
         """Take a slot or raise Saturated."""
@@ -145,11 +145,10 @@ class ServedModel:
                 cube = process_adc(cube, net.profile, tdm_compensation=adc_compensation)
                 adc_s = time.perf_counter() - start
             result = net.segment(cube, is_log_power=is_log_power)
-            result.compute["seconds"]["transform"] += adc_s
-            result.compute["seconds"]["total"] += adc_s
+            result.compute = result.compute.plus_seconds("transform", adc_s)
         finally:
             self._free.put(net)
-        segment_macs = result.compute["macs"]["segment"]
+        segment_macs = result.compute.segment_macs
         if segment_macs > self.segment_macs_high:
             self.segment_macs_high = segment_macs
         return result

@@ -13,8 +13,8 @@ from models.sparse.conv import (
     TransposedConv3d,
     apply_kernel_map,
     choose_path,
-    count_executed_macs,
-    count_macs,
+    last_forward_executed_macs,
+    last_forward_macs,
 )
 from models.sparse.kernel_map import KernelMap, VoxelIndex, build_kernel_map, downsample_coords, kernel_offsets
 from models.sparse.tensor import KernelMapCache, SparseTensor, cat_features
@@ -34,9 +34,9 @@ __all__ = [
     "apply_kernel_map",
     "build_kernel_map",
     "choose_path",
-    "count_executed_macs",
+    "last_forward_executed_macs",
     "cat_features",
-    "count_macs",
+    "last_forward_macs",
     "downsample_coords",
     "kernel_offsets",
 ]

@@ -4,7 +4,7 @@ kernel offset.
 
 Every conv holds a weight `[K, C_in, C_out]` (K = kernel voxels) and records the exact multiply-
 accumulates of its last call in `last_macs` (sum over offsets of pairs x C_in x C_out) and those its
-kernels executed in `last_executed_macs`; `count_macs` / `count_executed_macs` add them up over a model
+kernels executed in `last_executed_macs`; `last_forward_macs` / `last_forward_executed_macs` add them up over a model
 after a forward pass. The code is device-agnostic: it runs wherever the
 features and coordinates live.
 
@@ -35,7 +35,7 @@ class MACCounted(nn.Module):
     last_executed_macs: int = 0
 
 
-def count_macs(model: nn.Module) -> int:
+def last_forward_macs(model: nn.Module) -> int:
     """Sum of `last_macs` over all MAC-counting layers of a model (call after a forward pass).
 
     Layers that did not run in the last forward keep their previous value; a layer called twice in one
@@ -44,7 +44,7 @@ def count_macs(model: nn.Module) -> int:
     return sum(module.last_macs for module in model.modules() if isinstance(module, MACCounted))
 
 
-def count_executed_macs(model: nn.Module) -> int:
+def last_forward_executed_macs(model: nn.Module) -> int:
     """Sum of `last_executed_macs` over a model (call after a forward pass): what the kernels ran."""
     return sum(module.last_executed_macs for module in model.modules() if isinstance(module, MACCounted))
 

@@ -24,6 +24,7 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from pipelines.scoring import predicted_views, score_baseline
 from pipelines.training.task import Task
 from pipelines.views import ViewDataset, ViewStats, collate_views, masks_of, model_inputs, view_class_counts
+from radar.errors import UserError
 
 STAGE = "baseline"
 
@@ -32,7 +33,7 @@ def load_baseline(path: str | Path, *, device: str | torch.device = "cpu") -> tu
     """A trained baseline (eval mode), its checkpoint and the view scaling it was trained with."""
     checkpoint = load_checkpoint(path)
     if checkpoint.extra.get("stage") != STAGE:
-        raise ValueError(f"{path}: not a baseline checkpoint (stage {checkpoint.extra.get('stage')!r})")
+        raise UserError(f"{path}: not a baseline checkpoint (stage {checkpoint.extra.get('stage')!r})")
     return checkpoint.build(device=device), checkpoint, ViewStats.from_dict(checkpoint.normalisation)
 
 

@@ -11,17 +11,17 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import math
 from dataclasses import dataclass
 from typing import Any
-
-import torch
 
 from models.registry import get_builder
 
 STAGES = ("detector", "segmenter", "baseline")
 OPTIMIZERS = ("adam", "sgd")
 SCHEDULES = ("step", "cosine")  # step: per epoch (step_every or milestones); cosine: per optimiser step
+
+DEFAULT_JITTER_STD = (1.0, 1.0, 0.5)
+"""Gaussian seed errors (range, angle, Doppler bins) of segmenter training when no detector measures them."""
 
 
 @dataclass(frozen=True)
@@ -42,7 +42,7 @@ class Hyper:
     gamma: float = 0.1
     flip_prob: float = 0.5
     val_frames: int = 0  # frames (windows) of the validation split scored per epoch, evenly spread (0 = all)
-    jitter_std: tuple[float, float, float] = (1.0, 1.0, 0.5)  # segmenter, bins, when no detector is given
+    jitter_std: tuple[float, float, float] = DEFAULT_JITTER_STD  # segmenter, bins, when no detector is given
 
 
 PROFILES: dict[str, dict[str, Hyper]] = {
@@ -172,33 +172,3 @@ class TrainConfig:
         keep = ("stage", "store", "profile", "model", "view", "model_config", "batch_size", "lr", "seed",
                 "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer")
         return {k: v for k, v in self.to_dict().items() if k in keep}
-
-
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU."""
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(name)
-
-
-def make_optimizer(hyper: Hyper, params) -> torch.optim.Optimizer:
-    """Adam, or SGD with Nesterov momentum. Adam drives unneeded BatchNorm scales to zero under the
-    slimming penalty within a short run; SGD's steps of lr x lambda barely move them (reports/slimming.md)."""
-    if hyper.optimizer == "adam":
-        return torch.optim.Adam(params, lr=hyper.lr, weight_decay=hyper.weight_decay)
-    return torch.optim.SGD(params, lr=hyper.lr, momentum=hyper.momentum, weight_decay=hyper.weight_decay,
-                           nesterov=True)
-
-
-def make_scheduler(hyper: Hyper, optimizer: torch.optim.Optimizer,
-                   steps_per_epoch: int) -> torch.optim.lr_scheduler.LRScheduler:
-    """``step``: stepped once per epoch (every ``step_every`` epochs, or at the ``milestones``);
-    ``cosine``: stepped once per optimiser step, from lr down to 0 over the run."""
-    if hyper.schedule == "cosine":
-        total = max(1, hyper.epochs * steps_per_epoch)
-        return torch.optim.lr_scheduler.LambdaLR(
-            optimizer, lambda step: 0.5 * (1 + math.cos(math.pi * min(step, total) / total)))
-    if hyper.step_every:
-        return torch.optim.lr_scheduler.StepLR(optimizer, hyper.step_every, gamma=hyper.gamma)
-    milestones = sorted({max(1, round(f * hyper.epochs)) for f in hyper.milestones})
-    return torch.optim.lr_scheduler.MultiStepLR(optimizer, milestones, gamma=hyper.gamma)

@@ -12,15 +12,16 @@ import numpy as np
 import torch
 
 from models.checkpoint import load_checkpoint
+from models.detection import detect_centres
 from pipelines.scoring import frame_centres
 from pipelines.spread import subset
 from pipelines.store import StoreDataset
-from radar.detections import Centres
-from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
+from pipelines.training.config import DEFAULT_JITTER_STD
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
+from radar.errors import UserError
 from radar.profiles import get_profile
 
 JITTER_MATCH_M = 3.0  # a detection within this many metres (and bins of Doppler) of a truth is "its" detection
-DEFAULT_STD = (1.0, 1.0, 0.5)
 
 
 @dataclass(frozen=True)
@@ -88,14 +89,11 @@ def measure_detector_errors(detector_path: str | Path, store: str | Path, split:
     for start in range(0, len(indices), 8):
         samples = [dataset[i] for i in indices[start:start + 8]]
         log_power = torch.stack([s["input"] for s in samples])  # (B, D, R, A) dB
-        outputs = detector(((log_power - mean_db) / std_db).to(device))
-        for sample, decoded in zip(samples, detector.decode(outputs, k=20, score_threshold=score_threshold),
-                                   strict=True):
+        # the seeds EraseNet grows from, Doppler refined as it refines them
+        frames = detect_centres(detector, log_power, mean_db=mean_db, std_db=std_db, score_threshold=score_threshold,
+                                doppler_refinement=doppler_refinement, device=device)[1]
+        for sample, centres in zip(samples, frames, strict=True):
             truth = frame_centres(sample)
-            centres = Centres.from_mapping(decoded)
-            if doppler_refinement is not None:  # the seeds EraseNet grows from: (D, R, A) -> (R, A, D) dB
-                centres = refine_doppler(sample["input"].float().numpy().transpose(1, 2, 0), centres,
-                                         doppler_refinement)
             found, missed, unmatched = _match(centres.bins, truth, profile)
             residuals += found
             misses += missed
@@ -103,17 +101,17 @@ def measure_detector_errors(detector_path: str | Path, store: str | Path, split:
             truths += len(truth)
     residuals_arr = np.asarray(residuals, np.float64).reshape(-1, 3)
     if not len(indices):
-        raise ValueError(
+        raise UserError(
             f"--jitter-from {detector_path}: split {split!r} of {store} has no frames to measure the detector's "
             f"errors on; give Gaussian seed errors instead with --jitter-std R A D (bins, e.g. --jitter-std "
-            f"{' '.join(f'{v:g}' for v in DEFAULT_STD)}), or preprocess with a non-zero validation fraction")
+            f"{' '.join(f'{v:g}' for v in DEFAULT_JITTER_STD)}), or preprocess with a non-zero validation fraction")
     if not len(residuals_arr):
-        raise ValueError(
+        raise UserError(
             f"--jitter-from {detector_path}: the detector matched none of the {truths} objects in {len(indices)} "
             f"frames of split {split!r} of {store} (a match is a detection scoring >= {score_threshold} within "
             f"{JITTER_MATCH_M:g} m and {JITTER_MATCH_M:g} Doppler bins of a true centre), so its errors cannot be "
             f"measured; train the detector longer, or give Gaussian seed errors instead with --jitter-std R A D "
-            f"(bins, e.g. --jitter-std {' '.join(f'{v:g}' for v in DEFAULT_STD)})")
+            f"(bins, e.g. --jitter-std {' '.join(f'{v:g}' for v in DEFAULT_JITTER_STD)})")
     stats = {"split": split, "frames": len(indices), "objects": truths, "matched": len(residuals_arr),
              "miss_rate": misses / max(truths, 1), "false_positives_per_frame": false_pos / max(len(indices), 1),
              "score_threshold": score_threshold, "match_m": JITTER_MATCH_M,

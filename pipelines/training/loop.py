@@ -14,7 +14,6 @@ import dataclasses
 import json
 import logging
 import math
-import os
 import shutil
 import time
 from pathlib import Path
@@ -28,11 +27,14 @@ from tqdm import tqdm
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.slimming import slimming_penalty
+from pipelines.ray_runtime import init_ray
 from pipelines.store import frames_of_split, open_store
 from pipelines.store_info import StoreInfo
-from pipelines.training.config import TrainConfig, make_optimizer, make_scheduler, resolve_device
+from pipelines.training.config import TrainConfig
+from pipelines.training.optim import make_optimizer, make_scheduler, resolve_device
 from pipelines.training.task import Task, unwrap
 from pipelines.training.tasks import task_for
+from radar.errors import UserError
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +114,7 @@ def _check_run_dir(cfg: TrainConfig, run_dir: Path, hyper: Any) -> None:
         before = TrainConfig.from_dict(saved).identity()
         if before != cfg.identity():
             changed = sorted(k for k in before if before[k] != cfg.identity()[k])
-            raise ValueError(f"--resume: {run_dir} was trained with other settings ({', '.join(changed)})")
+            raise UserError(f"--resume: {run_dir} was trained with other settings ({', '.join(changed)})")
     run_dir.mkdir(parents=True, exist_ok=True)
     config_path.write_text(json.dumps({**cfg.to_dict(), "resolved": dataclasses.asdict(hyper)}, indent=2))
 
@@ -120,7 +122,7 @@ def _check_run_dir(cfg: TrainConfig, run_dir: Path, hyper: Any) -> None:
 def _check_splits(cfg: TrainConfig) -> None:
     """An empty validation split would make an unvalidated model "the best": refuse it, saying what to do."""
     if cfg.val_split and len(frames_of_split(open_store(cfg.store), cfg.val_split)) == 0:
-        raise ValueError(f"split {cfg.val_split!r} of {cfg.store} has no frames, so no epoch could be validated; "
+        raise UserError(f"split {cfg.val_split!r} of {cfg.store} has no frames, so no epoch could be validated; "
                          "preprocess more sequences (--split-fractions), or pass --val-split none to keep the last "
                          "epoch as model.pt")
 
@@ -142,21 +144,13 @@ def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:
 def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path) -> dict[str, Any]:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    hyper = cfg.hyper()
     store = StoreInfo.read(cfg.store)
     _check_splits(cfg)
-    init = load_checkpoint(cfg.init) if cfg.init else None
-    if init is not None:  # the checkpoint's architecture (a pruned one carries its channels table)
-        if init.preset != store.profile.name:
-            raise ValueError(f"--init {cfg.init} is for preset {init.preset!r}, the store for {store.profile.name!r}")
-        if cfg.model is not None and cfg.model != init.model_name:
-            raise ValueError(f"--init {cfg.init} holds {init.model_name}, not {cfg.model}")
-        hyper = dataclasses.replace(hyper, model=init.model_name,
-                                    model_config={k: v for k, v in init.config.items() if k not in ("preset", "view")})
+    init, hyper = _init_checkpoint(cfg, store)
     device = resolve_device(cfg.device)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
-    last_path, model_path = run_dir / "last.pt", run_dir / "model.pt"
+    last_path = run_dir / "last.pt"
     if world.rank == 0:
         _check_run_dir(cfg, run_dir, hyper)
 
@@ -168,7 +162,7 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
     optimizer = make_optimizer(hyper, model.parameters())
     dataset = task.train_dataset()
     if len(dataset) < world.size * hyper.batch_size:
-        raise ValueError(f"split {cfg.train_split!r} of {cfg.store} has {len(dataset)} usable frames, fewer than "
+        raise UserError(f"split {cfg.train_split!r} of {cfg.store} has {len(dataset)} usable frames, fewer than "
                          f"one batch of {hyper.batch_size} per worker ({world.size} workers)")
     sampler = DistributedSampler(dataset, num_replicas=world.size, rank=world.rank, shuffle=True, seed=cfg.seed,
                                  drop_last=True)
@@ -179,13 +173,7 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
 
     start_epoch, step, best, elapsed = 0, 0, -math.inf, 0.0
     if cfg.resume and last_path.is_file():
-        state = load_checkpoint(last_path)
-        model.load_state_dict(state.state_dict)
-        optimizer.load_state_dict(state.extra["optimizer"])
-        scheduler.load_state_dict(state.extra["scheduler"])
-        start_epoch, step, best = int(state.extra["epoch"]), int(state.extra["step"]), float(state.extra["best"])
-        elapsed = float(state.extra.get("elapsed_s", 0.0))
-        log.info("resumed %s at epoch %d, step %d", run_dir, start_epoch, step)
+        start_epoch, step, best, elapsed = _resume(last_path, model, optimizer, scheduler)
     model = world.wrap(model)
     model.train()
 
@@ -198,29 +186,11 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
         sampler.set_epoch(epoch)
         if hasattr(dataset, "set_epoch"):
             dataset.set_epoch(epoch)
-        losses: dict[str, list[float]] = {}
-        samples, started = 0, time.perf_counter()
+        started = time.perf_counter()
         bar = tqdm(loader, desc=f"{name} epoch {epoch + 1}/{hyper.epochs}", unit="batch", leave=False,
                    disable=not cfg.progress or world.rank != 0, dynamic_ncols=True)
-        for batch in bar:
-            named = task.loss(model, batch, device)
-            if cfg.slim_lambda:  # network slimming: L1 on every BatchNorm scale
-                named["slim_l1"] = cfg.slim_lambda * slimming_penalty(unwrap(model))
-                named["total"] = named["total"] + named["slim_l1"]
-            optimizer.zero_grad(set_to_none=True)
-            named["total"].backward()
-            optimizer.step()
-            if per_step:
-                scheduler.step()
-            step += 1
-            samples += task.batch_size_of(batch) * world.size
-            for key, value in named.items():
-                losses.setdefault(key, []).append(float(value.detach()))
-            rate = samples / max(time.perf_counter() - started, 1e-9)
-            bar.set_postfix(loss=f"{_mean(losses['total'][-20:]):.4f}", frames_s=f"{rate:.1f}")
-            if budget.spent(step):
-                break
-        bar.close()
+        step, losses, samples = _run_epoch(cfg, task, model, bar, (optimizer, scheduler if per_step else None),
+                                           device, world, budget, step)
         if not per_step:
             scheduler.step()
         seconds = time.perf_counter() - started
@@ -233,23 +203,89 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
             metrics["seconds_validation"] = time.perf_counter() - started_val
             elapsed += time.perf_counter() - started
             metrics["elapsed_s"] = elapsed  # training + validation time of the whole run so far
-            score = metrics.get(task.monitor, float("nan"))
-            # without a validation split (--val-split none) every epoch is "best": model.pt is the latest
-            improved = not math.isfinite(score) or score >= best
-            if improved:
-                best = score if math.isfinite(score) else best
-                save_checkpoint(_checkpoint(task, model, {"epoch": epoch + 1, "step": step, "metrics": metrics}),
-                                model_path)
-            metrics["best"] = improved
-            save_checkpoint(_checkpoint(task, model, {
-                "epoch": epoch + 1, "step": step, "best": best, "elapsed_s": elapsed, "metrics": metrics,
-                "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}), last_path)
-            with (run_dir / "metrics.jsonl").open("a") as fh:
-                fh.write(json.dumps(metrics) + "\n")
+            best = _save_epoch(task, model, (optimizer, scheduler), metrics, best, run_dir)
             log.info("%s epoch %d: %s", name, epoch + 1,
                      ", ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float)))
         world.report(metrics)
     return metrics
+
+
+def _init_checkpoint(cfg: TrainConfig, store: StoreInfo) -> tuple[Checkpoint | None, Any]:
+    """The ``--init`` checkpoint (checked against the store and ``--model``) and the resolved hyper-parameters,
+    with the checkpoint's architecture (a pruned one carries its channels table)."""
+    hyper = cfg.hyper()
+    if not cfg.init:
+        return None, hyper
+    init = load_checkpoint(cfg.init)
+    if init.preset != store.profile.name:
+        raise UserError(f"--init {cfg.init} is for preset {init.preset!r}, the store for {store.profile.name!r}")
+    if cfg.model is not None and cfg.model != init.model_name:
+        raise UserError(f"--init {cfg.init} holds {init.model_name}, not {cfg.model}")
+    return init, dataclasses.replace(hyper, model=init.model_name,
+                                     model_config={k: v for k, v in init.config.items() if k not in ("preset", "view")})
+
+
+def _resume(last_path: Path, model: nn.Module, optimizer: Any, scheduler: Any) -> tuple[int, int, float, float]:
+    """Load ``last.pt`` into the model, optimiser and scheduler; ``(epoch, step, best, elapsed seconds)``."""
+    state = load_checkpoint(last_path)
+    model.load_state_dict(state.state_dict)
+    optimizer.load_state_dict(state.extra["optimizer"])
+    scheduler.load_state_dict(state.extra["scheduler"])
+    start_epoch, step, best = int(state.extra["epoch"]), int(state.extra["step"]), float(state.extra["best"])
+    log.info("resumed %s at epoch %d, step %d", last_path.parent, start_epoch, step)
+    return start_epoch, step, best, float(state.extra.get("elapsed_s", 0.0))
+
+
+def _run_epoch(cfg: TrainConfig, task: Task, model: nn.Module, bar: Any, stepping: tuple[Any, Any],
+               device: torch.device, world: World, budget: Budget, step: int
+               ) -> tuple[int, dict[str, list[float]], int]:
+    """One pass over ``bar`` (the loader), stopping early when the budget is spent; ``(step, losses per name,
+    frames seen)``. ``stepping``: the optimiser and the scheduler when it steps per optimiser step (else None)."""
+    optimizer, per_step_scheduler = stepping
+    losses: dict[str, list[float]] = {}
+    samples, started = 0, time.perf_counter()
+    for batch in bar:
+        named = task.loss(model, batch, device)
+        if cfg.slim_lambda:  # network slimming: L1 on every BatchNorm scale
+            named["slim_l1"] = cfg.slim_lambda * slimming_penalty(unwrap(model))
+            named["total"] = named["total"] + named["slim_l1"]
+        optimizer.zero_grad(set_to_none=True)
+        named["total"].backward()
+        optimizer.step()
+        if per_step_scheduler is not None:
+            per_step_scheduler.step()
+        step += 1
+        samples += task.batch_size_of(batch) * world.size
+        for key, value in named.items():
+            losses.setdefault(key, []).append(float(value.detach()))
+        rate = samples / max(time.perf_counter() - started, 1e-9)
+        bar.set_postfix(loss=f"{_mean(losses['total'][-20:]):.4f}", frames_s=f"{rate:.1f}")
+        if budget.spent(step):
+            break
+    bar.close()
+    return step, losses, samples
+
+
+def _save_epoch(task: Task, model: nn.Module, stepping: tuple[Any, Any], metrics: dict[str, Any], best: float,
+                run_dir: Path) -> float:
+    """Rank 0 after validation: ``model.pt`` when the monitored score improved, ``last.pt`` always, a line of
+    ``metrics.jsonl``; sets ``metrics["best"]``; returns the best score so far."""
+    optimizer, scheduler = stepping
+    epoch, step = metrics["epoch"], metrics["step"]
+    score = metrics.get(task.monitor, float("nan"))
+    # without a validation split (--val-split none) every epoch is "best": model.pt is the latest
+    improved = not math.isfinite(score) or score >= best
+    if improved:
+        best = score if math.isfinite(score) else best
+        save_checkpoint(_checkpoint(task, model, {"epoch": epoch, "step": step, "metrics": metrics}),
+                        run_dir / "model.pt")
+    metrics["best"] = improved
+    save_checkpoint(_checkpoint(task, model, {
+        "epoch": epoch, "step": step, "best": best, "elapsed_s": metrics["elapsed_s"], "metrics": metrics,
+        "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}), run_dir / "last.pt")
+    with (run_dir / "metrics.jsonl").open("a") as fh:
+        fh.write(json.dumps(metrics) + "\n")
+    return best
 
 
 # --------------------------------------------------------------------------- Ray Train
@@ -265,16 +301,7 @@ def run_ray_train(cfg: TrainConfig) -> dict[str, Any]:
     from ray.train import RunConfig, ScalingConfig
     from ray.train.torch import TorchConfig, TorchTrainer
 
-    started_here = False
-    if not ray.is_initialized():
-        if cfg.address is None and not os.environ.get("RAY_ADDRESS"):
-            os.environ.setdefault("RAY_AUTH_MODE", "disabled")
-            os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-            ray.init(address="local", num_cpus=max(2, cfg.ray_workers), include_dashboard=False,
-                     object_store_memory=RAY_OBJECT_STORE_BYTES, logging_level=logging.WARNING)
-        else:
-            ray.init(address=cfg.address, logging_level=logging.WARNING)
-        started_here = True
+    started_here = init_ray(cfg.address, num_cpus=max(2, cfg.ray_workers), object_store_bytes=RAY_OBJECT_STORE_BYTES)
     try:
         run_dir = Path(cfg.out).resolve()
         run_dir.mkdir(parents=True, exist_ok=True)

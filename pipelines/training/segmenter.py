@@ -16,7 +16,6 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
-from pipelines.jobs import smoke_mode
 from pipelines.scoring import ViewConfusion, frame_centres
 from pipelines.spread import subset
 from pipelines.store import StoreDataset, open_store
@@ -107,16 +106,8 @@ class SegmenterTask(Task):
         if jitter_path.is_file():  # resumed run, or written by rank 0 of this run
             self.jitter = SeedJitter.from_dict(json.loads(jitter_path.read_text()))
         elif self.cfg.jitter_from:
-            try:
-                self.jitter = measure_detector_errors(self.cfg.jitter_from, self.store.path,
-                                                      self.cfg.val_split or self.cfg.train_split,
-                                                      max_frames=JITTER_FRAMES)
-            except ValueError as exc:
-                if not smoke_mode():
-                    raise
-                # RADARSEG_SMOKE: a detector of two steps matches nothing; the command's path runs on, said aloud.
-                log.warning("smoke mode: %s; using Gaussian errors of std %s bins", exc, self.hyper.jitter_std)
-                self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (smoke mode)")
+            self.jitter = measure_detector_errors(self.cfg.jitter_from, self.store.path,
+                                                  self.cfg.val_split or self.cfg.train_split, max_frames=JITTER_FRAMES)
         else:
             log.warning("no --jitter-from detector given: seeds jittered by Gaussian errors of std %s bins",
                         self.hyper.jitter_std)

@@ -16,6 +16,7 @@ from torch.utils.data import Dataset
 from models.registry import create_model
 from pipelines.store_info import StoreInfo
 from pipelines.training.config import Hyper, TrainConfig
+from radar.errors import UserError
 
 
 def unwrap(model: nn.Module) -> nn.Module:
@@ -46,7 +47,7 @@ class Task:
         try:
             return create_model(self.hyper.model, **self.model_config())
         except TypeError as exc:  # an argument the builder does not take: the user's --model-config
-            raise ValueError(f"model {self.hyper.model!r} cannot be built with {self.model_config()}: {exc} "
+            raise UserError(f"model {self.hyper.model!r} cannot be built with {self.model_config()}: {exc} "
                              "(check --model-config)") from None
 
     def prepare(self, model: nn.Module, rank: int) -> None:

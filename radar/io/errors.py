@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from radar.errors import UserError
 
-class DataError(ValueError):
+
+class DataError(UserError):
     """A file or payload that is missing, malformed, or not what the reader expected."""
 
     def __init__(self, path: str | Path | None, message: str):

@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import os
 import zipfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -125,14 +125,6 @@ class RecordingWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:  # an interrupted write leaves no recording.json behind
             self.close()
-
-
-def write_recording(frames: Iterable[RadarFrame], out_dir: str | Path, profile: RadarProfile,
-                    *, source: dict[str, Any] | None = None) -> Path:
-    with RecordingWriter(out_dir, profile, source=source) as writer:
-        for frame in frames:
-            writer.write(frame)
-    return Path(out_dir)
 
 
 class Recording:

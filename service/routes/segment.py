@@ -11,7 +11,8 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from models.erasenet import STAGES, SegmentationResult
+from models.compute_report import FrameCompute
+from models.erasenet import SegmentationResult
 from radar.adc import adc_shape
 from radar.schema import SchemaMismatch, check_schema
 from service.deps import Caller, ServiceState, State
@@ -83,15 +84,11 @@ def _content_length(request: Request) -> int | None:
         raise ApiError(400, f"invalid Content-Length {value!r}") from None
 
 
-def _compute(result: SegmentationResult, decode_s: float) -> tuple[Compute, int]:
-    """The response's compute block and the billed compute time in integer microseconds."""
-    stage_s = {name: float(result.compute["seconds"][name]) for name in STAGES}
-    compute_us = round((decode_s + sum(stage_s.values())) * 1e6)
-    seconds = {"decode": round(decode_s, 6), **{k: round(v, 6) for k, v in stage_s.items()},
-               "total": compute_us / 1e6}
-    c = result.compute
-    return Compute(macs=c["macs"], params=c["params"], seconds=seconds, roi_voxels=c["roi_voxels"],
-                   visited_points=c["visited_points"], detections=c["detections"]), compute_us
+def _compute(report: FrameCompute) -> Compute:
+    """The response's compute block of the request's report (its seconds rounded to the microsecond)."""
+    return Compute(macs=report.macs_by_stage(), params=report.params_by_network(),
+                   seconds=report.seconds_by_stage(decimals=6), roi_voxels=report.roi_voxels,
+                   visited_points=report.visited_points, detections=report.detections)
 
 
 def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind, max_depth: int) -> None:
@@ -227,10 +224,10 @@ async def segment(
     views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
                                      tdm_compensation=tdm_compensation) if "views" in chosen else None)
     del cube
-    compute, compute_us = _compute(result, decode_s)
+    report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included
+    compute = _compute(report)
     request_id = uuid.uuid4().hex
-    usage = await state.billing.settle(caller.tenant, lease, model=name, compute=compute, compute_us=compute_us,
-                                       request_id=request_id)
+    usage = await state.billing.settle(caller.tenant, lease, model=name, compute=report, request_id=request_id)
 
     metrics.segmentations.labels(name, caller.tenant).inc()
     metrics.macs.labels(name, caller.tenant).inc(compute.macs.total)

@@ -31,13 +31,12 @@ def test_end_to_end_output_is_well_formed_and_consistent(frame, segmenter):
     assert (result.labels[outside] == 0).all()
     assert np.array_equal(result.ra_mask, transforms.project_ra(result.labels, 4))
     assert np.array_equal(result.rd_mask, transforms.project_rd(result.labels, 4))
-    macs = result.compute["macs"]
-    assert macs["total"] == macs["detect"] + macs["grow"] + macs["segment"] and macs["segment"] > 0
-    assert macs["detect"] == net.detector_macs()
-    assert result.compute["roi_voxels"] == len(result.regions)
-    assert result.compute["visited_points"] >= result.compute["roi_voxels"]
-    assert result.compute["seconds"]["total"] == pytest.approx(
-        sum(v for k, v in result.compute["seconds"].items() if k != "total"))
+    compute = result.compute
+    assert compute.segment_macs > 0 and compute.detect_macs == net.detector_macs()
+    assert compute.roi_voxels == len(result.regions)
+    assert compute.visited_points >= compute.roi_voxels
+    assert list(compute.seconds) == ["transform", "detect", "grow", "segment", "project"]
+    assert all(s > 0 for s in compute.seconds.values())
     for obj in result.objects:
         assert 1 <= obj.class_id < 4 and obj.n_voxels > 0
         assert obj.n_voxels <= (result.labels == obj.class_id).sum() + len(result.regions)
@@ -55,7 +54,7 @@ def test_no_detection_gives_an_all_background_answer(frame):
     result = _net(score_threshold=1.01).segment(frame.cube)  # a sigmoid never reaches 1.01
     assert len(result.centres) == 0 and len(result.regions) == 0 and result.objects == []
     assert not result.labels.any() and not result.ra_mask.any()
-    assert result.compute["macs"]["segment"] == 0 and result.compute["macs"]["detect"] > 0
+    assert result.compute.segment_macs == 0 and result.compute.detect_macs > 0
 
 
 def test_wrong_shape_is_refused(frame):
@@ -94,8 +93,13 @@ def test_given_centres_replace_the_detector(frame):
     seeds = Centres.from_bins(np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin]
                                         for o in frame.objects if o.n_voxels]))
     result = _net().segment(frame.cube, centres=seeds)
-    assert result.compute["macs"]["detect"] == 0 and len(result.centres) == len(seeds)
+    assert result.compute.detect_macs == 0 and len(result.centres) == len(seeds)
     assert result.regions.recall(frame.instances) > 0.9
+    seeded_only = EraseNet(None, _net().segmenter, "small", mean_db=60.0, std_db=8.0)  # seeds always given
+    assert seeded_only.params["detector"] == 0 and seeded_only.detector_macs() == 0
+    assert np.array_equal(seeded_only.segment(frame.cube, centres=seeds).labels, result.labels)
+    with pytest.raises(ValueError, match="no detector"):
+        seeded_only.segment(frame.cube)
 
 
 def test_a_cube_described_for_another_radar_is_refused_by_name(frame):
@@ -114,6 +118,4 @@ def test_frozen_detector_gives_the_eager_detectors_answer(frame):
     a, b = frozen.segment(frame.cube), eager.segment(frame.cube)
     np.testing.assert_allclose(a.centres.bins, b.centres.bins, atol=1e-4)
     assert np.array_equal(a.labels, b.labels)
-    executed = a.compute["executed_macs"]
-    assert executed["segment"] >= a.compute["macs"]["segment"] > 0
-    assert executed["total"] == executed["detect"] + executed["segment"]
+    assert a.compute.segment_executed_macs >= a.compute.segment_macs > 0

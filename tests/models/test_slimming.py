@@ -24,7 +24,7 @@ from models.slimming import (
     trace_channels,
 )
 from models.sparse import SparseTensor
-from models.sparse import count_macs as sparse_macs
+from models.sparse import last_forward_macs as sparse_macs
 from radar.profiles import get_profile
 
 
@@ -260,9 +260,9 @@ def test_pruned_checkpoints_serve_through_erasenet_with_fewer_macs(tmp_path):
                                                    tmp_path / f"{stage}_pruned.pt")
     full = EraseNet.from_checkpoints(paths["det"], paths["seg"], score_threshold=0.0, max_objects=2)
     slim = EraseNet.from_checkpoints(paths["det_pruned"], paths["seg_pruned"], score_threshold=0.0, max_objects=2)
-    assert 0 < slim.segment(cube).compute["macs"]["detect"] < full.segment(cube).compute["macs"]["detect"]
+    assert 0 < slim.segment(cube).compute.detect_macs < full.segment(cube).compute.detect_macs
     # the same seeds (the same ROI) for both segmenters: fewer channels, fewer MACs
-    full_macs = full.segment(cube, centres=seeds).compute["macs"]
-    slim_macs = slim.segment(cube, centres=seeds).compute["macs"]
-    assert 0 < slim_macs["segment"] < full_macs["segment"]
+    full_macs = full.segment(cube, centres=seeds).compute.segment_macs
+    slim_macs = slim.segment(cube, centres=seeds).compute.segment_macs
+    assert 0 < slim_macs < full_macs
     assert slim.params["detector"] < full.params["detector"] and slim.params["segmenter"] < full.params["segmenter"]

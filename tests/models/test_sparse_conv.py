@@ -16,8 +16,8 @@ from models.sparse import (
     StridedConv3d,
     SubmanifoldConv3d,
     TransposedConv3d,
-    count_executed_macs,
-    count_macs,
+    last_forward_executed_macs,
+    last_forward_macs,
 )
 
 DTYPE = torch.float64  # tight tolerances: the sparse and dense sums run in different orders
@@ -234,12 +234,12 @@ def test_mac_counts_equal_brute_force_pair_counts(path):
     assert down.last_macs == down_pairs * 4 * 5
     assert up.last_macs == down_pairs * 5 * 2
     assert pointwise.last_macs == len(coords) * 2 * 6
-    assert count_macs(model) == sub.last_macs + down.last_macs + up.last_macs + pointwise.last_macs
+    assert last_forward_macs(model) == sub.last_macs + down.last_macs + up.last_macs + pointwise.last_macs
     executed = {"per_offset": (sub_pairs, down_pairs, down_pairs),  # pairs; the GEMM path: every slot
                 "gemm": (len(coords) * 27, len(coarse) * 8, len(coarse) * 8)}[path]
     assert (sub.last_executed_macs, down.last_executed_macs, up.last_executed_macs) == (
         executed[0] * 3 * 4, executed[1] * 4 * 5, executed[2] * 5 * 2)
-    assert count_executed_macs(model) == sum(m.last_executed_macs for m in model)
+    assert last_forward_executed_macs(model) == sum(m.last_executed_macs for m in model)
 
 
 def test_negative_coordinates_behave_like_shifted_positive_ones():

@@ -18,6 +18,7 @@ import pytest
 from pipelines.cli import main as cli_main
 from pipelines.jobs import job_module, parse_config, run_module
 from pipelines.preprocess import PreprocessConfig, _split_by_fractions, main, plan_job, simulated_frames
+from pipelines.ray_runtime import init_ray
 from pipelines.sharded_store import done_shards
 from pipelines.store import array_checksums, open_store, summarise
 from radar import transforms
@@ -102,7 +103,7 @@ def embedded_ray():
     """One embedded local Ray for the in-process runs of this module (main() reuses it)."""
     import ray
 
-    ray.init(address="local", num_cpus=2, object_store_memory=200_000_000, include_dashboard=False)
+    init_ray(None, num_cpus=2, object_store_bytes=200_000_000)
     try:
         yield
     finally:

@@ -13,9 +13,10 @@ from models.checkpoint import export_checkpoint, load_checkpoint
 from pipelines import train as train_job
 from pipelines.jobs import parse_config
 from pipelines.store_info import StoreInfo
-from pipelines.training.config import PROFILES, TrainConfig, make_optimizer
+from pipelines.training.config import PROFILES, TrainConfig
 from pipelines.training.jitter import SeedJitter
 from pipelines.training.loop import Budget, train, train_loop
+from pipelines.training.optim import make_optimizer
 from pipelines.training.segmenter import RoiDataset, collate_roi
 
 
