@@ -6,12 +6,14 @@ maps built inside the step as in training. Batches are prepared before timing, s
 measured. Prints the figures and merges them under ``--label`` into benchmarks/results/segmenter_train.json
 (one label per code version, e.g. ``before`` and ``after``); never asserts a time.
 
-    .venv/bin/python -m benchmarks.segmenter_train --label after [--frames 8] [--batch-size 2] [--repeats 3] [--smoke]
-    .venv/bin/python -m benchmarks.segmenter_train --against b4750c9 --rounds 3   # before/after, interleaved
+    .venv/bin/python -m benchmarks.segmenter_train --label after [--frames 8] [--batch-size 2] [--repeats 3]
+        [--engine auto|native|torch] [--smoke]
+    .venv/bin/python -m benchmarks.segmenter_train --against 18f7d7f --rounds 3   # before/after, interleaved
 
 ``--against REF`` exports that commit's tree (``git archive``) to a temporary folder and runs this benchmark
 there and here in alternating processes, ``--rounds`` times each, so both versions see the same machine
-load; it records both and the ratio of their median step times under the label ``REF..HEAD``.
+load: here once per sparse engine (``after``: the compiled one, ``after_torch``: the pure-PyTorch one); it
+records all and the ratios of their median step times under the label ``REF..HEAD``.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ import torch
 from torch import nn
 
 from models.registry import create_model
-from models.sparse import SparseTensor
+from models.sparse import SparseTensor, native
 from pipelines.training.config import DEFAULT_JITTER_STD
 from radar.region_growing import grow_regions
 from radar.roi import roi_points
@@ -54,6 +56,7 @@ class BenchConfig:
     ratios: tuple[float, ...] = (0.25, 0.37)
     threads: int = 1
     seed: int = 0
+    engine: str = "auto"  # the sparse engine (models.sparse.native): auto, native or torch
 
 
 def roi_samples(preset: str, n_frames: int, seed: int) -> list[dict[str, torch.Tensor]]:
@@ -109,6 +112,8 @@ def bench_ratio(ratio: float, batches: list, cfg: BenchConfig) -> dict:
 
 def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     torch.set_num_threads(cfg.threads)
+    native.set_engine(cfg.engine)
+    engine = "native" if cfg.engine != "torch" and native.available() else "torch"
     samples = roi_samples(cfg.preset, cfg.frames, cfg.seed)
     batches = [collate(samples[i:i + cfg.batch_size]) for i in range(0, len(samples) - cfg.batch_size + 1,
                                                                        cfg.batch_size)]
@@ -117,13 +122,14 @@ def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()
     result = {
-        "config": asdict(cfg), "commit": commit, "rows": rows,
+        "config": asdict(cfg), "commit": commit, "rows": rows, "engine": engine,
         "voxels_per_batch_mean": float(np.mean([len(b[0]) for b in batches])),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
                     "load_average_before": load_before, "load_average_after": os.getloadavg()},
     }
-    print(f"{label}: {cfg.preset}, batches of {cfg.batch_size} ROIs, {result['voxels_per_batch_mean']:.0f} voxels "
-          f"per batch, {cfg.threads} thread(s), load {load_before[0]:.2f} -> {os.getloadavg()[0]:.2f}")
+    print(f"{label}: {engine} engine, {cfg.preset}, batches of {cfg.batch_size} ROIs, "
+          f"{result['voxels_per_batch_mean']:.0f} voxels per batch, {cfg.threads} thread(s), "
+          f"load {load_before[0]:.2f} -> {os.getloadavg()[0]:.2f}")
     for row in rows:
         print(f"  MinkUNet ratio {row['ratio']}: {row['median_step_s'] * 1e3:7.1f} ms/step median "
               f"({row['min_step_s'] * 1e3:.1f} min), {row['steps_per_s']:.2f} steps/s")
@@ -139,29 +145,36 @@ def against(ref: str, rounds: int, cfg: BenchConfig, output: Path) -> dict:
     repo = Path(__file__).resolve().parents[1]
     args = ["-m", "benchmarks.segmenter_train", "--preset", cfg.preset, "--frames", str(cfg.frames),
             "--batch-size", str(cfg.batch_size), "--repeats", str(cfg.repeats), "--threads", str(cfg.threads)]
-    steps: dict[str, dict[float, list[float]]] = {"before": {}, "after": {}}
+    steps: dict[str, dict[float, list[float]]] = {"before": {}, "after": {}, "after_torch": {}}
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(["git", "archive", ref], cwd=repo, capture_output=True, check=True).stdout
         old_tree = Path(tmp) / "tree"
         with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
             tar.extractall(old_tree, filter="data")
+        versions = (("before", old_tree, []), ("after", repo, ["--engine", "native"]),
+                    ("after_torch", repo, ["--engine", "torch"]))
         for _ in range(rounds):
-            for label, tree in (("before", old_tree), ("after", repo)):
+            for label, tree, extra in versions:
                 out = Path(tmp) / f"{label}.json"
-                subprocess.run([sys.executable, *args, "--label", label, "--output", str(out)], cwd=tree, check=True,
-                               env={**os.environ, "PYTHONPATH": str(tree)}, stdout=subprocess.DEVNULL)
+                subprocess.run([sys.executable, *args, *extra, "--label", label, "--output", str(out)], cwd=tree,
+                               check=True, env={**os.environ, "PYTHONPATH": str(tree)}, stdout=subprocess.DEVNULL)
                 for row in json.loads(out.read_text())[label]["rows"]:
                     steps[label].setdefault(row["ratio"], []).append(row["median_step_s"])
     rows = []
     for ratio in steps["after"]:
         before, after = statistics.median(steps["before"][ratio]), statistics.median(steps["after"][ratio])
+        after_torch = statistics.median(steps["after_torch"][ratio])
         rows.append({"ratio": ratio, "before_step_s": before, "after_step_s": after, "speedup": before / after,
-                     "before_runs": steps["before"][ratio], "after_runs": steps["after"][ratio]})
+                     "after_torch_step_s": after_torch, "torch_engine_speedup": before / after_torch,
+                     "before_runs": steps["before"][ratio], "after_runs": steps["after"][ratio],
+                     "after_torch_runs": steps["after_torch"][ratio]})
         print(f"MinkUNet ratio {ratio}: before {before * 1e3:.0f} ms/step ({1 / before:.2f} steps/s), after "
-              f"{after * 1e3:.0f} ms/step ({1 / after:.2f} steps/s): {before / after:.2f}x")
+              f"{after * 1e3:.0f} ms/step ({1 / after:.2f} steps/s): {before / after:.2f}x; after on the torch "
+              f"engine {after_torch * 1e3:.0f} ms/step: {before / after_torch:.2f}x")
     result = {"config": asdict(cfg), "ref": ref, "rounds": rounds, "rows": rows,
-              "machine": {"load_average_before": load_before, "load_average_after": os.getloadavg()}}
+              "machine": {"cpu_flags": [f for f in native.cpu_flags().split() if f.startswith(("avx", "fma", "sse4"))],
+                          "load_average_before": load_before, "load_average_after": os.getloadavg()}}
     merged = json.loads(output.read_text()) if output.is_file() else {}
     merged[f"{ref}..HEAD"] = result
     output.write_text(json.dumps(merged, indent=2) + "\n")
@@ -176,16 +189,18 @@ def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path, s
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--engine", default="auto", choices=native.ENGINES, help="sparse engine (default auto)")
     parser.add_argument("--smoke", action="store_true", help="two frames, one repeat, the shipped ratio only")
     parser.add_argument("--output", default=str(RESULTS))
     parser.add_argument("--against", help="git commit to compare with, interleaved (see the docstring)")
     parser.add_argument("--rounds", type=int, default=3, help="with --against: runs of each version")
     args = parser.parse_args(argv)
     if args.smoke:
-        cfg = BenchConfig(preset=args.preset, frames=2, batch_size=1, repeats=1, ratios=(0.25,), threads=args.threads)
+        cfg = BenchConfig(preset=args.preset, frames=2, batch_size=1, repeats=1, ratios=(0.25,), threads=args.threads,
+                          engine=args.engine)
     else:
         cfg = BenchConfig(preset=args.preset, frames=args.frames, batch_size=args.batch_size, repeats=args.repeats,
-                          threads=args.threads)
+                          threads=args.threads, engine=args.engine)
     return cfg, args.label, Path(args.output), args.against, args.rounds
 
 

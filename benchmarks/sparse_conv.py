@@ -1,6 +1,7 @@
-"""Benchmark of the pure-PyTorch sparse convolution against dense Conv3d, and a MinkUNet training step.
+"""Benchmark of the sparse convolution's two engines (compiled `native`, pure-PyTorch `torch`) against dense
+Conv3d, and a MinkUNet training step.
 
-Measured side by side in one run:
+Measured side by side in one run, the engines interleaved (`ENGINES`):
 - a 3^3 submanifold conv 32 -> 32, forward + backward, at 20k and 100k voxels filling about 5% of their
   bounding grid, next to a dense `nn.Conv3d` on that bounding grid; two layouts: solid blobs like
   region-grown ROIs (about 21 neighbours per voxel) and uniformly random voxels (about 2);
@@ -8,12 +9,15 @@ Measured side by side in one run:
   built inside the step as in training;
 - the engine's paths side by side on ROI-like blobs (`paths`): a 3^3 map built through the dense index
   grid and through hashing, and a 3^3 submanifold conv forward + backward at 8-64 channels on the
-  per-offset path, the GEMM path and the one `choose_path` picks; and, when spconv happens to be
-  importable (not a dependency), its CPU forward on the same voxels.
+  torch engine's per-offset path, its GEMM path and the one `choose_path` picks, and on the native
+  engine; and, when spconv happens to be importable (not a dependency), its CPU forward on the same voxels.
+
+The machine's CPU model, SIMD flags and load average are recorded with the figures (ratios between the
+engines and against dense are what carry over between machines, not the times).
 
 Prints the figures and writes them to `benchmarks/results/sparse_conv.json`. Never asserts a time.
 
-    python -m benchmarks.sparse_conv [--device cpu|cuda] [--smoke]
+    python -m benchmarks.sparse_conv [--device cpu|cuda] [--threads 1] [--smoke]
 """
 
 from __future__ import annotations
@@ -32,9 +36,42 @@ import torch
 from torch import Tensor, nn
 
 from models.segmenter.minkunet import MinkUNet
-from models.sparse import SparseTensor, SubmanifoldConv3d, VoxelIndex, build_kernel_map, choose_path, last_forward_macs
+from models.sparse import (
+    SparseTensor,
+    SubmanifoldConv3d,
+    VoxelIndex,
+    build_kernel_map,
+    choose_path,
+    last_forward_macs,
+    native,
+)
 
 RESULTS = Path(__file__).parent / "results" / "sparse_conv.json"
+ENGINES = ("native", "torch")
+SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "amx_tile", "asimd", "sve")
+
+
+def machine_info() -> dict:
+    """CPU model, SIMD flags, cores, torch threads and load: what every figure is recorded with."""
+    flags = set(native.cpu_flags().split())
+    model = next((line.split(":", 1)[1].strip() for line in _cpuinfo_lines() if line.startswith("model name")),
+                 platform.processor())
+    return {"cpu": model, "simd_flags": [f for f in SIMD_FLAGS if f in flags], "cpus": os.cpu_count(),
+            "torch": torch.__version__, "threads": torch.get_num_threads(), "load_average": os.getloadavg()}
+
+
+def _cpuinfo_lines() -> list[str]:
+    try:
+        return Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return []
+
+
+def engine_build() -> dict:
+    """Whether the native engine loads, and the seconds its load took (a first build, or the cache)."""
+    started = time.perf_counter()
+    ok = native.available()
+    return {"native_available": ok, "load_s": time.perf_counter() - started}
 
 
 @dataclass(frozen=True)
@@ -51,6 +88,7 @@ class BenchConfig:
     repeats: int = 7
     dense_repeats: int = 2
     seed: int = 0
+    threads: int = 1
     output: str = str(RESULTS)
 
 
@@ -111,6 +149,21 @@ def timed(fn: Callable[[], object], repeats: int, device: torch.device) -> list[
     return times
 
 
+def interleaved(fn: Callable[[], object], repeats: int, device: torch.device) -> dict[str, list[float]]:
+    """Wall seconds of `repeats` calls per engine, the engines taking turns (one warm-up call each)."""
+    times: dict[str, list[float]] = {engine: [] for engine in ENGINES}
+    for round_ in range(repeats + 1):
+        for engine in ENGINES:
+            with native.using_engine(engine):
+                start = time.perf_counter()
+                fn()
+                if device.type == "cuda":
+                    torch.cuda.synchronize(device)
+                if round_:  # round 0 warms up
+                    times[engine].append(time.perf_counter() - start)
+    return times
+
+
 def uniform_voxels(num_voxels: int, density: float, generator: torch.Generator) -> Tensor:
     """Unique voxels (num_voxels, 4), batch 0, drawn uniformly from a cube they fill to `density`
     (few neighbours per voxel: the easy case for sparse convolution)."""
@@ -138,7 +191,7 @@ def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, d
     def sparse_step() -> None:
         conv(x).feats.sum().backward()
 
-    sparse_times = timed(sparse_step, cfg.repeats, device)
+    sparse_times = interleaved(sparse_step, cfg.repeats, device)
 
     dense_conv = nn.Conv3d(32, 32, 3, padding=1, bias=False).to(device)
     dense_input = torch.randn(1, 32, *grid_shape, generator=generator).to(device).requires_grad_(True)
@@ -148,7 +201,8 @@ def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, d
 
     dense_times = timed(dense_step, cfg.dense_repeats, device)
     grid_cells = grid_shape[0] * grid_shape[1] * grid_shape[2]
-    sparse_s, dense_s = statistics.median(sparse_times), statistics.median(dense_times)
+    dense_s = statistics.median(dense_times)
+    sparse_s = {engine: statistics.median(times) for engine, times in sparse_times.items()}
     return {
         "voxels": num_voxels,
         "layout": layout,
@@ -159,10 +213,11 @@ def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, d
         "dense_macs_forward": grid_cells * 27 * 32 * 32,
         "kernel_map_build_s": statistics.median(build_times),
         "sparse_fwd_bwd_s": sparse_s,
-        "sparse_fwd_bwd_min_s": min(sparse_times),
+        "sparse_fwd_bwd_min_s": {engine: min(times) for engine, times in sparse_times.items()},
         "dense_fwd_bwd_s": dense_s,
         "dense_fwd_bwd_min_s": min(dense_times),
-        "dense_over_sparse": dense_s / sparse_s,
+        "dense_over_sparse": {engine: dense_s / t for engine, t in sparse_s.items()},
+        "torch_over_native": sparse_s["torch"] / sparse_s["native"],
     }
 
 
@@ -181,13 +236,15 @@ def bench_minkunet_step(num_voxels: int, cfg: BenchConfig, device: torch.device)
         loss.backward()
         optimizer.step()
 
-    times = timed(step, cfg.repeats, device)
+    times = interleaved(step, cfg.repeats, device)
+    medians = {engine: statistics.median(t) for engine, t in times.items()}
     return {
         "voxels": num_voxels,
         "params": sum(p.numel() for p in model.parameters()),
         "forward_macs": last_forward_macs(model),
-        "train_step_s": statistics.median(times),
-        "train_step_min_s": min(times),
+        "train_step_s": medians,
+        "train_step_min_s": {engine: min(t) for engine, t in times.items()},
+        "torch_over_native": medians["torch"] / medians["native"],
     }
 
 
@@ -211,16 +268,21 @@ def bench_paths(cfg: BenchConfig, device: torch.device) -> dict:
         feats = torch.randn(len(coords), channels, generator=generator).to(device).requires_grad_(True)
         conv = SubmanifoldConv3d(channels, channels).to(device)
         x = SparseTensor(coords, feats)
-        times = {"per_offset": [], "gemm": []}
+        times = {"per_offset": [], "gemm": [], "native": []}
         for _ in range(cfg.repeats):
             for path in times:
-                conv.path = path
-                start = time.perf_counter()
-                conv(x).feats.sum().backward()
-                times[path].append(time.perf_counter() - start)
+                conv.path = "auto" if path == "native" else path
+                with native.using_engine("native" if path == "native" else "torch"):
+                    start = time.perf_counter()
+                    conv(x).feats.sum().backward()
+                    times[path].append(time.perf_counter() - start)
+        conv.path = "auto"
         row = {"channels": channels, "chosen": choose_path(kernel_map, channels, channels, transposed=False),
                "useful_macs": conv.last_macs, **{f"{p}_fwd_bwd_s": statistics.median(t) for p, t in times.items()}}
         row["gemm_over_per_offset"] = row["gemm_fwd_bwd_s"] / row["per_offset_fwd_bwd_s"]
+        best_torch = min(row["gemm_fwd_bwd_s"], row["per_offset_fwd_bwd_s"])
+        row["best_torch_path_over_native"] = best_torch / row["native_fwd_bwd_s"]
+        row["native_gmacs_per_s"] = 3 * row["useful_macs"] / row["native_fwd_bwd_s"] / 1e9  # fwd + 2 bwd products
         row["spconv_fwd_s"] = spconv_forward(coords, channels, cfg.repeats)
         rows.append(row)
     out["submanifold_fwd_bwd"] = rows
@@ -250,14 +312,16 @@ def spconv_forward(coords: Tensor, channels: int, repeats: int) -> float | None:
 def main(cfg: BenchConfig) -> dict:
     """Run every measurement, write the JSON file, return the results."""
     device = torch.device(cfg.device)
+    torch.set_num_threads(cfg.threads)
+    build = engine_build()  # before the machine's figures: a first build loads the machine for a minute
+    machine = machine_info()
+    machine["load_average_before"] = machine.pop("load_average")
+    if device.type == "cuda":
+        machine["device"] = torch.cuda.get_device_name(device)
     results = {
         "config": asdict(cfg),
-        "machine": {
-            "torch": torch.__version__,
-            "threads": torch.get_num_threads(),
-            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
-            "load_average_before": os.getloadavg(),
-        },
+        "machine": machine,
+        "engine_build": build,
         "submanifold_conv_32_32": [
             bench_submanifold_vs_dense(n, layout, cfg, device) for layout in cfg.layouts for n in cfg.conv_voxels
         ],
@@ -276,13 +340,14 @@ def parse_args(argv: list[str] | None = None) -> BenchConfig:
     parser.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, runs in seconds")
     parser.add_argument("--output", default=str(RESULTS), help="JSON file to write")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
     if args.smoke:
         return BenchConfig(
             device=args.device, conv_voxels=(2_000,), step_voxels=(1_000,), repeats=1, dense_repeats=1,
-            path_voxels=2_000, path_channels=(8,), output=args.output,
+            path_voxels=2_000, path_channels=(8,), output=args.output, threads=args.threads,
         )  # fmt: skip
-    return BenchConfig(device=args.device, output=args.output)
+    return BenchConfig(device=args.device, output=args.output, threads=args.threads)
 
 
 def _print_paths(paths: dict) -> None:
@@ -291,31 +356,35 @@ def _print_paths(paths: dict) -> None:
           f"{maps['grid'] * 1e3:.1f} ms, hashing {maps['hashing'] * 1e3:.1f} ms")
     for row in paths["submanifold_fwd_bwd"]:
         spconv_ms = "n/a" if row["spconv_fwd_s"] is None else f"{row['spconv_fwd_s'] * 1e3:.1f} ms"
-        print(f"  {row['channels']:3} ch fwd+bwd: per_offset {row['per_offset_fwd_bwd_s'] * 1e3:7.1f} ms, gemm "
+        print(f"  {row['channels']:3} ch fwd+bwd: torch per_offset {row['per_offset_fwd_bwd_s'] * 1e3:7.1f} ms, gemm "
               f"{row['gemm_fwd_bwd_s'] * 1e3:7.1f} ms (x{row['gemm_over_per_offset']:.2f}), chosen {row['chosen']}; "
-              f"spconv fwd {spconv_ms}")
+              f"native {row['native_fwd_bwd_s'] * 1e3:7.1f} ms ({row['best_torch_path_over_native']:.2f}x the best "
+              f"torch path, {row['native_gmacs_per_s']:.1f} GMAC/s); spconv fwd {spconv_ms}")
 
 
 def report(results: dict) -> None:
     """Print the figures as two small tables."""
     print(f"machine: {results['machine']}")
-    print("submanifold 3^3 conv 32->32, forward+backward (median s)")
+    print(f"native engine: {results['engine_build']}")
+    print("submanifold 3^3 conv 32->32, forward+backward (median s; dense/sparse per engine)")
     print(f"{'layout':>8} {'voxels':>8} {'grid':>16} {'density':>8} {'pairs/vox':>9} {'map s':>8} "
-          f"{'sparse s':>9} {'(min)':>7} {'dense s':>9} {'(min)':>7} {'dense/sparse':>12}")  # fmt: skip
+          f"{'native s':>9} {'torch s':>9} {'dense s':>9} {'dense/native':>12} {'dense/torch':>11}")  # fmt: skip
     for row in results["submanifold_conv_32_32"]:
         grid = "x".join(str(v) for v in row["bounding_grid"])
+        sparse, ratio = row["sparse_fwd_bwd_s"], row["dense_over_sparse"]
         print(
             f"{row['layout']:>8} {row['voxels']:>8} {grid:>16} {row['density']:>8.3f} {row['pairs_per_voxel']:>9.2f} "
-            f"{row['kernel_map_build_s']:>8.4f} {row['sparse_fwd_bwd_s']:>9.4f} "
-            f"{row['sparse_fwd_bwd_min_s']:>7.4f} {row['dense_fwd_bwd_s']:>9.3f} {row['dense_fwd_bwd_min_s']:>7.3f} "
-            f"{row['dense_over_sparse']:>12.1f}"
+            f"{row['kernel_map_build_s']:>8.4f} {sparse['native']:>9.4f} {sparse['torch']:>9.4f} "
+            f"{row['dense_fwd_bwd_s']:>9.3f} {ratio['native']:>12.1f} {ratio['torch']:>11.1f}"
         )
     _print_paths(results["paths"])
     print("MinkUNet ratio 0.37 training step (SGD, maps built in the step)")
     for row in results["minkunet_r037_train_step"]:
+        step = row["train_step_s"]
         print(
-            f"{row['voxels']:>8} voxels: {row['train_step_s']:.3f} s median ({row['train_step_min_s']:.3f} min), "
-            f"{row['params']:,} params, {row['forward_macs'] / 1e9:.3f} GMACs forward"
+            f"{row['voxels']:>8} voxels: native {step['native']:.3f} s, torch {step['torch']:.3f} s median "
+            f"({row['torch_over_native']:.2f}x), {row['params']:,} params, "
+            f"{row['forward_macs'] / 1e9:.3f} GMACs forward"
         )
 
 

@@ -2,10 +2,13 @@
 per replica, behind a bounded queue.
 
 ``EraseNet.segment`` is not safe to run concurrently on one instance (per-call MAC counters), so each
-replica is used by one inference thread at a time. Each replica has its own long-lived inference thread,
-which sets its torch intra-op threads itself (``Settings.inference_threads``) and runs the warm-up too, so
-that torch's OpenMP thread team is built once, on the thread that uses it. (Inference on a fresh worker
-thread with torch's default threads was measured 4x slower than on the main thread: issue 16.)
+replica is used by one inference thread at a time. The process has ``replicas`` long-lived inference
+threads, shared by every served model (issue 24: one pool per model gave two models on 2 cores two OpenMP
+teams sized to all the cores, and the service ran 3-5x slower than a plain process); each sets its torch
+intra-op threads itself (``Settings.inference_threads``, the cores shared among the replicas) and runs
+the warm-up too, so that torch's OpenMP thread teams never exceed the cores, whatever number of models is
+served, and each is built once, on the thread that uses it. (Inference on a fresh worker thread with
+torch's default threads was measured 4x slower than on the main thread: issue 16.)
 
 A request takes a slot of its model once its body has been read (a slow upload holds no slot) and
 keeps it until its inference has finished; when ``replicas + max_queue`` slots are taken the request is
@@ -52,6 +55,7 @@ class ServedModel:
     segment_macs_high: int = 0  # largest segment MACs seen: the quota reservation's estimate
     _free: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)
     _executor: ThreadPoolExecutor | None = None
+    _owns_executor: bool = True
     _held: int = 0
     _lock: threading.Lock = field(default_factory=threading.Lock)
 
@@ -71,12 +75,14 @@ class ServedModel:
         """Slots taken: requests running or waiting."""
         return self._held
 
-    def load(self, replicas: int, warmup: bool, threads: int = 1) -> None:
-        """Build the replicas from the checkpoints and start one inference thread per replica, each with
-        ``threads`` torch threads; on failure record why (the service stays up, not ready)."""
+    def load(self, replicas: int, warmup: bool, threads: int = 1, executor: ThreadPoolExecutor | None = None) -> None:
+        """Build the replicas from the checkpoints and run them on ``executor`` (the pool's inference threads),
+        or on a pool of its own of one inference thread per replica, each with ``threads`` torch threads; on
+        failure record why (the service stays up, not ready)."""
         detector, segmenter = resolve_path(self.spec.detector), resolve_path(self.spec.segmenter)
-        executor = ThreadPoolExecutor(max_workers=replicas, thread_name_prefix=f"model-{self.spec.name}",
-                                      initializer=set_torch_threads, initargs=(threads,))
+        self._owns_executor = executor is None
+        if executor is None:
+            executor = inference_executor(replicas, threads, f"model-{self.spec.name}")
 
         def build() -> EraseNet:
             return EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
@@ -87,7 +93,8 @@ class ServedModel:
         try:  # one after the other: building (tracing) a model is not assumed to be thread-safe
             nets = [executor.submit(build).result() for _ in range(replicas)]
         except (CheckpointError, ValueError, KeyError, RuntimeError) as exc:
-            executor.shutdown(wait=True)
+            if self._owns_executor:
+                executor.shutdown(wait=True)
             self.error = str(exc)
             log.error("model %s not loaded: %s", self.spec.name, exc)
             return
@@ -154,9 +161,15 @@ class ServedModel:
         return result
 
     def close(self) -> None:
-        if self._executor is not None:
+        if self._executor is not None and self._owns_executor:
             self._executor.shutdown(wait=True, cancel_futures=True)
-            self._executor = None
+        self._executor = None
+
+
+def inference_executor(workers: int, threads: int, name: str) -> ThreadPoolExecutor:
+    """``workers`` inference threads, each with ``threads`` torch threads."""
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix=name, initializer=set_torch_threads,
+                              initargs=(threads,))
 
 
 def set_torch_threads(threads: int) -> None:
@@ -174,11 +187,15 @@ class ModelPool:
         self.settings = settings
         self.models = {spec.name: ServedModel(spec, capacity) for spec in settings.models}
         self.default = settings.default_model_name
+        self._executor: ThreadPoolExecutor | None = None
 
     def load(self) -> None:
-        """Load every model (blocking: call from a thread or at start-up)."""
+        """Load every model (blocking: call from a thread or at start-up) onto one set of ``replicas`` inference
+        threads shared by all models, so that their OpenMP teams together never exceed the cores."""
+        threads = self.settings.inference_threads
+        self._executor = inference_executor(self.settings.replicas, threads, "inference")
         for model in self.models.values():
-            model.load(self.settings.replicas, self.settings.warmup, self.settings.inference_threads)
+            model.load(self.settings.replicas, self.settings.warmup, threads, executor=self._executor)
 
     def get(self, name: str | None) -> ServedModel:
         """The model called ``name`` (the default when None); KeyError names the served ones."""
@@ -197,6 +214,9 @@ class ModelPool:
     def close(self) -> None:
         for model in self.models.values():
             model.close()
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=True)
+            self._executor = None
 
     def describe(self) -> list[dict[str, Any]]:
         """Facts about each model for GET /v1/models."""

@@ -1,6 +1,7 @@
-"""Sparse convolution layers over kernel maps, by one of two paths chosen per layer (`choose_path`):
-an implicit GEMM over the neighbour table in cache-sized chunks, or gather / matmul / scatter-add per
-kernel offset.
+"""Sparse convolution layers over kernel maps, by one of two engines (`models.sparse.native`: setting
+`RADARSEG_SPARSE_ENGINE`): the compiled kernels (CPU, float32), or pure PyTorch, the reference, by one of
+two paths chosen per layer (`choose_path`): an implicit GEMM over the neighbour table in cache-sized
+chunks, or gather / matmul / scatter-add per kernel offset.
 
 Every conv holds a weight `[K, C_in, C_out]` (K = kernel voxels) and records the exact multiply-
 accumulates of its last call in `last_macs` (sum over offsets of pairs x C_in x C_out) and those its
@@ -22,6 +23,7 @@ import math
 import torch
 from torch import Tensor, nn
 
+from models.sparse import native
 from models.sparse.kernel_map import KernelMap
 from models.sparse.tensor import SparseTensor
 
@@ -239,6 +241,67 @@ class _PickProducts(torch.autograd.Function):
         return grad_feats, grad_weight, None
 
 
+class _NativeConv(torch.autograd.Function):
+    """A submanifold or down-sampling conv by the compiled engine (`native.neighbour_conv`), exact MACs.
+
+    Backward: the weight gradient per offset (`native.neighbour_weight_grad`); the input gradient through
+    the map's transpose: a submanifold map is its own transpose with offsets mirrored (`k <-> K-1-k`), and
+    a down-sampling map gives each input exactly one (output, offset) slot (`native.scatter_conv`).
+    """
+
+    @staticmethod
+    def forward(ctx, feats, weight, kernel_map):  # noqa: D102
+        ctx.save_for_backward(feats, weight)
+        ctx.kernel_map = kernel_map
+        return native.neighbour_conv(feats, kernel_map.neighbours, weight)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        feats, weight = ctx.saved_tensors
+        kernel_map = ctx.kernel_map
+        grad_feats = grad_weight = None
+        if ctx.needs_input_grad[1]:
+            grad_weight = native.neighbour_weight_grad(feats, kernel_map.neighbours, grad_out)
+        if ctx.needs_input_grad[0]:
+            weight_t = weight.transpose(1, 2)  # (K, C_out, C_in)
+            if kernel_map.identity_offset is not None:
+                grad_feats = native.neighbour_conv(grad_out, kernel_map.neighbours, weight_t.flip(0))
+            else:
+                grad_feats = native.scatter_conv(grad_out, kernel_map.neighbours, weight_t, kernel_map.num_in)
+        return grad_feats, grad_weight, None
+
+
+class _NativeTransposedConv(torch.autograd.Function):
+    """The transposed (up-sampling) conv over a down-sampling map by the compiled engine: every fine voxel
+    is written once from its coarse parent (`native.scatter_conv`), exact MACs; the backward gathers."""
+
+    @staticmethod
+    def forward(ctx, feats, weight, kernel_map):  # noqa: D102
+        ctx.save_for_backward(feats, weight)
+        ctx.kernel_map = kernel_map
+        return native.scatter_conv(feats, kernel_map.neighbours, weight, kernel_map.num_in)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):  # noqa: D102
+        feats, weight = ctx.saved_tensors
+        neighbours = ctx.kernel_map.neighbours  # (N_coarse, K) fine rows
+        grad_feats = grad_weight = None
+        if ctx.needs_input_grad[0]:
+            grad_feats = native.neighbour_conv(grad_out, neighbours, weight.transpose(1, 2))
+        if ctx.needs_input_grad[1]:
+            grad_weight = native.neighbour_weight_grad(grad_out, neighbours, feats).transpose(1, 2)
+        return grad_feats, grad_weight, None
+
+
+def native_applies(kernel_map: KernelMap, feats: Tensor, weight: Tensor) -> bool:
+    """Whether the compiled engine runs this conv (see `native.use_native`): its kernels take a submanifold
+    map (stride 1 with the identity offset) or a down-sampling map (stride = kernel size)."""
+    supported = kernel_map.identity_offset is not None or kernel_map.stride == kernel_map.kernel_size > 1
+    return supported and native.use_native(feats, weight)
+
+
 PATHS = ("per_offset", "gemm")
 """How a conv runs over its map: gather / matmul / scatter per offset (`per_offset`, executes exactly the
 useful MACs), or all offsets in one matrix product (`gemm`: `_NeighbourGemm`, or `_PickProducts` for a
@@ -298,15 +361,19 @@ def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, tr
         weight: (K, C_in, C_out).
         kernel_map: pairs per offset; `transposed` swaps its input and output roles.
         transposed: run the adjoint (up-sampling) of the map's convolution.
-        path: one of `PATHS`, or "auto" for `choose_path`.
+        path: one of `PATHS`, or "auto" for `choose_path`: how the pure-PyTorch engine runs it (the compiled
+            engine, where `native_applies`, has one path and ignores this).
 
     Returns:
         output features (N_out, C_out), the useful MACs (pairs x C_in x C_out) and the executed MACs.
     """
     c_in, c_out = weight.shape[1], weight.shape[2]
+    useful = kernel_map.num_pairs * c_in * c_out
+    if native_applies(kernel_map, feats, weight):
+        out = (_NativeTransposedConv if transposed else _NativeConv).apply(feats, weight, kernel_map)
+        return out, useful, useful
     if path == "auto":
         path = choose_path(kernel_map, c_in, c_out, transposed=transposed)
-    useful = kernel_map.num_pairs * c_in * c_out
     if path == "gemm":
         if transposed:
             out = _PickProducts.apply(feats, weight, kernel_map)

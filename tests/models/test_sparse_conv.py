@@ -1,4 +1,8 @@
-"""The sparse convolutions against dense PyTorch convolutions on a densified grid, values and gradients."""
+"""The sparse convolutions against dense PyTorch convolutions on a densified grid, values and gradients.
+
+These run the pure-PyTorch engine (its two paths, its MAC counts); tests/models/test_sparse_native.py
+compares the compiled engine with it.
+"""
 
 from __future__ import annotations
 
@@ -18,9 +22,16 @@ from models.sparse import (
     TransposedConv3d,
     last_forward_executed_macs,
     last_forward_macs,
+    native,
 )
 
 DTYPE = torch.float64  # tight tolerances: the sparse and dense sums run in different orders
+
+
+@pytest.fixture(autouse=True)
+def torch_engine():
+    with native.using_engine("torch"):
+        yield
 
 
 def random_coords(

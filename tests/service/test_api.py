@@ -300,5 +300,6 @@ def test_each_replica_runs_on_its_own_thread_with_the_configured_torch_threads(m
     served = client.app.state.service.pool.get("tiny")
     seen = {served._executor.submit(lambda: (threading.current_thread().name, torch.get_num_threads())).result()
             for _ in range(4)}
-    assert {threads for _, threads in seen} == {3} and all(name.startswith("model-tiny") for name, _ in seen)
+    # One set of inference threads for the whole process, shared by its models (issue 24).
+    assert {threads for _, threads in seen} == {3} and all(name.startswith("inference") for name, _ in seen)
     assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 200

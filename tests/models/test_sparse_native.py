@@ -1,0 +1,155 @@
+"""The compiled sparse engine against the pure-PyTorch one: outputs and gradients (features and weight) of
+every convolution kind, on random maps including empty inputs and single voxels; the engine setting.
+
+The compiled engine must build here (g++ and ninja are on every machine of ours): a failed build fails
+these tests instead of skipping them.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from models.sparse import SparseTensor, StridedConv3d, SubmanifoldConv3d, TransposedConv3d, native
+
+RELATIVE = 1e-5
+
+
+@pytest.fixture(scope="module", autouse=True)
+def built_engine():
+    native.load()  # raises with the compiler's first line when the build fails
+
+
+def random_coords(generator: torch.Generator, num_voxels: int, extent: int, batch_size: int) -> torch.Tensor:
+    """Unique voxels (N, 4): `num_voxels` per sample in [0, extent)^3, in random order."""
+    rows = []
+    for batch in range(batch_size):
+        flat = torch.randperm(extent**3, generator=generator)[:num_voxels]
+        xyz = torch.stack([flat // extent**2, (flat // extent) % extent, flat % extent], dim=1)
+        rows.append(torch.cat([torch.full((len(flat), 1), batch), xyz], dim=1))
+    return torch.cat(rows)[torch.randperm(num_voxels * batch_size, generator=generator)]
+
+
+def run(engine: str, conv: torch.nn.Module, x: SparseTensor, probe_seed: int):
+    """Output features, input gradient and weight gradient of `sum(conv(x) * probe)` on one engine."""
+    feats = x.feats.detach().clone().requires_grad_(True)
+    conv.weight.grad = None
+    with native.using_engine(engine):
+        out = conv(x.replace_feats(feats)).feats
+    probe = torch.randn(out.shape, generator=torch.Generator().manual_seed(probe_seed))
+    (out * probe).sum().backward()
+    grad_weight = conv.weight.grad.clone() if conv.weight.grad is not None else torch.zeros_like(conv.weight)
+    grad_feats = feats.grad if feats.grad is not None else torch.zeros_like(feats)
+    return out.detach(), grad_feats, grad_weight, conv.last_macs, conv.last_executed_macs
+
+
+def assert_close_relative(native_value: torch.Tensor, reference: torch.Tensor, what: str) -> None:
+    assert native_value.shape == reference.shape, what
+    scale = float(reference.abs().max()) if reference.numel() else 0.0
+    error = float((native_value - reference).abs().max()) if reference.numel() else 0.0
+    assert error <= RELATIVE * max(scale, 1e-12), f"{what}: max error {error:.3g} against max |value| {scale:.3g}"
+
+
+def compare_engines(conv: torch.nn.Module, x: SparseTensor, seed: int) -> None:
+    compiled, reference = run("native", conv, x, seed), run("torch", conv, x, seed)
+    for name, a, b in zip(("output", "feature gradient", "weight gradient"), compiled[:3], reference[:3],
+                          strict=True):
+        assert_close_relative(a, b, f"{type(conv).__name__} {name}")
+    assert compiled[3] == reference[3], "useful MACs"
+    assert compiled[4] == compiled[3], "the compiled engine executes exactly the useful MACs"
+
+
+CASES = [  # (voxels per sample, extent, batch size): sparse, dense, single voxel, empty
+    (300, 12, 2),
+    (400, 8, 1),
+    (1, 4, 1),
+    (0, 4, 1),
+]
+CHANNELS = [(1, 3), (8, 8), (13, 35), (32, 24)]
+
+
+@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize(("c_in", "c_out"), CHANNELS)
+@pytest.mark.parametrize("kernel_size", [3, 5])
+def test_submanifold_engines_agree(case, c_in, c_out, kernel_size):
+    generator = torch.Generator().manual_seed(c_in * 31 + kernel_size)
+    coords = random_coords(generator, *case)
+    x = SparseTensor(coords, torch.randn(len(coords), c_in, generator=generator))
+    compare_engines(SubmanifoldConv3d(c_in, c_out, kernel_size), x, seed=c_out)
+
+
+@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize(("c_in", "c_out"), CHANNELS)
+@pytest.mark.parametrize("tensor_stride", [1, 2, 4])
+def test_strided_and_transposed_engines_agree(case, c_in, c_out, tensor_stride):
+    generator = torch.Generator().manual_seed(c_in * 7 + tensor_stride)
+    coords = random_coords(generator, *case)
+    x = SparseTensor(coords * tensor_stride * torch.tensor([0, 1, 1, 1]) + coords * torch.tensor([1, 0, 0, 0]),
+                     torch.randn(len(coords), c_in, generator=generator), tensor_stride)
+    down = StridedConv3d(c_in, c_out)
+    compare_engines(down, x, seed=1)
+    with native.using_engine("torch"):
+        coarse = down(x)
+    coarse = coarse.replace_feats(torch.randn(len(coarse), c_out, generator=generator))
+    compare_engines(TransposedConv3d(c_out, c_in), coarse, seed=2)
+
+
+def test_a_small_network_trains_the_same_on_both_engines():
+    """Gradients through a chain (sub, down, sub, up) reach every weight alike on both engines."""
+    generator = torch.Generator().manual_seed(11)
+    coords = random_coords(generator, 250, 10, 2)
+    feats = torch.randn(len(coords), 4, generator=generator)
+    layers = torch.nn.Sequential(SubmanifoldConv3d(4, 8), StridedConv3d(8, 16), SubmanifoldConv3d(16, 16),
+                                 TransposedConv3d(16, 8))
+    grads = {}
+    for engine in ("native", "torch"):
+        layers.zero_grad(set_to_none=True)
+        with native.using_engine(engine):
+            out = layers(SparseTensor(coords, feats)).feats
+        out.square().sum().backward()
+        grads[engine] = [p.grad.clone() for p in layers.parameters()]
+    for compiled, reference in zip(grads["native"], grads["torch"], strict=True):
+        assert_close_relative(compiled, reference, "chained weight gradient")
+
+
+def test_float64_and_the_torch_setting_use_the_torch_engine(monkeypatch):
+    calls = []
+    monkeypatch.setattr(native, "neighbour_conv", lambda *args: calls.append(args) or torch.zeros(0))
+    coords = random_coords(torch.Generator().manual_seed(1), 20, 5, 1)
+    conv = SubmanifoldConv3d(2, 2)
+    with native.using_engine("auto"):
+        conv.double()(SparseTensor(coords, torch.randn(20, 2, dtype=torch.float64)))
+    with native.using_engine("torch"):
+        conv.float()(SparseTensor(coords, torch.randn(20, 2)))
+    assert calls == []
+
+
+def test_engine_setting_is_validated_and_read_from_the_environment(monkeypatch):
+    with pytest.raises(ValueError, match="sparse engine must be one of"):
+        native.set_engine("fast")
+    previous = native.get_engine()
+    try:
+        monkeypatch.setattr(native, "_engine", None)
+        monkeypatch.setenv(native.ENGINE_ENV, "Torch")
+        assert native.get_engine() == "torch"
+        monkeypatch.setattr(native, "_engine", None)
+        monkeypatch.setenv(native.ENGINE_ENV, "gpu")
+        with pytest.raises(ValueError, match="RADARSEG_SPARSE_ENGINE"):
+            native.get_engine()
+    finally:
+        native.set_engine(previous)
+
+
+def test_a_failed_build_falls_back_with_one_warning_under_auto_and_raises_under_native(monkeypatch):
+    monkeypatch.setattr(native, "_module", None)
+    monkeypatch.setattr(native, "_build_error", "the compiled sparse engine did not build (no compiler)")
+    monkeypatch.setattr(native, "_warned", False)
+    coords = random_coords(torch.Generator().manual_seed(2), 30, 5, 1)
+    x = SparseTensor(coords, torch.randn(30, 3))
+    conv = SubmanifoldConv3d(3, 2)
+    with native.using_engine("auto"), pytest.warns(RuntimeWarning, match="pure-PyTorch") as record:
+        conv(x)
+        conv(x)
+    assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1
+    with native.using_engine("native"), pytest.raises(RuntimeError, match="did not build"):
+        conv(x)
