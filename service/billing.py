@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from typing import Any, TypeVar
 
 from sqlalchemy.exc import SQLAlchemyError
@@ -61,6 +62,23 @@ def quota_error(exc: QuotaExceeded, now: dt.datetime | None = None) -> ApiError:
         headers={"Retry-After": str(retry_after)}, tenant=exc.tenant, day=exc.day.isoformat(),
         used_macs=exc.used_macs, limit_macs=exc.limit_macs, reserved_macs=exc.reserved_macs,
         requested_macs=exc.requested_macs)
+
+
+class QuotaHold:
+    """One request's hold on its tenant's quota, from :meth:`Billing.hold`: the lease taken on entering, billed by
+    :meth:`settle` or given back when the block is left any other way."""
+
+    def __init__(self, billing: Billing, tenant: str, lease: Lease | None) -> None:
+        self.billing = billing
+        self.tenant = tenant
+        self.lease = lease
+        self.ended = False
+
+    async def settle(self, *, model: str, compute: Compute, compute_us: int, request_id: str) -> RequestUsage:
+        """Bill the request (see :meth:`Billing.settle`); the lease ends with it, billed or refused."""
+        self.ended = True
+        return await self.billing.settle(self.tenant, self.lease, model=model, compute=compute, compute_us=compute_us,
+                                         request_id=request_id)
 
 
 class Billing:
@@ -121,6 +139,18 @@ class Billing:
             self.metrics.rejected.labels(served.spec.name, "quota").inc()
             raise quota_error(outcome)
         return outcome
+
+    @asynccontextmanager
+    async def hold(self, tenant: str, served: ServedModel) -> AsyncIterator[QuotaHold]:
+        """``async with billing.hold(tenant, served) as quota``: reserve on entering (ApiError 429 when it does not
+        fit), ``await quota.settle(...)`` inside; leaving without settling (an error, a cancelled request) gives
+        the reservation back."""
+        held = QuotaHold(self, tenant, await self.reserve(tenant, served))
+        try:
+            yield held
+        finally:
+            if not held.ended:
+                await self.release(held.lease)
 
     async def release(self, lease: Lease | None) -> None:
         """Give a lease back (the request was not billed)."""

@@ -52,12 +52,14 @@ class ExpectedCube:
         return 12 + MAX_HEADER_LEN + widest * int(np.prod(self.shape))
 
 
-def check_declared_length(content_length: int | None, expected: ExpectedCube) -> None:
-    """ApiError 413 at once for a declared length that no cube the model takes can have."""
-    limit = expected.max_body_bytes()
+def check_declared_length(content_length: int | None, accepted: list[ExpectedCube]) -> None:
+    """ApiError 413 at once for a declared length larger than any of the ``accepted`` cubes (every input kind of
+    the model) can have."""
+    largest = max(accepted, key=ExpectedCube.max_body_bytes)
+    limit = largest.max_body_bytes()
     if content_length is not None and content_length > limit:
-        raise ApiError(413, f"request body of {content_length} bytes is larger than model {expected.model!r} accepts "
-                            f"with ?input={expected.kind.value}: at most {limit} bytes ({expected.describe()})",
+        raise ApiError(413, f"request body of {content_length} bytes is larger than any cube model {largest.model!r} "
+                            f"takes: at most {limit} bytes ({largest.describe()} with ?input={largest.kind.value})",
                        headers={"Connection": "close"})
 
 

@@ -206,7 +206,8 @@ async def segment(
 
     A declared length no cube of the model can have is refused at once (413), and so is a tenant whose quota
     cannot cover the request (429), before the body is read. The body is read next (a slow upload holds no model
-    slot), then the request takes a model slot, then a lease on the tenant's quota, runs, and is billed."""
+    slot), then the request takes a lease on the tenant's quota and a model slot, runs, and is billed; the lease is
+    given back on any other way out."""
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
     content_length = _content_length(request)
@@ -214,30 +215,23 @@ async def segment(
     if cube_schema is not None:
         _check_cube_schema(cube_schema, served, input_kind, state.settings.max_json_depth)
     name, metrics = served.spec.name, state.metrics
-    shape = adc_shape(served.net.profile) if input_kind is InputKind.adc else served.net.profile.shape
-    expected = ExpectedCube(name, shape, input_kind)
-    check_declared_length(content_length, expected)
+    profile = served.net.profile
+    accepted = {kind: ExpectedCube(name, adc_shape(profile) if kind is InputKind.adc else profile.shape, kind)
+                for kind in InputKind}
+    check_declared_length(content_length, list(accepted.values()))
+    expected = accepted[input_kind]
     await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
     cube, decode_s = await _read_body(request, state, caller.tenant, expected, content_length)
 
-    _take_slot(served, state)  # a saturated model answers 503 before the quota is touched
-    try:
-        lease = await state.billing.reserve(caller.tenant, served)
-    except BaseException:
-        served.release()
-        raise
-    try:
+    async with state.billing.hold(caller.tenant, served) as quota:  # reserved; given back unless settled
+        _take_slot(served, state)  # 503 when every slot of the model is taken
         result = await _infer(served, cube, input_kind, tdm_compensation, state)
-    except BaseException:
-        await state.billing.release(lease)
-        raise
-    views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
-                                     tdm_compensation=tdm_compensation) if "views" in chosen else None)
-    del cube
-    compute, compute_us = _compute(result, decode_s)
-    request_id = uuid.uuid4().hex
-    usage = await state.billing.settle(caller.tenant, lease, model=name, compute=compute, compute_us=compute_us,
-                                       request_id=request_id)
+        views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
+                                         tdm_compensation=tdm_compensation) if "views" in chosen else None)
+        del cube
+        compute, compute_us = _compute(result, decode_s)
+        request_id = uuid.uuid4().hex
+        usage = await quota.settle(model=name, compute=compute, compute_us=compute_us, request_id=request_id)
 
     metrics.segmentations.labels(name, caller.tenant).inc()
     metrics.macs.labels(name, caller.tenant).inc(compute.macs.total)

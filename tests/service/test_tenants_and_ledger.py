@@ -271,3 +271,38 @@ def test_admission_counts_every_affordable_request_and_retry_after_names_the_lea
     assert isinstance(spent, QuotaExceeded) and spent.frees_at is None
     assert abs(int(quota_error(spent).headers["Retry-After"]) - seconds_to_utc_midnight()) <= 2
     ledger.dispose()
+
+
+def test_a_quota_hold_is_given_back_on_any_way_out_but_settlement(tmp_path):
+    """Issue 27: reserve on entering ``Billing.hold``, release on leaving it by an error or a cancellation."""
+    import asyncio
+
+    billing, served = _billing(tmp_path, daily_mac_quota=10**6)
+
+    def reserved() -> int:
+        return billing.ledger.day_totals("anonymous").reserved_macs
+
+    async def failing() -> None:
+        async with billing.hold("anonymous", served):
+            assert reserved() == 16_000
+            raise RuntimeError("inference failed")
+
+    async def cancelled() -> None:
+        inside = asyncio.Event()
+
+        async def request() -> None:
+            async with billing.hold("anonymous", served):
+                inside.set()
+                await asyncio.sleep(60)
+
+        task = asyncio.create_task(request())
+        await inside.wait()  # (a cancellation during the reservation itself leaves a lease that expires: lease_s)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+    with pytest.raises(RuntimeError, match="inference failed"):
+        asyncio.run(failing())
+    assert reserved() == 0
+    asyncio.run(cancelled())
+    assert reserved() == 0 and billing.ledger.held("anonymous").leases == 0
+    billing.ledger.dispose()

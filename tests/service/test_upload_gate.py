@@ -38,10 +38,11 @@ def test_one_tenant_cannot_take_every_place_and_places_are_given_back(tmp_path):
 
 def test_declared_lengths_and_values_beyond_the_model_are_refused():
     expected = ExpectedCube("tiny", (4, 4, 2), InputKind.complex)
-    check_declared_length(expected.max_body_bytes(), expected)
+    adc = ExpectedCube("tiny", (4, 2, 2), InputKind.adc)
+    check_declared_length(expected.max_body_bytes(), [adc, expected])
     with pytest.raises(ApiError, match=f"at most {expected.max_body_bytes()} bytes") as refused:
-        check_declared_length(expected.max_body_bytes() + 1, expected)
-    assert refused.value.status == 413
+        check_declared_length(expected.max_body_bytes() + 1, [adc, expected])
+    assert refused.value.status == 413 and "with ?input=complex" in refused.value.message
     cube = np.ones((4, 4, 2), np.complex64)
     check_values(cube, expected)
     for value, message in ((3e38, "magnitude 3e+38"), (-2e15j, "magnitude 2e+15"), (np.nan, "NaN")):
