@@ -5,7 +5,8 @@ Models load and the ledger opens in the lifespan, so importing this module does 
 checkpoint is missing or the database is unreachable the app still starts: ``/healthz`` answers 200,
 ``/readyz`` and ``/v1/segment`` answer 503 with the reason. At start-up, quota leases left expired by a
 process that died are given back. ``python -m service.server`` runs the app with the HTTP limits of the
-settings (header size and count, port checked before the models load).
+settings (head size, count and time, connections, port checked before the models load), answering while the
+service imports and loading the models in the background (``create_app(..., load_in_background=True)``).
 """
 
 from __future__ import annotations
