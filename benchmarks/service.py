@@ -14,8 +14,14 @@ run keeps its previous figures):
 - ``slow_clients`` (issue 17): normal clients alone (the idle p95), then the same clients while 16 clients
   upload at 1 KB/s (each reconnects when cut off with 408): the share of normal requests answered 200 and their
   p95 against the idle p95. Goal: >= 95 % and <= 2x.
+- ``startup`` (issue 27): a fresh ``python -m service.server`` with the default models: seconds from the start of
+  the process to the first ``/healthz`` 200 and to ``/readyz`` 200, and the stages its log reports (importing
+  the service, each model's load and warm-up). Goals: ``/healthz`` within 2 s; ready in <= 10 s on an idle machine.
+- ``fairness`` (issue 27): two tenants; one holds 10 uploads that send nothing (reopening each when answered),
+  first declaring 64 MiB + 64 KiB (the issue's attack), then declaring a valid cube's length; the other tenant's
+  requests meanwhile: the share answered 200. Goal: >= 95 %.
 
-    .venv/bin/python -m benchmarks.service [--parts levels,stages,slow_clients] [--quick]
+    .venv/bin/python -m benchmarks.service [--parts levels,stages,slow_clients,startup,fairness] [--quick]
 
 Models: the shipped ``small`` checkpoints when checkpoints/ holds them, else a real-size untrained
 ``centre_detector`` + ``minkunet`` for ``small``; ``carrada`` always uses real-size untrained models (no
@@ -55,6 +61,15 @@ STAGES = ("transform", "detect", "grow", "segment", "project")
 CLASSES = ("background", "pedestrian", "cyclist", "car")
 SHIPPED = ("checkpoints/detector.pt", "checkpoints/segmenter.pt")
 PAUSE_S = 0.25  # between the interleaved runs of the stages part
+
+
+def _cpu_flags() -> list[str]:
+    """The SIMD flags of this CPU that matter to torch and numpy (from /proc/cpuinfo; empty elsewhere)."""
+    try:
+        flags = next(line for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("flags"))
+    except (OSError, StopIteration):
+        return []
+    return sorted(set(flags.split(":", 1)[1].split()) & {"avx", "avx2", "avx512f", "fma", "sse4_2", "amx_tile"})
 
 
 def _untrained(preset: str, out: Path) -> dict:
@@ -305,7 +320,108 @@ def run_slow_clients(url: str, port: int, *, slow: int, normal_clients: int, per
     return result
 
 
-PARTS = ("levels", "stages", "slow_clients")
+def run_startup(models: list[dict] | None, data_dir: Path, log: Path) -> dict:
+    """Time to the first /healthz 200 and to /readyz 200 of a fresh server (the default models when ``models`` is
+    None), and its logged stages."""
+    import re
+
+    port = free_port()
+    env = {**os.environ, "RADARSEG_DATA_DIR": str(data_dir)}
+    if models is not None:
+        env["RADARSEG_MODELS"] = json.dumps(models)
+    start = time.perf_counter()
+    proc = subprocess.Popen(server_command(port, "info"), cwd=REPO, env=env, stdout=log.open("w"),
+                            stderr=subprocess.STDOUT)
+    url, healthz_s, ready_s = f"http://127.0.0.1:{port}", None, None
+    try:
+        with httpx.Client(timeout=2) as http:
+            while ready_s is None and time.perf_counter() - start < 300 and proc.poll() is None:
+                try:
+                    if healthz_s is None and http.get(f"{url}/healthz").status_code == 200:
+                        healthz_s = time.perf_counter() - start
+                    if healthz_s is not None and http.get(f"{url}/readyz").status_code == 200:
+                        ready_s = time.perf_counter() - start
+                except httpx.HTTPError:
+                    pass
+                time.sleep(0.02 if healthz_s is None else 0.1)
+    finally:
+        stop_process(proc, grace_s=30)
+    text = log.read_text()
+    stages = {"import_and_build_s": [float(x) for x in re.findall(r"service app built in ([\d.]+) s", text)]}
+    for name, load_s, warm_s in re.findall(r"model (\S+) ready: .*\(load ([\d.]+) s, warm-up ([\d.]+) s\)", text):
+        stages[f"{name}_load_s"], stages[f"{name}_warmup_s"] = float(load_s), float(warm_s)
+    result = {"healthz_s": healthz_s, "ready_s": ready_s, "logged_stages": stages,
+              "goal": {"healthz_within_2s": healthz_s is not None and healthz_s <= 2.0,
+                       "ready_within_10s_on_an_idle_machine": ready_s is not None and ready_s <= 10.0}}
+    print(f"startup: /healthz after {healthz_s} s, ready after {ready_s} s; stages {stages}", flush=True)
+    return result
+
+
+def _hold_uploads(port: int, key: str, declared: int, stop: threading.Event, outcomes: list[int]) -> None:
+    """One attacker connection: announce ``declared`` bytes, send nothing, reopen when answered."""
+    head = (f"POST /v1/segment HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-npy\r\n"
+            f"Authorization: Bearer {key}\r\nContent-Length: {declared}\r\n\r\n").encode()
+    while not stop.is_set():
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1) as sock:
+                sock.sendall(head)
+                while not stop.is_set():
+                    try:
+                        answer = sock.recv(64)
+                        break
+                    except TimeoutError:
+                        continue
+                outcomes.append(int(answer.split()[1]) if answer else 0)
+        except (OSError, IndexError, ValueError):
+            outcomes.append(0)
+            stop.wait(0.1)
+
+
+def run_fairness(model: dict, data_dir: Path, log: Path, *, requests: int) -> dict:
+    """Another tenant's share of 200s while one tenant holds 10 empty uploads (64 MiB + 64 KiB, then valid size)."""
+    from radar.simulate import simulate_sequence
+
+    keys = {"key-attacker-0123456789abcdef": "attacker", "key-victim-0123456789abcdefg": "victim"}
+    port = free_port()
+    env = {**os.environ, "RADARSEG_MODELS": json.dumps([model]), "RADARSEG_DATA_DIR": str(data_dir),
+           "RADARSEG_API_KEYS": json.dumps(keys)}
+    proc = subprocess.Popen(server_command(port), cwd=REPO, env=env, stdout=log.open("w"), stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+    body = _npy(next(simulate_sequence("small", 1, seed=3)).cube)
+    out = {}
+    try:
+        wait_ready(url, proc, log, timeout_s=300)
+        for name, declared in (("declared_64MiB", 64 * 2**20 + 65536), ("declared_valid_length", len(body))):
+            stop, outcomes = threading.Event(), []
+            holders = [threading.Thread(target=_hold_uploads, args=(port, "key-attacker-0123456789abcdef", declared,
+                                                                    stop, outcomes)) for _ in range(10)]
+            for thread in holders:
+                thread.start()
+            time.sleep(1.0)
+            codes = []
+            with httpx.Client(timeout=120, headers={"authorization": "Bearer key-victim-0123456789abcdefg",
+                                                    "content-type": "application/x-npy"}) as http:
+                for _ in range(requests):
+                    try:
+                        codes.append(http.post(f"{url}/v1/segment?model={model['name']}", content=body).status_code)
+                    except httpx.HTTPError:
+                        codes.append(0)
+            stop.set()
+            for thread in holders:
+                thread.join(timeout=60)
+            share = codes.count(200) / len(codes)
+            out[name] = {"declared_bytes": declared, "victim_requests": len(codes), "share_200": share,
+                         "codes": {str(c): codes.count(c) for c in sorted(set(codes))},
+                         "attacker_answers": {str(c): outcomes.count(c) for c in sorted(set(outcomes))},
+                         "goal": {"share_200_at_least_0.95": share >= 0.95}}
+            print(f"fairness ({name}): victim {share:.1%} answered 200 of {len(codes)}; attacker answered "
+                  f"{out[name]['attacker_answers']}", flush=True)
+    finally:
+        stop_process(proc, grace_s=30)
+    return out
+
+
+PARTS = ("levels", "stages", "slow_clients", "startup", "fairness")
 
 
 def main() -> dict:
@@ -328,8 +444,21 @@ def main() -> dict:
         tmp = Path(tmp)
         models, kinds = _models(tmp)
         results["models"] = kinds
-        proc, url = _start(models, tmp / "data", tmp / "server.log")
-        port = int(url.rsplit(":", 1)[1])
+        for part in [p for p in parts if p in ("startup", "fairness")]:
+            load_before = os.getloadavg()
+            if part == "startup":
+                figures = run_startup(None if kinds["small"] == "shipped checkpoints" else [models[0]],
+                                      tmp / "startup-data", tmp / "startup.log")
+            else:
+                figures = run_fairness(models[0], tmp / "fair-data", tmp / "fair.log",
+                                       requests=5 if args.quick else 20)
+            figures["loadavg_before"], figures["loadavg_after"] = load_before, os.getloadavg()
+            figures["cpu_flags"] = _cpu_flags()
+            figures["measured_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            results[part] = figures
+        parts = [p for p in parts if p not in ("startup", "fairness")]
+        proc, url = _start(models, tmp / "data", tmp / "server.log") if parts else (None, "")
+        port = int(url.rsplit(":", 1)[1]) if parts else 0
         try:
             for part in parts:
                 load_before = os.getloadavg()
@@ -344,7 +473,8 @@ def main() -> dict:
                 figures["measured_at"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
                 results[part] = figures
         finally:
-            stop_process(proc, grace_s=30)
+            if proc is not None:
+                stop_process(proc, grace_s=30)
     if "levels" in parts:
         results.pop("target", None)  # the older layout's; now under levels
     RESULTS.parent.mkdir(parents=True, exist_ok=True)

@@ -1,19 +1,25 @@
 """Quota billing of segmentation requests: a lease on the tenant's daily MAC quota before inference, the
 request billed after it (``service.ledger`` holds the counters and the two atomic steps).
 
-The reservation estimate is conservative from the first request on: the detector's exact MACs plus
-``reservation_headroom`` times the largest segmenter MACs known for the model, from its warm-up scenes,
-the requests this process served and the ledger's recent billed requests (which survive restarts and are
-shared by every process on the same ledger). A request whose actual cost still exceeds what is left is
-refused at settlement (429) and not billed; ``radarseg_rejected_requests{reason="quota_at_settlement"}``
-counts those, the inference wasted.
+The reservation estimate is the tenant's own: the largest MACs billed to it for the model among its last
+``HISTORY`` requests (in the ledger, so it survives restarts and is shared by every process on the same ledger);
+a tenant with no history yet reserves the detector's exact MACs plus ``reservation_headroom`` times the largest
+segmenter MACs of the model's warm-up scenes (the same for every tenant). Another tenant's cubes never raise it,
+and neither does a request refused at settlement (only billed requests are history). A request whose actual cost
+exceeds what is left is refused at settlement (429) and not billed;
+``radarseg_rejected_requests{reason="quota_at_settlement"}`` counts those, the inference wasted.
+
+A 429 at reservation says when to retry: when the tenant's billed MACs leave room for the request but its own
+requests in flight hold the rest, ``Retry-After`` is the deadline of the lease that frees enough (they usually end
+much sooner); when the billed MACs alone leave too little, the next UTC day.
 """
 
 from __future__ import annotations
 
 import datetime as dt
 import logging
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
 from typing import Any, TypeVar
 
 from sqlalchemy.exc import SQLAlchemyError
@@ -29,6 +35,7 @@ from service.settings import Settings
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
+HISTORY = 50  # a tenant's last billed requests of a model that its reservation estimate reads
 
 
 def seconds_to_utc_midnight(now: dt.datetime | None = None) -> int:
@@ -38,15 +45,40 @@ def seconds_to_utc_midnight(now: dt.datetime | None = None) -> int:
     return max(1, int((tomorrow - now).total_seconds()) + 1)
 
 
-def quota_error(exc: QuotaExceeded) -> ApiError:
-    """429 saying what was used, held and asked for, with Retry-After until the quota renews."""
+def quota_error(exc: QuotaExceeded, now: dt.datetime | None = None) -> ApiError:
+    """429 saying what was used, held and asked for, with Retry-After until enough of the quota frees: the
+    deadline of the tenant's own leases when they are what holds it, else the next UTC day."""
+    now = now or dt.datetime.now(dt.UTC)
+    if exc.frees_at is not None:
+        retry_after = max(1, int((exc.frees_at - now).total_seconds()) + 1)
+        why = (f"{exc.reserved_macs} MACs are held by the tenant's requests in flight; enough is free once they end "
+               f"(at the latest in {retry_after} s, their lease deadline)")
+    else:
+        retry_after = seconds_to_utc_midnight(now)
+        why = f"the quota is spent until the next UTC day ({exc.reserved_macs} MACs held by requests in flight)"
     return ApiError(
-        429, f"daily MAC quota of tenant {exc.tenant!r} exhausted: {exc.used_macs} of {exc.limit_macs} MACs used on "
-             f"{exc.day.isoformat()} ({exc.reserved_macs} held by requests in flight), this request needs about "
-             f"{exc.requested_macs}",
-        headers={"Retry-After": str(seconds_to_utc_midnight())}, tenant=exc.tenant, day=exc.day.isoformat(),
+        429, f"daily MAC quota of tenant {exc.tenant!r} does not cover the request: {exc.used_macs} of "
+             f"{exc.limit_macs} MACs used on {exc.day.isoformat()}, this request needs about {exc.requested_macs}; "
+             f"{why}",
+        headers={"Retry-After": str(retry_after)}, tenant=exc.tenant, day=exc.day.isoformat(),
         used_macs=exc.used_macs, limit_macs=exc.limit_macs, reserved_macs=exc.reserved_macs,
         requested_macs=exc.requested_macs)
+
+
+class QuotaHold:
+    """One request's hold on its tenant's quota, from :meth:`Billing.hold`: the lease taken on entering, billed by
+    :meth:`settle` or given back when the block is left any other way."""
+
+    def __init__(self, billing: Billing, tenant: str, lease: Lease | None) -> None:
+        self.billing = billing
+        self.tenant = tenant
+        self.lease = lease
+        self.ended = False
+
+    async def settle(self, *, model: str, compute: FrameCompute, request_id: str) -> RequestUsage:
+        """Bill the request (see :meth:`Billing.settle`); the lease ends with it, billed or refused."""
+        self.ended = True
+        return await self.billing.settle(self.tenant, self.lease, model=model, compute=compute, request_id=request_id)
 
 
 class Billing:
@@ -57,7 +89,6 @@ class Billing:
         self.ledger = ledger
         self.settings = settings
         self.metrics = metrics
-        self._ledger_max: dict[str, int] = {}  # model -> largest billed MACs among its recent requests
 
     async def _call(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         try:
@@ -67,21 +98,35 @@ class Billing:
                            error="ledger_unavailable",
                            headers={"Retry-After": str(self.settings.retry_after_s)}) from None
 
-    def start(self, models: list[str]) -> int:
-        """At start-up (blocking): give back expired leases of processes that died, and read each model's
-        recent maximum from the ledger; the MACs given back."""
+    def start(self) -> int:
+        """At start-up (blocking): give back expired leases of processes that died; the MACs given back."""
         reclaimed = self.ledger.reclaim_expired()
         if reclaimed:
             log.warning("reclaimed %d MACs of expired quota leases (requests cut off by a crash)", reclaimed)
-        for model in models:
-            self._ledger_max[model] = self.ledger.recent_max_macs(model)
         return reclaimed
 
-    def estimate(self, served: ServedModel) -> int:
-        """MACs to reserve before running: exact for the detector, a bound with headroom for the segmenter."""
-        detector = served.net.detector_macs()
-        known = max(served.segment_macs_high, self._ledger_max.get(served.spec.name, 0) - detector, 0)
-        return detector + int(self.settings.reservation_headroom * known)
+    def estimate(self, served: ServedModel, tenant: str) -> int:
+        """MACs to reserve before running (blocking: reads the ledger): the largest of ``tenant``'s own recent
+        billed requests of the model, else the detector's exact MACs plus headroom times the warm-up's segmenter
+        MACs."""
+        own = self.ledger.recent_max_macs(served.spec.name, tenant=tenant, last=HISTORY)
+        if own > 0:
+            return own
+        return served.net.detector_macs() + int(self.settings.reservation_headroom * served.segment_macs_high)
+
+    def _reserve(self, tenant: str, served: ServedModel, quota: int) -> Lease | QuotaExceeded:
+        return self.ledger.reserve(tenant, self.estimate(served, tenant), quota, lease_s=self.settings.lease_s)
+
+    async def check(self, tenant: str, served: ServedModel) -> None:
+        """ApiError 429 when ``tenant``'s quota cannot cover a request of ``served`` now (before its body is
+        read; :meth:`reserve` decides after it)."""
+        quota = self.settings.quota_for(tenant)
+        if quota is None:
+            return
+        refused = await self._call(lambda: self.ledger.check(tenant, self.estimate(served, tenant), quota))
+        if refused is not None:
+            self.metrics.rejected.labels(served.spec.name, "quota").inc()
+            raise quota_error(refused)
 
     async def reserve(self, tenant: str, served: ServedModel) -> Lease | None:
         """A lease on ``tenant``'s quota for one request of ``served`` (None: the tenant has no quota);
@@ -89,12 +134,23 @@ class Billing:
         quota = self.settings.quota_for(tenant)
         if quota is None:
             return None
-        outcome = await self._call(self.ledger.reserve, tenant, self.estimate(served), quota,
-                                   lease_s=self.settings.lease_s)
+        outcome = await self._call(self._reserve, tenant, served, quota)
         if isinstance(outcome, QuotaExceeded):
             self.metrics.rejected.labels(served.spec.name, "quota").inc()
             raise quota_error(outcome)
         return outcome
+
+    @asynccontextmanager
+    async def hold(self, tenant: str, served: ServedModel) -> AsyncIterator[QuotaHold]:
+        """``async with billing.hold(tenant, served) as quota``: reserve on entering (ApiError 429 when it does not
+        fit), ``await quota.settle(...)`` inside; leaving without settling (an error, a cancelled request) gives
+        the reservation back."""
+        held = QuotaHold(self, tenant, await self.reserve(tenant, served))
+        try:
+            yield held
+        finally:
+            if not held.ended:
+                await self.release(held.lease)
 
     async def release(self, lease: Lease | None) -> None:
         """Give a lease back (the request was not billed)."""
@@ -112,7 +168,6 @@ class Billing:
         if isinstance(billed, QuotaExceeded):
             self.metrics.rejected.labels(model, "quota_at_settlement").inc()
             raise quota_error(billed)
-        self._ledger_max[model] = max(self._ledger_max.get(model, 0), compute.macs_total)
         return request_usage(billed, quota)
 
 

@@ -42,7 +42,8 @@ def error_response(status: int, message: str, *, error: str | None = None, heade
                    **extra: Any) -> JSONResponse:
     """The JSON error body every handler answers with."""
     body = {"error": error or ERROR_TYPES.get(status, "error"), "detail": message, **extra}
-    return JSONResponse(body, status_code=status, headers=headers)
+    # nosniff here too: a 500 is answered outside the app's middleware (service.security_headers)
+    return JSONResponse(body, status_code=status, headers={"X-Content-Type-Options": "nosniff", **(headers or {})})
 
 
 async def _api_error(request: Request, exc: Exception) -> JSONResponse:
@@ -94,8 +95,10 @@ class DeclaredBodyLimit:
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] == "http":
             declared = Headers(scope=scope).get("content-length")
-            if declared is not None and declared.isdigit() and int(declared) > self.max_body_size:
-                response = error_response(413, f"request body of {declared} bytes is larger than the limit of "
+            # a digit string longer than the limit's is over it (and int() of 4,300+ digits would raise)
+            if declared is not None and declared.isascii() and declared.isdigit() and (
+                    len(declared.lstrip("0")) > len(str(self.max_body_size)) or int(declared) > self.max_body_size):
+                response = error_response(413, f"request body of {declared[:24]} bytes is larger than the limit of "
                                                f"{self.max_body_size} bytes", headers={"Connection": "close"})
                 await response(scope, receive, send)
                 return

@@ -52,7 +52,8 @@ class ServedModel:
     capacity: int
     nets: list[EraseNet] = field(default_factory=list)
     error: str | None = "not loaded yet"
-    segment_macs_high: int = 0  # largest segment MACs seen: the quota reservation's estimate
+    stage: str = "waiting"  # what its loading does now: waiting, loading checkpoints, warming up, ready, failed
+    segment_macs_high: int = 0  # largest segment MACs of the warm-up scenes: a new tenant's reservation estimate
     _free: queue.SimpleQueue = field(default_factory=queue.SimpleQueue)
     _executor: ThreadPoolExecutor | None = None
     _owns_executor: bool = True
@@ -90,23 +91,32 @@ class ServedModel:
 
         # Built and warmed on the inference threads themselves: no other thread of the process runs torch, so
         # each replica's OpenMP team is the only one (a second team's idle threads compete for the cores).
+        started = time.perf_counter()
+        self.stage = "loading checkpoints"
+        log.info("model %s: loading %s and %s (%d replica(s))", self.spec.name, detector, segmenter, replicas)
         try:  # one after the other: building (tracing) a model is not assumed to be thread-safe
             nets = [executor.submit(build).result() for _ in range(replicas)]
         except (CheckpointError, ValueError, KeyError, RuntimeError) as exc:
             if self._owns_executor:
                 executor.shutdown(wait=True)
             self.error = str(exc)
+            self.stage = "failed"
             log.error("model %s not loaded: %s", self.spec.name, exc)
             return
         self._executor = executor
+        loaded = time.perf_counter()
         if warmup:
+            self.stage = "warming up"
+            log.info("model %s: loaded in %.1f s, warming up", self.spec.name, loaded - started)
             for done in [executor.submit(self._warm, net) for net in nets]:
                 done.result()
         for net in nets:
             self._free.put(net)
         self.nets = nets
         self.error = None
-        log.info("model %s ready: preset %s, %d replica(s)", self.spec.name, nets[0].profile.name, replicas)
+        self.stage = "ready"
+        log.info("model %s ready: preset %s, %d replica(s) (load %.1f s, warm-up %.1f s)", self.spec.name,
+                 nets[0].profile.name, replicas, loaded - started, time.perf_counter() - loaded)
 
     def _warm(self, net: EraseNet) -> None:
         """Inference on a simulated point target (the first torch call of a thread is slow) and on a simulated
@@ -155,9 +165,6 @@ class ServedModel:
             result.compute = result.compute.plus_seconds("transform", adc_s)
         finally:
             self._free.put(net)
-        segment_macs = result.compute.segment_macs
-        if segment_macs > self.segment_macs_high:
-            self.segment_macs_high = segment_macs
         return result
 
     def close(self) -> None:
@@ -188,14 +195,22 @@ class ModelPool:
         self.models = {spec.name: ServedModel(spec, capacity) for spec in settings.models}
         self.default = settings.default_model_name
         self._executor: ThreadPoolExecutor | None = None
+        self.loading = True  # until load() has tried every model
 
     def load(self) -> None:
         """Load every model (blocking: call from a thread or at start-up) onto one set of ``replicas`` inference
         threads shared by all models, so that their OpenMP teams together never exceed the cores."""
         threads = self.settings.inference_threads
-        self._executor = inference_executor(self.settings.replicas, threads, "inference")
-        for model in self.models.values():
-            model.load(self.settings.replicas, self.settings.warmup, threads, executor=self._executor)
+        try:
+            self._executor = inference_executor(self.settings.replicas, threads, "inference")
+            for model in self.models.values():
+                model.load(self.settings.replicas, self.settings.warmup, threads, executor=self._executor)
+        finally:
+            self.loading = False
+
+    def progress(self) -> dict[str, str]:
+        """Each model's loading stage (waiting, loading checkpoints, warming up, ready, failed)."""
+        return {name: model.stage for name, model in self.models.items()}
 
     def get(self, name: str | None) -> ServedModel:
         """The model called ``name`` (the default when None); KeyError names the served ones."""

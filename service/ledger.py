@@ -34,6 +34,7 @@ from sqlalchemy import (
     Date,
     DateTime,
     Engine,
+    Index,
     Integer,
     MetaData,
     String,
@@ -97,6 +98,10 @@ class QuotaExceeded:
     reserved_macs: int
     requested_macs: int
     limit_macs: int
+    # when the request would fit once reservations in force end: the deadline of the lease that frees enough (the
+    # requests holding them end sooner, or their leases are given back then); None: the billed MACs alone leave too
+    # little, the quota is spent until the next UTC day
+    frees_at: dt.datetime | None = None
 
 
 def utc_today() -> dt.date:
@@ -171,6 +176,9 @@ class Ledger:
             Column("roi_voxels", Integer, nullable=False),
             Column("created_at", DateTime(timezone=True), nullable=False),
         )
+        # a tenant's recent requests of one model: the quota reservation's estimate reads them on every request
+        self.recent_index = Index(f"{table_prefix}requests_recent", self.requests.c.tenant, self.requests.c.model,
+                                  self.requests.c.created_at)
         self.leases = Table(
             f"{table_prefix}leases", self.metadata,
             Column("id", String(32), primary_key=True),
@@ -191,6 +199,7 @@ class Ledger:
                 key = int.from_bytes(hashlib.sha256(self.table_prefix.encode()).digest()[:8], "big", signed=True)
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": key})
             self.metadata.create_all(conn, checkfirst=True)
+            self.recent_index.create(conn, checkfirst=True)  # also on a ledger created before the index existed
 
     def drop(self) -> None:
         """Drop this ledger's tables (tests clean up their own)."""
@@ -235,7 +244,37 @@ class Ledger:
                                                          expires_at=lease.expires_at))
                 return lease
             row = conn.execute(select(self.usage).where(u.tenant == tenant, u.day == day)).one()
-        return QuotaExceeded(tenant, day, row.macs, row.reserved_macs, macs, limit)
+            frees_at = self._frees_at(conn, tenant, day, row.macs + row.reserved_macs + macs - limit) if (
+                row.macs + macs <= limit) else None
+        return QuotaExceeded(tenant, day, row.macs, row.reserved_macs, macs, limit, frees_at)
+
+    def check(self, tenant: str, macs: int, limit: int, *, day: dt.date | None = None,
+              now: dt.datetime | None = None) -> QuotaExceeded | None:
+        """What :meth:`reserve` would refuse, without reserving (a read): QuotaExceeded when ``macs`` more do not
+        fit ``tenant``'s ``limit`` beside its billed MACs and its leases in force, else None."""
+        day, now = day or utc_today(), now or utc_now()
+        u, c = self.usage.c, self.leases.c
+        with self.engine.connect() as conn:
+            row = conn.execute(select(u.macs).where(u.tenant == tenant, u.day == day)).first()
+            used = row.macs if row is not None else 0
+            held = int(conn.execute(select(func.coalesce(func.sum(c.macs), 0))
+                                    .where(c.tenant == tenant, c.day == day, c.expires_at >= now)).scalar_one())
+            if used + held + macs <= limit:
+                return None
+            frees_at = self._frees_at(conn, tenant, day, used + held + macs - limit) if used + macs <= limit else None
+        return QuotaExceeded(tenant, day, used, held, macs, limit, frees_at)
+
+    def _frees_at(self, conn, tenant: str, day: dt.date, missing: int) -> dt.datetime | None:  # noqa: ANN001
+        """The deadline by which ``tenant``'s leases in force give back at least ``missing`` MACs."""
+        c = self.leases.c
+        freed = 0
+        for row in conn.execute(select(c.macs, c.expires_at).where(c.tenant == tenant, c.day == day)
+                                .order_by(c.expires_at)):
+            freed += row.macs
+            if freed >= missing:
+                expires = row.expires_at
+                return expires if expires.tzinfo is not None else expires.replace(tzinfo=dt.UTC)  # SQLite: naive
+        return None
 
     def _give_back(self, conn, leases: list) -> int:  # noqa: ANN001
         """Subtract deleted lease rows (tenant, day, macs) from ``reserved_macs``; the MACs given back."""
@@ -280,10 +319,12 @@ class Ledger:
             old = conn.execute(query.where(expired)).one()
         return Held(int(live[0]), int(live[1]), int(old[0]), int(old[1]))
 
-    def recent_max_macs(self, model: str, *, last: int = 200) -> int:
-        """The largest MACs billed for ``model`` among its ``last`` billed requests (0 when none)."""
+    def recent_max_macs(self, model: str, *, tenant: str | None = None, last: int = 200) -> int:
+        """The largest MACs billed for ``model`` among its ``last`` billed requests (of ``tenant`` when given;
+        0 when none)."""
         r = self.requests.c
-        recent = select(r.macs).where(r.model == model).order_by(r.created_at.desc()).limit(last).subquery()
+        condition = [r.model == model] if tenant is None else [r.model == model, r.tenant == tenant]
+        recent = select(r.macs).where(*condition).order_by(r.created_at.desc()).limit(last).subquery()
         with self.engine.connect() as conn:
             return int(conn.execute(select(func.coalesce(func.max(recent.c.macs), 0))).scalar_one())
 

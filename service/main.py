@@ -5,12 +5,14 @@ Models load and the ledger opens in the lifespan, so importing this module does 
 checkpoint is missing or the database is unreachable the app still starts: ``/healthz`` answers 200,
 ``/readyz`` and ``/v1/segment`` answer 503 with the reason. At start-up, quota leases left expired by a
 process that died are given back. ``python -m service.server`` runs the app with the HTTP limits of the
-settings (header size and count, port checked before the models load).
+settings (head size, count and time, connections, port checked before the models load), answering while the
+service imports and loading the models in the background (``create_app(..., load_in_background=True)``).
 """
 
 from __future__ import annotations
 
 import logging
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
@@ -28,8 +30,10 @@ from service.metrics import MetricsMiddleware, ServiceMetrics
 from service.routes import examples, health, metrics, models, segment, usage, viewer
 from service.routes.docs import install_docs
 from service.schemas import ErrorBody
+from service.security_headers import SecurityHeaders
 from service.settings import Settings
 from service.tenants import Authenticator
+from service.unread_body import CloseOnUnreadBody
 from service.upload import UploadGate
 
 log = logging.getLogger(__name__)
@@ -44,15 +48,28 @@ def _open_ledger(state: ServiceState) -> None:
     try:
         state.ledger.create()
         state.ledger.ping()
-        state.billing.start(state.settings.model_names)
+        state.billing.start()
         state.ledger_error = None
     except SQLAlchemyError as exc:
         state.ledger_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
         log.error("usage ledger %s unavailable: %s", state.ledger.dialect, state.ledger_error)
 
 
-def create_app(settings: Settings | None = None) -> FastAPI:
-    """Build the app (nothing loads until it starts: the lifespan loads models and opens the ledger)."""
+def _load(state: ServiceState) -> None:
+    """Open the ledger and load every model (blocking), logging each step."""
+    log.info("opening the usage ledger (%s)", state.ledger.dialect)
+    _open_ledger(state)
+    state.pool.load()
+    for name, model in state.pool.models.items():
+        state.metrics.ready.labels(name).set(1 if model.ready else 0)
+    log.info("ready: %s", "every model loaded" if state.pool.ready else f"not all loaded: {state.pool.errors()}")
+
+
+def create_app(settings: Settings | None = None, *, load_in_background: bool = False) -> FastAPI:
+    """Build the app (nothing loads until it starts: the lifespan loads models and opens the ledger). With
+    ``load_in_background`` the lifespan returns at once and they load on a thread while the app answers
+    (``/healthz`` 200, ``/readyz`` 503 ``loading`` with each model's stage, ``/v1/segment`` 503 not ready);
+    otherwise start-up waits for them (the test client, Ray Serve replicas)."""
     settings = settings or Settings()
     ledger = Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix)
     metrics_ = ServiceMetrics()
@@ -62,13 +79,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        await run_in_threadpool(_open_ledger, state)
-        await run_in_threadpool(state.pool.load)
-        for name, model in state.pool.models.items():
-            state.metrics.ready.labels(name).set(1 if model.ready else 0)
+        loading = threading.Thread(target=_load, args=(state,), name="radarseg-load", daemon=True)
+        if load_in_background:
+            loading.start()
+        else:
+            await run_in_threadpool(_load, state)
         try:
             yield
         finally:
+            if loading.is_alive():
+                await run_in_threadpool(loading.join)
             state.pool.close()
             state.ledger.dispose()
 
@@ -82,6 +102,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for router in (models.router, usage.router, examples.router, viewer.router, health.router, metrics.router):
         app.include_router(router)
     app.add_middleware(DeclaredBodyLimit, max_body_size=settings.max_body_bytes)
+    app.add_middleware(SecurityHeaders)
+    app.add_middleware(CloseOnUnreadBody)
     app.add_middleware(MetricsMiddleware, metrics=state.metrics)  # added last: outermost, it sees every answer
     _document_errors_as_sent(app)
     return app

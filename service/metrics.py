@@ -37,6 +37,10 @@ class ServiceMetrics:
                                 ["model", "reason"], registry=r)
         self.queue = Gauge("radarseg_model_slots_held", "Requests running or queued per model", ["model"], registry=r)
         self.ready = Gauge("radarseg_model_ready", "1 when the model is loaded", ["model"], registry=r)
+        self.server_refusals = Counter(
+            "radarseg_server_refusals", "Connections and requests the HTTP server layer refused or closed before "
+            "the app saw them (header_timeout, head_too_large, target_too_long, malformed_http, connection_cap, "
+            "connection_evicted)", ["reason"], registry=r)
 
 
 class MetricsMiddleware:

@@ -195,6 +195,9 @@ class Health(BaseModel):
 
 class Readiness(BaseModel):
     ready: bool
+    status: str = Field("ready", description="ready, loading (models still loading: see progress) or not_ready")
+    progress: dict[str, str] = Field(default_factory=dict, description="model name -> its loading stage: waiting, "
+                                     "loading checkpoints, warming up, ready or failed")
     models: dict[str, str | None] = Field(description="model name -> null when loaded, else why not")
     ledger: str | None = Field(description="null when the ledger is reachable, else why not")
 

@@ -80,12 +80,21 @@ class Settings(BaseSettings):
     body_min_rate: Annotated[int, Field(ge=1, le=2**30)] = 65536  # bytes/s a body must average after the grace
     body_grace_s: Annotated[float, Field(ge=0.1, le=600)] = 5.0  # seconds before the minimum rate applies
     body_timeout_s: Annotated[float, Field(ge=1, le=3600)] = 120.0  # a whole body within this, whatever its rate
+    body_idle_s: Annotated[float, Field(ge=0.5, le=600)] = 30.0  # a body sending nothing this long is cut off (408)
     max_uploads: Annotated[int, Field(ge=1, le=4096)] = 64  # bodies being received at once (503 beyond)
     max_upload_bytes: Annotated[int, Field(ge=1024, le=16 * 2**30)] = 512 * 2**20  # their announced bytes
+    max_tenant_uploads: Annotated[int, Field(ge=1, le=4096)] = 8  # the same bounds per tenant
+    max_tenant_upload_bytes: Annotated[int, Field(ge=1024, le=16 * 2**30)] = 2 * (64 * 2**20 + 65536)
     # HTTP head limits (the `service.server` runner enforces them before the app sees a request): 431 beyond
     max_header_bytes: Annotated[int, Field(ge=1024, le=2**20)] = 65536  # request line and headers together
     max_headers: Annotated[int, Field(ge=8, le=1000)] = 100
     header_timeout_s: Annotated[float, Field(ge=0.5, le=600)] = 30.0  # a request head complete within this (408)
+    # Connections (the `service.server` runner): at most this many open at once; a new one beyond closes the
+    # connection that has waited longest for a request head (idle keep-alive or a stalled head), or is refused
+    # with 503 when every one is busy. None: the process's file limit (RLIMIT_NOFILE, raised to its hard limit
+    # when allowed) less FILE_RESERVE descriptors for the ledger, checkpoints and logs, at most 4096.
+    max_connections: Annotated[int | None, Field(ge=2, le=65536)] = None
+    keep_alive_s: Annotated[float, Field(ge=0.5, le=600)] = 5.0  # an idle connection between requests (uvicorn's)
     max_json_depth: Annotated[int, Field(ge=2, le=64)] = 16  # nesting of a JSON header (X-Cube-Schema)
 
     api_keys: dict[SecretStr, str] = {}  # key -> tenant; none configured = one anonymous tenant
@@ -145,6 +154,9 @@ class Settings(BaseSettings):
         if self.max_upload_bytes < self.max_body_bytes:
             raise ValueError(f"max_upload_bytes ({self.max_upload_bytes}) must hold at least one body of "
                              f"max_body_bytes ({self.max_body_bytes})")
+        if self.max_tenant_upload_bytes < self.max_body_bytes:
+            raise ValueError(f"max_tenant_upload_bytes ({self.max_tenant_upload_bytes}) must hold at least one body "
+                             f"of max_body_bytes ({self.max_body_bytes})")
         if not self.api_keys and not self.allow_anonymous_remote and not _is_loopback(self.host):
             raise ValueError(f"refusing to serve on {self.host!r} without API keys: configure api_keys, bind "
                              "127.0.0.1, or set allow_anonymous_remote explicitly")

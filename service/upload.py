@@ -5,7 +5,9 @@ as its bytes have arrived, before the array is allocated; the array is then fill
 (no second copy of a 32 MiB body). Pickled/object arrays are refused by the header parser.
 
 Uploads are bounded before any model is involved: :class:`UploadGate` admits at most ``max_uploads``
-bodies, announcing at most ``max_upload_bytes`` together, at once (503 + Retry-After beyond), and
+bodies of at most ``max_upload_bytes`` together, and per tenant at most ``max_tenant_uploads`` of at most
+``max_tenant_upload_bytes``, at once (503 + Retry-After beyond; so that one tenant's held uploads cannot take
+every place), :func:`check_declared_length` refuses at once a declared length no cube of the model can have (413), and
 :func:`paced` cuts off a body that falls behind ``body_min_rate`` bytes/s after ``body_grace_s`` seconds,
 or is not complete within ``body_timeout_s`` (408, connection closed).
 """
@@ -44,45 +46,105 @@ class ExpectedCube:
         names = "/".join(np.dtype(d).name for d in ACCEPTED_DTYPES[self.kind])
         return f"a {self.shape} {names} .npy cube"
 
+    def max_body_bytes(self) -> int:
+        """The largest .npy body of such a cube: the longest header accepted and the widest dtype."""
+        widest = max(np.dtype(d).itemsize for d in ACCEPTED_DTYPES[self.kind])
+        return 12 + MAX_HEADER_LEN + widest * int(np.prod(self.shape))
+
+
+def check_declared_length(content_length: int | None, accepted: list[ExpectedCube]) -> None:
+    """ApiError 413 at once for a declared length larger than any of the ``accepted`` cubes (every input kind of
+    the model) can have."""
+    largest = max(accepted, key=ExpectedCube.max_body_bytes)
+    limit = largest.max_body_bytes()
+    if content_length is not None and content_length > limit:
+        raise ApiError(413, f"request body of {content_length} bytes is larger than any cube model {largest.model!r} "
+                            f"takes: at most {limit} bytes ({largest.describe()} with ?input={largest.kind.value})",
+                       headers={"Connection": "close"})
+
+
+class UploadTicket:
+    """One body's place in the gate: the bytes it is charged (its declared length, or for a chunked body its
+    .npy header's size once that has arrived)."""
+
+    def __init__(self, gate: UploadGate, tenant: str) -> None:
+        self.gate = gate
+        self.tenant = tenant
+        self.bytes = 0
+
+    def charge(self, total: int) -> None:
+        """Charge the body ``total`` bytes (more than before); ApiError 503 when that passes a bound."""
+        self.gate._grow(self, total - self.bytes)
+
 
 class UploadGate:
-    """Bounds the request bodies being received at once: their number and the bytes they announce (what
-    the cubes will occupy once allocated; a chunked body counts as ``max_body_bytes``)."""
+    """Bounds the request bodies being received at once, in total and per tenant: their number and their bytes
+    (what the cubes will occupy once allocated: the declared length, or for a chunked body the size its .npy
+    header announces, charged as soon as the header has arrived and before the array is allocated)."""
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
         self.uploads = 0
         self.bytes = 0
+        self.tenant_uploads: dict[str, int] = {}
+        self.tenant_bytes: dict[str, int] = {}
+
+    def _refuse(self, what: str) -> ApiError:
+        return ApiError(503, f"{what}; try again later", error="uploads_saturated",
+                        headers={"Retry-After": str(self.settings.retry_after_s)})
+
+    def _grow(self, ticket: UploadTicket, extra: int) -> None:
+        s, tenant = self.settings, ticket.tenant
+        held = self.tenant_bytes.get(tenant, 0)
+        if held + extra > s.max_tenant_upload_bytes:
+            raise self._refuse(f"tenant {tenant!r} has uploads of {held} bytes in progress and this one needs "
+                               f"{ticket.bytes + extra} (limit: {s.max_tenant_upload_bytes} bytes per tenant)")
+        if self.bytes + extra > s.max_upload_bytes:
+            raise self._refuse(f"uploads of {self.bytes} bytes are in progress and this one needs "
+                               f"{ticket.bytes + extra} (limit: {s.max_upload_bytes} bytes)")
+        ticket.bytes += extra
+        self.bytes += extra
+        self.tenant_bytes[tenant] = held + extra
 
     @contextmanager
-    def admit(self, content_length: int | None) -> Iterator[None]:
-        """Hold a place for one body while it is read; ApiError 503 when the bound is reached."""
+    def admit(self, tenant: str, content_length: int | None) -> Iterator[UploadTicket]:
+        """Hold a place for one body of ``tenant`` while it is read (charged ``content_length`` bytes at once when
+        declared); ApiError 503 when a bound is reached."""
         s = self.settings
-        size = content_length if content_length is not None else s.max_body_bytes
-        if self.uploads >= s.max_uploads or self.bytes + size > s.max_upload_bytes:
-            raise ApiError(503, f"{self.uploads} uploads of {self.bytes} bytes in progress (limits: {s.max_uploads} "
-                                f"uploads, {s.max_upload_bytes} bytes); try again later", error="uploads_saturated",
-                           headers={"Retry-After": str(s.retry_after_s)})
+        if self.uploads >= s.max_uploads:
+            raise self._refuse(f"{self.uploads} uploads in progress (limit: {s.max_uploads})")
+        if self.tenant_uploads.get(tenant, 0) >= s.max_tenant_uploads:
+            raise self._refuse(f"tenant {tenant!r} has {self.tenant_uploads[tenant]} uploads in progress (limit: "
+                               f"{s.max_tenant_uploads} per tenant)")
+        ticket = UploadTicket(self, tenant)
+        if content_length:
+            ticket.charge(content_length)
         self.uploads += 1
-        self.bytes += size
+        self.tenant_uploads[tenant] = self.tenant_uploads.get(tenant, 0) + 1
         try:
-            yield
+            yield ticket
         finally:
             self.uploads -= 1
-            self.bytes -= size
+            self.bytes -= ticket.bytes
+            self.tenant_uploads[tenant] -= 1
+            self.tenant_bytes[tenant] = self.tenant_bytes.get(tenant, 0) - ticket.bytes
+            if not self.tenant_uploads[tenant]:
+                del self.tenant_uploads[tenant], self.tenant_bytes[tenant]
 
 
 async def paced(chunks: AsyncIterator[bytes], settings: Settings) -> AsyncIterator[bytes]:
     """``chunks`` as they arrive, or ApiError 408 when the body falls behind ``body_min_rate`` after
-    ``body_grace_s`` (the next bytes are due by ``start + grace + received / rate``) or is not complete
-    within ``body_timeout_s``."""
+    ``body_grace_s`` (the next bytes are due by ``start + grace + received / rate``), sends nothing for
+    ``body_idle_s``, or is not complete within ``body_timeout_s``."""
     loop = asyncio.get_running_loop()
     start = loop.time()
     deadline = start + settings.body_timeout_s
     received = 0
+    last = start
     iterator = aiter(chunks)
     while True:
-        due = min(deadline, start + settings.body_grace_s + received / settings.body_min_rate)
+        idle_due = last + settings.body_idle_s
+        due = min(deadline, idle_due, start + settings.body_grace_s + received / settings.body_min_rate)
         try:
             async with asyncio.timeout_at(due):
                 chunk = await anext(iterator)
@@ -91,10 +153,12 @@ async def paced(chunks: AsyncIterator[bytes], settings: Settings) -> AsyncIterat
         except TimeoutError:
             elapsed = loop.time() - start
             why = (f"not complete within {settings.body_timeout_s:g} s" if due >= deadline else
+                   f"silent for {settings.body_idle_s:g} s" if due >= idle_due else
                    f"below the minimum rate of {settings.body_min_rate} bytes/s after {settings.body_grace_s:g} s")
             raise ApiError(408, f"request body {why}: {received} bytes in {elapsed:.1f} s", error="body_timeout",
                            headers={"Connection": "close"}) from None
         received += len(chunk)
+        last = loop.time()
         yield chunk
 
 
@@ -133,21 +197,48 @@ def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int 
                             f"{header.dtype.name}) needs {total}", error="malformed_npy")
 
 
-def _all_finite(cube: np.ndarray) -> bool:
-    """NaN/Inf check in one pass without a boolean temporary: a float64 sum of finite float16/32 values cannot
-    overflow, and NaN or Inf propagate into it. Only a non-finite sum (or float64 input) needs the exact test."""
-    if not cube.flags.c_contiguous:  # a Fortran-order upload: the plain test
-        return bool(np.isfinite(cube).all())
-    real = cube.view(cube.real.dtype) if np.iscomplexobj(cube) else cube
-    if real.dtype.itemsize < 8 and np.isfinite(real.sum(dtype=np.float64)):
-        return True
-    return bool(np.isfinite(real).all())
+# The largest magnitude of a value (each of real and imaginary part) accepted per input kind: the transform runs in
+# float32 (max 3.4e38), squares the values and sums the power of up to 256 angle bins (RD view), and a log-power cube
+# is raised to 10**(dB/10); a finite value past these bounds would overflow to Inf there (issue 27: 3e38 or 1e300
+# gave an empty answer, billed). ADC samples are bounded lower: the FFT chain adds up to ~4e6 of them per bin.
+VALUE_BOUNDS = {InputKind.complex: 1e15, InputKind.adc: 1e9, InputKind.log_power: 300.0}
 
 
-async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, content_length: int | None) -> np.ndarray:
-    """The cube of a .npy body stream, checked: header first, then the bytes, then finiteness.
+def _largest_magnitude(cube: np.ndarray) -> float:
+    """max |value| over real and imaginary parts, NaN when any value is NaN (Inf when any is infinite), in two
+    passes (max and min) without a temporary the size of the cube."""
+    parts = [cube.view(cube.real.dtype)] if np.iscomplexobj(cube) and cube.flags.c_contiguous else (
+        [cube.real, cube.imag] if np.iscomplexobj(cube) else [cube])
+    largest = 0.0
+    for part in parts:
+        high, low = float(part.max()), float(part.min())
+        if np.isnan(high) or np.isnan(low):
+            return float("nan")
+        largest = max(largest, high, -low)
+    return largest
 
-    Raises ApiError 400 (not .npy, pickled, truncated or padded) or 422 (dtype, shape, NaN/Inf).
+
+def check_values(cube: np.ndarray, expected: ExpectedCube) -> None:
+    """ApiError 422 for NaN/Inf, or for a finite value too large for the float32 transform (VALUE_BOUNDS)."""
+    largest = _largest_magnitude(cube)
+    if not np.isfinite(largest):
+        raise ApiError(422, f"cube contains NaN or Inf values: model {expected.model!r} expects finite values",
+                       error="invalid_cube")
+    bound = VALUE_BOUNDS[expected.kind]
+    if largest > bound:
+        what = "dB values" if expected.kind is InputKind.log_power else "real and imaginary parts"
+        raise ApiError(422, f"cube holds a value of magnitude {largest:.3g}: model {expected.model!r} accepts {what} "
+                            f"within [-{bound:g}, {bound:g}] (the float32 range of its transform)",
+                       error="invalid_cube")
+
+
+async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, content_length: int | None,
+                    ticket: UploadTicket | None = None) -> np.ndarray:
+    """The cube of a .npy body stream, checked: header first, then the bytes, then finiteness. A chunked body
+    (no ``content_length``) is charged to ``ticket`` the size its header announces before the array is allocated.
+
+    Raises ApiError 400 (not .npy, pickled, truncated or padded) or 422 (dtype, shape, NaN/Inf, a value beyond
+    VALUE_BOUNDS).
     """
     head = bytearray()
     header: NpyHeader | None = None
@@ -166,6 +257,8 @@ async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, con
             except DataError as exc:
                 raise ApiError(400, str(exc), error="malformed_npy") from None
             check_header(header, expected, content_length)
+            if ticket is not None and content_length is None:
+                ticket.charge(header.data_offset + header.nbytes)
             data = np.empty(header.nbytes, np.uint8)  # allocated only now that the header is known to fit
             chunk = bytes(head[header.data_offset:])
             head = bytearray()
@@ -181,9 +274,7 @@ async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, con
         raise ApiError(400, f"body ends after {filled} of the {data.size} data bytes its .npy header announces",
                        error="malformed_npy")
     cube = data.view(header.dtype).reshape(header.shape, order="F" if header.fortran_order else "C")
-    if not _all_finite(cube):
-        raise ApiError(422, f"cube contains NaN or Inf values: model {expected.model!r} expects finite values",
-                       error="invalid_cube")
+    check_values(cube, expected)
     if not cube.dtype.isnative:
         cube = cube.astype(cube.dtype.newbyteorder("="))
     return cube

@@ -11,6 +11,8 @@ from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
+from service.security_headers import page_policy
+
 ASSETS = Path(fastapi_offline.__file__).parent / "static"
 ASSETS_URL = "/docs-assets"
 
@@ -20,18 +22,22 @@ router = APIRouter(include_in_schema=False)
 @router.get("/docs")
 def swagger_ui(request: Request) -> HTMLResponse:
     root = request.scope.get("root_path", "")
-    return get_swagger_ui_html(openapi_url=f"{root}{request.app.openapi_url}", title=f"{request.app.title} - docs",
+    page = get_swagger_ui_html(openapi_url=f"{root}{request.app.openapi_url}", title=f"{request.app.title} - docs",
                                swagger_js_url=f"{root}{ASSETS_URL}/swagger-ui-bundle.js",
                                swagger_css_url=f"{root}{ASSETS_URL}/swagger-ui.css",
                                swagger_favicon_url=f"{root}{ASSETS_URL}/favicon.png")
+    page.headers["Content-Security-Policy"] = page_policy(bytes(page.body).decode())
+    return page
 
 
 @router.get("/redoc")
 def redoc(request: Request) -> HTMLResponse:
     root = request.scope.get("root_path", "")
-    return get_redoc_html(openapi_url=f"{root}{request.app.openapi_url}", title=f"{request.app.title} - ReDoc",
+    page = get_redoc_html(openapi_url=f"{root}{request.app.openapi_url}", title=f"{request.app.title} - ReDoc",
                           redoc_js_url=f"{root}{ASSETS_URL}/redoc.standalone.js",
                           redoc_favicon_url=f"{root}{ASSETS_URL}/favicon.png", with_google_fonts=False)
+    page.headers["Content-Security-Policy"] = page_policy(bytes(page.body).decode(), workers=True)  # ReDoc: blob:
+    return page
 
 
 def install_docs(app: FastAPI) -> None:

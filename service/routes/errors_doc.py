@@ -14,14 +14,16 @@ ERROR_DESCRIPTIONS: dict[int, tuple[type, str]] = {
     403: (ErrorBody, "The key is valid but not allowed to do this (another tenant's usage needs an admin key)"),
     408: (ErrorBody, "The body fell behind the minimum upload rate or missed the upload deadline (the "
                      "connection is closed)"),
-    413: (ErrorBody, "Body larger than the configured limit (max_body_bytes)"),
+    413: (ErrorBody, "Body larger than the configured limit (max_body_bytes), or a declared length larger than any "
+                     "cube the model takes (answered before the body is read)"),
     415: (ErrorBody, "Content type is not application/x-npy or application/octet-stream"),
-    422: (ErrorBody, "Valid .npy but not what the model takes (shape, dtype, NaN/Inf; the message says what it "
-                     "expects), an unknown model, or invalid query parameters"),
+    422: (ErrorBody, "Valid .npy but not what the model takes (shape, dtype, NaN/Inf, values beyond the "
+                     "float32 range of the transform; the message says what it expects), an unknown model, or "
+                     "invalid query parameters"),
     429: (QuotaErrorBody, "The tenant's daily MAC quota does not cover the request (Retry-After: seconds until "
-                          "the next UTC day)"),
+                          "its requests in flight end, or until the next UTC day when the quota is spent)"),
     503: (ErrorBody, "Not ready (model or ledger unavailable), saturated (every slot of the model is taken) or "
-                     "too many uploads in progress; Retry-After says when to try again"),
+                     "too many uploads in progress (in total or of the tenant); Retry-After says when to try again"),
 }
 
 

@@ -19,8 +19,11 @@ def healthz() -> Health:
 
 @router.get("/readyz", response_model=Readiness, responses={503: {"model": Readiness, "description": "Not ready"}})
 def readyz(state: State) -> JSONResponse:
-    """Readiness: 200 when every model is loaded and the ledger is reachable, else 503 with the reasons."""
-    body = Readiness(ready=state.pool.ready and state.ledger_error is None, models=state.pool.errors(),
+    """Readiness: 200 when every model is loaded and the ledger is reachable, else 503 with the reasons (``status``
+    ``loading`` while the models load, with each one's stage in ``progress``)."""
+    ready = state.pool.ready and state.ledger_error is None
+    status = "ready" if ready else "loading" if state.pool.loading else "not_ready"
+    body = Readiness(ready=ready, status=status, progress=state.pool.progress(), models=state.pool.errors(),
                      ledger=state.ledger_error)
     headers = {} if body.ready else {"Retry-After": str(state.settings.retry_after_s)}
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503, headers=headers)

@@ -30,11 +30,12 @@ from service.schemas import (
     SegmentResponse,
     VoxelsOut,
 )
-from service.upload import ExpectedCube, paced, read_cube
+from service.upload import ExpectedCube, check_declared_length, paced, read_cube
 
 router = APIRouter(tags=["segmentation"])
 
 CONTENT_TYPES = ("application/x-npy", "application/octet-stream")
+MAX_LENGTH_DIGITS = 19  # a Content-Length beyond 2**63 is no length any client sends
 OUTPUTS = ("objects", "masks", "voxels", "views")
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 REQUEST_BODY = {
@@ -69,8 +70,8 @@ def _served_model(state: ServiceState, name: str | None) -> ServedModel:
         raise ApiError(422, exc.args[0], error="unknown_model") from None
     retry = {"Retry-After": str(state.settings.retry_after_s)}
     if not served.ready:
-        raise ApiError(503, f"model {served.spec.name!r} is not ready: {served.error}", error="not_ready",
-                       headers=retry)
+        raise ApiError(503, f"model {served.spec.name!r} is not ready ({served.stage}): {served.error}",
+                       error="not_ready", headers=retry)
     if state.ledger_error is not None:
         raise ApiError(503, f"usage ledger unavailable: {state.ledger_error}", error="not_ready", headers=retry)
     return served
@@ -78,10 +79,11 @@ def _served_model(state: ServiceState, name: str | None) -> ServedModel:
 
 def _content_length(request: Request) -> int | None:
     value = request.headers.get("content-length")
-    try:
-        return int(value) if value is not None else None
-    except ValueError:
-        raise ApiError(400, f"invalid Content-Length {value!r}") from None
+    if value is None:
+        return None
+    if not (value.isascii() and value.isdigit()) or len(value) > MAX_LENGTH_DIGITS:
+        raise ApiError(400, f"invalid Content-Length {value[:32]!r}: expected at most {MAX_LENGTH_DIGITS} digits")
+    return int(value)
 
 
 def _compute(report: FrameCompute) -> Compute:
@@ -132,13 +134,14 @@ def _headers(request_id: str, model: str, tenant: str, compute: Compute, encode_
     }
 
 
-async def _read_body(request: Request, state: ServiceState, expected: ExpectedCube,
+async def _read_body(request: Request, state: ServiceState, tenant: str, expected: ExpectedCube,
                      content_length: int | None) -> tuple[np.ndarray, float]:
     """The checked cube and the seconds spent receiving and decoding it (before any model slot is taken)."""
     start = time.perf_counter()
-    with state.uploads.admit(content_length):
+    with state.uploads.admit(tenant, content_length) as ticket:
         try:
-            cube = await read_cube(paced(request.stream(), state.settings), expected, content_length=content_length)
+            cube = await read_cube(paced(request.stream(), state.settings), expected, content_length=content_length,
+                                   ticket=ticket)
         except ClientDisconnect:
             raise ApiError(400, "client disconnected before sending the whole body") from None
     return cube, time.perf_counter() - start
@@ -198,8 +201,10 @@ async def segment(
     stage, parameters, latency per stage, ROI voxels and visited points (also in ``X-Compute-*`` and
     ``Server-Timing`` headers), and the tenant's running totals for the day.
 
-    The body is read first (a slow upload holds no model slot), then the request takes a model slot, then a
-    lease on the tenant's quota, runs, and is billed."""
+    A declared length no cube of the model can have is refused at once (413), and so is a tenant whose quota
+    cannot cover the request (429), before the body is read. The body is read next (a slow upload holds no model
+    slot), then the request takes a lease on the tenant's quota and a model slot, runs, and is billed; the lease is
+    given back on any other way out."""
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
     content_length = _content_length(request)
@@ -207,27 +212,24 @@ async def segment(
     if cube_schema is not None:
         _check_cube_schema(cube_schema, served, input_kind, state.settings.max_json_depth)
     name, metrics = served.spec.name, state.metrics
-    shape = adc_shape(served.net.profile) if input_kind is InputKind.adc else served.net.profile.shape
-    cube, decode_s = await _read_body(request, state, ExpectedCube(name, shape, input_kind), content_length)
+    profile = served.net.profile
+    accepted = {kind: ExpectedCube(name, adc_shape(profile) if kind is InputKind.adc else profile.shape, kind)
+                for kind in InputKind}
+    check_declared_length(content_length, list(accepted.values()))
+    expected = accepted[input_kind]
+    await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
+    cube, decode_s = await _read_body(request, state, caller.tenant, expected, content_length)
 
-    _take_slot(served, state)  # a saturated model answers 503 before the quota is touched
-    try:
-        lease = await state.billing.reserve(caller.tenant, served)
-    except BaseException:
-        served.release()
-        raise
-    try:
+    async with state.billing.hold(caller.tenant, served) as quota:  # reserved; given back unless settled
+        _take_slot(served, state)  # 503 when every slot of the model is taken
         result = await _infer(served, cube, input_kind, tdm_compensation, state)
-    except BaseException:
-        await state.billing.release(lease)
-        raise
-    views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
-                                     tdm_compensation=tdm_compensation) if "views" in chosen else None)
-    del cube
-    report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included
-    compute = _compute(report)
-    request_id = uuid.uuid4().hex
-    usage = await state.billing.settle(caller.tenant, lease, model=name, compute=report, request_id=request_id)
+        views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
+                                         tdm_compensation=tdm_compensation) if "views" in chosen else None)
+        del cube
+        report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included
+        compute = _compute(report)
+        request_id = uuid.uuid4().hex
+        usage = await quota.settle(model=name, compute=report, request_id=request_id)
 
     metrics.segmentations.labels(name, caller.tenant).inc()
     metrics.macs.labels(name, caller.tenant).inc(compute.macs.total)

@@ -6,7 +6,6 @@ time."""
 from __future__ import annotations
 
 import json
-import select
 import socket
 import threading
 import time
@@ -26,6 +25,7 @@ from schemathesis.checks import (
 )
 
 from tests.service.conftest import KEYS, NPY, GuardedServer, server_env
+from tests.service.raw_http import chunks, http_head, json_error, raw_exchange, read_answer
 
 pytestmark = pytest.mark.slow
 
@@ -34,7 +34,8 @@ ACME = {"authorization": f"Bearer {ACME_KEY}"}
 ADMIN = {"authorization": f"Bearer {ADMIN_KEY}"}
 LIMITS = {  # small limits so that slow clients are cut off within seconds
     "RADARSEG_BODY_GRACE_S": "1", "RADARSEG_BODY_MIN_RATE": "65536", "RADARSEG_BODY_TIMEOUT_S": "4",
-    "RADARSEG_MAX_UPLOADS": "14", "RADARSEG_MAX_HEADER_BYTES": "16384", "RADARSEG_MAX_HEADERS": "50",
+    "RADARSEG_MAX_UPLOADS": "14", "RADARSEG_MAX_TENANT_UPLOADS": "14", "RADARSEG_MAX_HEADER_BYTES": "16384",
+    "RADARSEG_MAX_HEADERS": "50",
     "RADARSEG_HEADER_TIMEOUT_S": "3",
 }
 
@@ -53,68 +54,15 @@ def server(tiny_checkpoints, tmp_path_factory) -> Iterator:
         process.stop()
 
 
-def _head(path: str, headers: dict[str, str], *, method: str = "POST") -> bytes:
-    lines = [f"{method} {path} HTTP/1.1", "Host: 127.0.0.1", *[f"{k}: {v}" for k, v in headers.items()]]
-    return ("\r\n".join(lines) + "\r\n\r\n").encode("latin1")
-
-
-def _read_answer(sock: socket.socket) -> tuple[int, dict[str, str], bytes]:
-    """Status, headers and body of one HTTP/1.1 answer (until Content-Length or the connection closes)."""
-    data = b""
-    while b"\r\n\r\n" not in data:
-        chunk = sock.recv(65536)
-        if not chunk:
-            break
-        data += chunk
-    head, _, body = data.partition(b"\r\n\r\n")
-    lines = head.decode("latin1").split("\r\n")
-    if not lines[0].startswith("HTTP/1.1 "):
-        raise AssertionError(f"no HTTP answer, got {data[:200]!r}")
-    headers = {k.lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
-    length = int(headers.get("content-length", "-1"))
-    while length < 0 or len(body) < length:
-        chunk = sock.recv(65536)
-        if not chunk:
-            break
-        body += chunk
-    return int(lines[0].split()[1]), headers, body
-
-
-def raw_exchange(port: int, pieces: list[bytes], *, pause_s: float = 0.0, timeout_s: float = 30.0
-                 ) -> tuple[int, dict[str, str], bytes]:
-    """Send ``pieces`` (``pause_s`` apart), stopping early once the server answers; read its answer."""
-    with socket.create_connection(("127.0.0.1", port), timeout=timeout_s) as sock:
-        for piece in pieces:
-            if select.select([sock], [], [], pause_s)[0]:
-                break  # answered (and about to close): stop sending
-            try:
-                sock.sendall(piece)
-            except (BrokenPipeError, ConnectionResetError):
-                break
-        return _read_answer(sock)
-
-
-def _json_error(status: int, headers: dict[str, str], body: bytes, expected: int) -> dict:
-    assert status == expected, (status, body[:300])
-    assert headers["content-type"].startswith("application/json"), headers
-    parsed = json.loads(body)
-    assert set(parsed) >= {"error", "detail"} and parsed["detail"], parsed
-    return parsed
-
-
-def _chunks(data: bytes, size: int) -> list[bytes]:
-    return [data[i:i + size] for i in range(0, len(data), size)]
-
-
 def test_slow_uploads_hold_no_model_slot_and_are_cut_off_with_408(server, cube_body):
     """Twelve clients trickling 1 KB each half second while the single model slot serves normal requests; each
     trickler is answered 408. Before issue 17 a request took its slot before its body arrived: 9 slow uploads
     made every other request 503."""
-    head = _head("/v1/segment", {**NPY, **ACME, "content-length": str(len(cube_body))})
+    head = http_head("/v1/segment", {**NPY, **ACME, "content-length": str(len(cube_body))})
     slow: list[tuple[int, dict, bytes]] = []
 
     def trickle() -> None:
-        slow.append(raw_exchange(server.port, [head, *_chunks(cube_body[:40_000], 1024)], pause_s=0.5))
+        slow.append(raw_exchange(server.port, [head, *chunks(cube_body[:40_000], 1024)], pause_s=0.5))
 
     threads = [threading.Thread(target=trickle) for _ in range(12)]
     for thread in threads:
@@ -127,31 +75,31 @@ def test_slow_uploads_hold_no_model_slot_and_are_cut_off_with_408(server, cube_b
     assert normal == [200] * 4
     assert len(slow) == 12
     for status, headers, body in slow:
-        answer = _json_error(status, headers, body, 408)
+        answer = json_error(status, headers, body, 408)
         assert answer["error"] == "body_timeout" and "minimum rate of 65536 bytes/s" in answer["detail"]
         assert headers["connection"] == "close"
 
 
 def test_truncated_chunked_body_is_answered_408(server, cube_body):
     """A chunk announced as 4096 bytes, 300 sent, the connection left open: before issue 17 it got no answer."""
-    head = _head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"})
+    head = http_head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"})
     status, headers, body = raw_exchange(server.port, [head + b"1000\r\n" + cube_body[:300]])
-    answer = _json_error(status, headers, body, 408)
+    answer = json_error(status, headers, body, 408)
     assert answer["error"] == "body_timeout" and headers["connection"] == "close"
 
 
 def test_a_head_trickled_byte_by_byte_is_cut_off_with_408(server):
     """Slow headers (before the app sees a request): one byte each half second, answered 408 once the head is
     not complete within header_timeout_s; the server still answers others."""
-    head = _head("/v1/usage", ACME, method="GET")
+    head = http_head("/v1/usage", ACME, method="GET")
     status, headers, body = raw_exchange(server.port, [head[i:i + 1] for i in range(len(head))], pause_s=0.5)
-    answer = _json_error(status, headers, body, 408)
+    answer = json_error(status, headers, body, 408)
     assert "request head not complete within 3 s" in answer["detail"]
     assert httpx.get(f"{server.url}/healthz", timeout=30).status_code == 200
 
 
 def test_uploads_beyond_the_bound_are_503_with_retry_after(server, cube_body):
-    head = _head("/v1/segment", {**NPY, **ACME, "content-length": str(len(cube_body))})
+    head = http_head("/v1/segment", {**NPY, **ACME, "content-length": str(len(cube_body))})
     socks = []
     try:
         for _ in range(14):  # max_uploads: every place taken by a body that is not coming
@@ -160,10 +108,10 @@ def test_uploads_beyond_the_bound_are_503_with_retry_after(server, cube_body):
             socks.append(sock)
         time.sleep(0.3)  # the server has read the heads
         r = httpx.post(f"{server.url}/v1/segment", content=cube_body, headers={**NPY, **ACME}, timeout=60)
-        answer = _json_error(r.status_code, r.headers, r.content, 503)
+        answer = json_error(r.status_code, r.headers, r.content, 503)
         assert answer["error"] == "uploads_saturated" and int(r.headers["retry-after"]) >= 1
         for sock in socks:  # then each of them is cut off
-            assert _read_answer(sock)[0] == 408
+            assert read_answer(sock)[0] == 408
     finally:
         for sock in socks:
             sock.close()
@@ -178,23 +126,24 @@ def _npy_with_header_text(text: str) -> bytes:
 
 HOSTILE_HEADS: dict[str, tuple[bytes, int]] = {
     # (request bytes, expected status); every answer is a JSON error
-    "32 MiB header": (_head("/v1/segment", {**NPY, **ACME, "x-junk": "a" * (32 << 20)}), 431),
-    "5000 headers": (_head("/v1/segment", {**NPY, **ACME, **{f"x-h{i}": "v" for i in range(5000)}}), 431),
-    "1 MB query string": (_head("/v1/usage?" + "a=b&" * 250_000, ACME, method="GET"), 414),
-    "bad Content-Length": (_head("/v1/segment", {**NPY, **ACME, "content-length": "12x"}), 400),
-    "duplicated Content-Length": (_head("/v1/segment", {**NPY, **ACME, "content-length": "10"})[:-2]
+    "32 MiB header": (http_head("/v1/segment", {**NPY, **ACME, "x-junk": "a" * (32 << 20)}), 431),
+    "5000 headers": (http_head("/v1/segment", {**NPY, **ACME, **{f"x-h{i}": "v" for i in range(5000)}}), 431),
+    "1 MB query string": (http_head("/v1/usage?" + "a=b&" * 250_000, ACME, method="GET"), 414),
+    "bad Content-Length": (http_head("/v1/segment", {**NPY, **ACME, "content-length": "12x"}), 400),
+    "duplicated Content-Length": (http_head("/v1/segment", {**NPY, **ACME, "content-length": "10"})[:-2]
                                   + b"Content-Length: 20\r\n\r\n" + b"x" * 20, 400),
-    "Content-Length beside chunked": (_head("/v1/segment", {**NPY, **ACME, "content-length": "10",
+    "Content-Length beside chunked": (http_head("/v1/segment", {**NPY, **ACME, "content-length": "10",
                                                             "transfer-encoding": "chunked"}) + b"0\r\n\r\n", 400),
-    "bad chunk size": (_head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"}) + b"zz\r\nabc\r\n", 400),
+    "bad chunk size": (http_head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"})
+                       + b"zz\r\nabc\r\n", 400),
 }
 
 
 @pytest.mark.parametrize("case", list(HOSTILE_HEADS))
 def test_hostile_http_is_answered_in_json_and_the_server_stays_up(server, case):
     request, expected = HOSTILE_HEADS[case]
-    status, headers, body = raw_exchange(server.port, _chunks(request, 16384))
-    _json_error(status, headers, body, expected)
+    status, headers, body = raw_exchange(server.port, chunks(request, 16384))
+    json_error(status, headers, body, expected)
     assert httpx.get(f"{server.url}/healthz", timeout=30).status_code == 200
 
 

@@ -97,7 +97,7 @@ def test_first_reservation_covers_the_first_request(make_settings, client_for, c
     client = client_for(make_settings())
     state = client.app.state.service
     served = state.pool.get("tiny")
-    estimate = state.billing.estimate(served)
+    estimate = state.billing.estimate(served, "anonymous")
     r = client.post("/v1/segment", content=cube_body, headers=NPY)
     assert r.status_code == 200 and estimate >= r.json()["compute"]["macs"]["total"]
 
@@ -216,3 +216,93 @@ def test_ledger_recent_maximum_survives_reopening(tmp_path):
     reopened = Ledger(f"sqlite:///{tmp_path / 'l.sqlite3'}")
     assert (reopened.recent_max_macs("m"), reopened.recent_max_macs("other")) == (50, 0)
     reopened.dispose()
+
+
+def _billing(tmp_path, **settings):
+    """A Billing on a SQLite ledger, and a stand-in for a served model (detector 1,000 MACs, warm-up segmenter
+    10,000 MACs)."""
+    from types import SimpleNamespace
+
+    from service.billing import Billing
+    from service.metrics import ServiceMetrics
+
+    ledger = Ledger(f"sqlite:///{tmp_path / 'l.sqlite3'}")
+    ledger.create()
+    served = SimpleNamespace(spec=SimpleNamespace(name="m"), net=SimpleNamespace(detector_macs=lambda: 1000),
+                             segment_macs_high=10_000)
+    return Billing(ledger, Settings(data_dir=tmp_path, **settings), ServiceMetrics()), served
+
+
+def test_the_estimate_is_the_tenants_own_and_a_refusal_never_raises_it(tmp_path):
+    """Issue 27 item 3: the estimate was the maximum of every tenant's recent requests, and it rose with requests
+    refused at settlement."""
+    billing, served = _billing(tmp_path)
+    ledger = billing.ledger
+    assert billing.estimate(served, "globex") == 1000 + int(1.5 * 10_000)  # no history: the model's bound
+    ledger.settle("acme", model="m", macs=8 * 10**9, compute_us=1)  # acme's outlier
+    ledger.settle("globex", model="m", macs=9000, compute_us=1)
+    assert billing.estimate(served, "globex") == 9000 and billing.estimate(served, "initech") == 16_000
+    assert billing.estimate(served, "acme") == 8 * 10**9
+    refused = ledger.settle("globex", model="m", macs=10**12, compute_us=1, limit=10**6)  # over its quota: not billed
+    assert isinstance(refused, QuotaExceeded) and billing.estimate(served, "globex") == 9000
+    ledger.dispose()
+
+
+def test_admission_counts_every_affordable_request_and_retry_after_names_the_lease_deadline(tmp_path):
+    """Issue 27 item 4: with quota for 6 requests in flight only 3 were admitted, and the 429 caused by the
+    tenant's own leases said to wait until midnight."""
+    from service.billing import quota_error, seconds_to_utc_midnight
+
+    billing, served = _billing(tmp_path, tenant_quotas={"anonymous": 7 * 9000})
+    ledger = billing.ledger
+    ledger.settle("anonymous", model="m", macs=9000, compute_us=1)  # history: 9,000 a request; 6 more fit
+    now = dt.datetime.now(dt.UTC)
+    outcomes = [ledger.reserve("anonymous", billing.estimate(served, "anonymous"), 7 * 9000, lease_s=60 + i, now=now)
+                for i in range(7)]
+    assert [isinstance(o, QuotaExceeded) for o in outcomes] == [False] * 6 + [True]
+    refused = outcomes[-1]
+    assert refused.frees_at == outcomes[0].expires_at  # the first lease to end frees enough
+    error = quota_error(refused, now=now)
+    assert 59 <= int(error.headers["Retry-After"]) <= 61 and "in flight" in error.message
+    assert billing.ledger.check("anonymous", 9000, 7 * 9000) is not None  # the same answer before the body
+    for lease in outcomes[:6]:
+        ledger.settle("anonymous", model="m", macs=9000, compute_us=1, lease=lease, limit=7 * 9000)
+    spent = ledger.reserve("anonymous", 9000, 7 * 9000)
+    assert isinstance(spent, QuotaExceeded) and spent.frees_at is None
+    assert abs(int(quota_error(spent).headers["Retry-After"]) - seconds_to_utc_midnight()) <= 2
+    ledger.dispose()
+
+
+def test_a_quota_hold_is_given_back_on_any_way_out_but_settlement(tmp_path):
+    """Issue 27: reserve on entering ``Billing.hold``, release on leaving it by an error or a cancellation."""
+    import asyncio
+
+    billing, served = _billing(tmp_path, daily_mac_quota=10**6)
+
+    def reserved() -> int:
+        return billing.ledger.day_totals("anonymous").reserved_macs
+
+    async def failing() -> None:
+        async with billing.hold("anonymous", served):
+            assert reserved() == 16_000
+            raise RuntimeError("inference failed")
+
+    async def cancelled() -> None:
+        inside = asyncio.Event()
+
+        async def request() -> None:
+            async with billing.hold("anonymous", served):
+                inside.set()
+                await asyncio.sleep(60)
+
+        task = asyncio.create_task(request())
+        await inside.wait()  # (a cancellation during the reservation itself leaves a lease that expires: lease_s)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+
+    with pytest.raises(RuntimeError, match="inference failed"):
+        asyncio.run(failing())
+    assert reserved() == 0
+    asyncio.run(cancelled())
+    assert reserved() == 0 and billing.ledger.held("anonymous").leases == 0
+    billing.ledger.dispose()
