@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_checkpoint
 from models.compute import ComputeCounter, MacRecorder, count_params
 from models.detector.inference import FrozenDetector
 from models.segmenter.spvcnn import SPVCNN, PointTensor
@@ -113,9 +113,19 @@ class EraseNet:
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
                          device: str | torch.device = "cpu", **kwargs: Any) -> EraseNet:
         """Both stages from checkpoints that carry their own architecture; the detector's checkpoint
-        gives the preset, class names and input normalisation."""
-        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
-        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
+        gives the preset, class names and input normalisation. A swapped pair, the same file twice or a
+        checkpoint of another stage raises CheckpointError naming what was given and what was expected."""
+        if not isinstance(detector, Checkpoint) and not isinstance(segmenter, Checkpoint):
+            if Path(detector).resolve() == Path(segmenter).resolve():
+                raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
+                                      f"detector checkpoint and a segmenter checkpoint")
+        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, role="detector")
+        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, role="segmenter")
+        if det.stage == "segmenter" and seg.stage == "detector":
+            raise CheckpointError(f"detector {det.source or ''} and segmenter {seg.source or ''} are swapped: "
+                                  f"{det.describe()} given as detector, {seg.describe()} as segmenter")
+        expect_stage(det, "detector", role="detector")
+        expect_stage(seg, "segmenter", role="segmenter")
         if det.preset != seg.preset:
             raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
         # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).

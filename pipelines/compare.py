@@ -147,7 +147,7 @@ class Prediction:
 
 
 def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: str, preset: str, class_names: Sequence[str]) -> None:
-    found = checkpoint.extra.get("stage")
+    found = checkpoint.stage
     if found != stage:
         raise ValueError(f"{path}: expected a {stage} checkpoint, found stage {found!r} ({checkpoint.model_name})")
     if checkpoint.preset != preset:

@@ -102,9 +102,10 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
 
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    det_ckpt = load_checkpoint(cfg.detector, stage="detector", role="--detector")
+    seg_ckpt = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    det_ckpt, seg_ckpt = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
     net = EraseNet.from_checkpoints(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)

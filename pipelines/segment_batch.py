@@ -173,7 +173,8 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
     if kind == "recording" and cfg.split is not None:
         raise ValueError("--split: only with a store source (a recording is segmented whole)")
 
-    det, seg = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
+    det = load_checkpoint(cfg.detector, stage="detector", role="--detector")
+    seg = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
     if det.preset != seg.preset:
         raise ValueError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
                          f"for {seg.preset!r}")

@@ -31,8 +31,8 @@ STAGE = "baseline"
 def load_baseline(path: str | Path, *, device: str | torch.device = "cpu") -> tuple[nn.Module, Checkpoint, ViewStats]:
     """A trained baseline (eval mode), its checkpoint and the view scaling it was trained with."""
     checkpoint = load_checkpoint(path)
-    if checkpoint.extra.get("stage") != STAGE:
-        raise ValueError(f"{path}: not a baseline checkpoint (stage {checkpoint.extra.get('stage')!r})")
+    if checkpoint.stage != STAGE:
+        raise ValueError(f"{path}: {checkpoint.describe()}, expected a baseline checkpoint")
     return checkpoint.build(device=device), checkpoint, ViewStats.from_dict(checkpoint.normalisation)
 
 
