@@ -8,6 +8,7 @@ import logging
 import sys
 
 from pipelines.jobs import USER_ERRORS, report_error, run_job
+from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS
 
 # The jobs (pipelines.jobs' contract): command -> (module, help). A job module loads only when its command runs.
@@ -115,7 +116,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     from pipelines.segment import segment_file
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
-                          is_log_power=args.log_power, png=args.png, score_threshold=args.score_threshold)
+                          input_kind=args.input, png=args.png, score_threshold=args.score_threshold)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -244,10 +245,16 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(func=_cmd_store_info)
 
     seg = sub.add_parser("segment", help="run ERASE-Net on one .npy cube and print objects and compute")
-    seg.add_argument("cube", help=".npy file: complex RAD cube (R, A, D) of the checkpoint's preset")
+    seg.add_argument("cube", help=".npy file: RAD cube (R, A, D) of the checkpoint's preset (or ADC samples with "
+                                  "--input adc)")
     seg.add_argument("--detector", required=True, help="detector checkpoint")
     seg.add_argument("--segmenter", required=True, help="segmenter checkpoint")
-    seg.add_argument("--log-power", action="store_true", help="the cube holds log power (dB), not complex values")
+    seg.add_argument("--input", choices=[kind.value for kind in InputKind], default=None,
+                     help="what the cube holds: complex (RAD), magnitude (|I|, linear), log_power "
+                          "(10 log10(|I|^2 + 1) dB), adc (raw samples); a complex cube is complex unless said, a "
+                          "real-valued one must say it (docs/design.md section 2)")
+    seg.add_argument("--log-power", dest="input", action="store_const", const=InputKind.log_power.value,
+                     help="the same as --input log_power")
     seg.add_argument("--score-threshold", type=float, default=0.3)
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
     seg.add_argument("--json", action="store_true")
