@@ -7,7 +7,7 @@ import json
 import logging
 import sys
 
-from pipelines.jobs import USER_ERRORS, report_error, run_job
+from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
 from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS
 
@@ -209,13 +209,14 @@ def _cmd_process_adc(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="radarseg", description="ERASE-Net radar semantic segmentation")
     parser.add_argument("-v", "--verbose", action="store_true", help="log at INFO level")
+    parser.add_argument("--version", action="version", version=f"radarseg {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("simulate", help="simulate a labelled recording with the FMCW scene simulator")
     sim.add_argument("--preset", default="small", help="carrada, nxp, small, or a .toml/.json profile file")
-    sim.add_argument("--sequences", type=int, default=2)
+    sim.add_argument("--sequences", type=int, default=2, help="sequences (scenes) to simulate")
     sim.add_argument("--frames", type=int, default=8, help="frames per sequence")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=int, default=0, help="seed of the scenes and the noise")
     sim.add_argument("--out", required=True, help="output directory (must not hold a recording yet)")
     sim.add_argument("--adc", action="store_true", help="store raw ADC samples instead of RAD cubes")
     sim.set_defaults(func=_cmd_simulate)
@@ -255,9 +256,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "real-valued one must say it (docs/design.md section 2)")
     seg.add_argument("--log-power", dest="input", action="store_const", const=InputKind.log_power.value,
                      help="the same as --input log_power")
-    seg.add_argument("--score-threshold", type=float, default=0.3)
+    seg.add_argument("--score-threshold", type=float, default=0.3, help="detector score threshold")
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
-    seg.add_argument("--json", action="store_true")
+    seg.add_argument("--json", action="store_true", help="print the result as JSON (for machines)")
     seg.set_defaults(func=_cmd_segment)
 
     radar_cmd = sub.add_parser("radar", help="radar profiles")
@@ -295,19 +296,30 @@ def build_parser() -> argparse.ArgumentParser:
                          help="a detector or segmenter checkpoint instead of the shipped ones; repeat for several")
     summary.add_argument("--preset", action="append", choices=sorted(BUILTIN_PRESETS),
                          help="also the registry's full-size models for this preset; repeat for several")
-    summary.add_argument("--json", action="store_true")
+    summary.add_argument("--json", action="store_true", help="print the rows as JSON (for machines)")
     summary.set_defaults(func=_cmd_models_summary)
 
     serve = sub.add_parser("serve", help="run the HTTP segmentation service (uvicorn; settings from RADARSEG_*)")
     serve.add_argument("--host", help="bind address (default 127.0.0.1, or RADARSEG_HOST)")
     serve.add_argument("--port", type=int, help="port (default 8000, or RADARSEG_PORT)")
-    serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
+    serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
+                       help="uvicorn's log level")
     serve.set_defaults(func=_cmd_serve)
 
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")
-    demo.add_argument("--out", default="out/demo")
+    demo.add_argument("--out", default="out/demo", help="directory for the recording, store, report and "
+                                                            "pictures")
     demo.set_defaults(func=_cmd_demo)
-    return parser
+    return with_defaults_shown(parser)
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("radarseg")
+    except PackageNotFoundError:  # run from a checkout that was never installed
+        return "(not installed)"
 
 
 def _command_index(argv: list[str]) -> int | None:

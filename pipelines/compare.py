@@ -44,13 +44,13 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet import EraseNet
 from models.slimming import dense_input_shapes
 from pipelines.jobs import run_module
+from pipelines.progress import progress
 from pipelines.report import fmt_num, fmt_pct, md_table
 from pipelines.scoring import ViewConfusion, predicted_views, view_summary
 from pipelines.spread import spread
@@ -311,7 +311,7 @@ def compare(cfg: CompareConfig) -> dict[str, Any]:
     pictures: dict[int, dict[str, Any]] = {}
     tallies = {p.spec.name: _Tally(num_classes) for p in predictors}
     truth_tally = _Tally(num_classes)
-    for slot in tqdm(targets.tolist(), desc=f"compare {split_name}", unit="frame", disable=not cfg.progress):
+    for slot in progress(targets.tolist(), desc=f"compare {split_name}", unit="frame", disable=not cfg.progress):
         log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
         truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
         truth_tally.add(truth, truth["ra"], truth["rd"])
@@ -426,7 +426,7 @@ def render_compare(result: dict[str, Any]) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--store", required=True)
+    parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
     parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (compare.json, compare.md, compare_frames.png)")
     parser.add_argument("--erasenet", action="append", default=[], metavar="NAME=DETECTOR,SEGMENTER",
@@ -439,8 +439,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pictures", type=int, default=3, help="frames in compare_frames.png")
     parser.add_argument("--score-threshold", type=float, help="ERASE-Net seed score threshold")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (timings are taken with these)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def config_from_args(args: argparse.Namespace) -> CompareConfig:

@@ -32,11 +32,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from models.checkpoint import load_checkpoint
 from models.erasenet import EraseNet
 from pipelines.jobs import run_module
+from pipelines.progress import progress
 from pipelines.scoring import DetectionScorer, ViewConfusion
 from pipelines.spread import spread
 from pipelines.store import OBJECT_FIELDS, frames_of_split, open_store
@@ -131,7 +131,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     seconds: dict[str, list[float]] = {}
     pictures: list[str] = []
     started = time.perf_counter()
-    for slot in tqdm(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
+    for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
         log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
         instances = arrays["instances"][slot]
@@ -230,21 +230,22 @@ def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", required=True, help="detector checkpoint")
     parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
-    parser.add_argument("--store", required=True)
+    parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
     parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
     parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread")
-    parser.add_argument("--pictures", type=int, default=4)
+    parser.add_argument("--pictures", type=int, default=4, help="frames drawn (truth above prediction)")
     parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
-    parser.add_argument("--sweep-frames", type=int, default=48)
-    parser.add_argument("--score-threshold", type=float)
+    parser.add_argument("--sweep-frames", type=int, default=48,
+                        help="frames of the region-growing D_thresh sweep")
+    parser.add_argument("--score-threshold", type=float, help="detector score threshold (default: the model's 0.3)")
     parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
     parser.add_argument("--no-doppler-refinement", action="store_true",
                         help="keep the detector's own Doppler (no refinement from the cube)")
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     parser.add_argument("--threads", type=int, default=0,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:

@@ -51,7 +51,7 @@ def summarise_predictions(path: str | Path) -> dict[str, Any]:
         "class_voxels": {name: int(v) for name, v in zip(names, voxels, strict=True)},
         "detections_per_frame": {
             "mean": float(n_objects.mean()) if len(n_objects) else 0.0,
-            "min": int(n_objects.min(initial=0)), "max": int(n_objects.max(initial=0)),
+            "min": int(n_objects.min()) if len(n_objects) else 0, "max": int(n_objects.max(initial=0)),
             "frames_without": int((n_objects == 0).sum()),
             "histogram": {str(k): int(v) for k, v in enumerate(np.bincount(n_objects)) if v},
         },

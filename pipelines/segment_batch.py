@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import logging
 import os
 import sys
@@ -382,12 +381,12 @@ def store_attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
 
 
 def format_result(result: dict[str, Any]) -> str:
-    """The summary line, then the figures as one JSON line (what drivers of ``ray job submit`` read)."""
+    """The summary line (``--json`` prints the figures as one JSON line instead: what drivers of ``ray job
+    submit`` read)."""
     return (f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
             f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
             f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
-            f"{result['workers']} worker(s) on {result['nodes']} node(s); summary and pictures in {result['report']}"
-            f"\n{json.dumps(result)}")
+            f"{result['workers']} worker(s) on {result['nodes']} node(s); summary and pictures in {result['report']}")
 
 
 if __name__ == "__main__":

@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
+from pipelines.progress import progress
 from pipelines.sharded_store import Sharded, done_shards, finish_store
 from radar.io.errors import DataError
 
@@ -211,7 +211,7 @@ def run_sharded(job: ShardedJob, execution: Execution) -> ShardedRun:
         ready = time.perf_counter()
         log.info("%s: %d shards (%d done before), %d worker(s) %s", plan.out, plan.layout.n_shards, len(done),
                  workers, backend.where)
-        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
+        with progress(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
                   desc=execution.desc, disable=not execution.progress) as bar:
             for summary in backend.run(todo):
                 new.append(summary)

@@ -163,7 +163,7 @@ def frames_of_split(root: zarr.Group, split: str | None) -> np.ndarray:
     if split is None:
         return np.flatnonzero(valid)
     if split not in SPLIT_CODE:
-        raise ValueError(f"split must be one of {SPLITS} or None, got {split!r}")
+        raise ValueError(f"split must be one of {', '.join(SPLITS)} (or all), got {split!r}")
     return np.flatnonzero(valid & (root["split"][:] == SPLIT_CODE[split]))
 
 

@@ -21,7 +21,7 @@ MODELS = ("unet", "tmvanet", "smvanet", "unet_tiny", "tmvanet_tiny", "smvanet_ti
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("model", choices=MODELS)
+    parser.add_argument("model", choices=MODELS, help="baseline architecture")
     parser.add_argument("--view", choices=("ra", "rd"), help="one-view models (U-Net): the view it segments")
     add_common_arguments(parser)
 

@@ -24,10 +24,10 @@ import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, DistributedSampler
-from tqdm import tqdm
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.slimming import slimming_penalty
+from pipelines.progress import progress
 from pipelines.store import frames_of_split, open_store
 from pipelines.store_info import StoreInfo
 from pipelines.training.config import TrainConfig, make_optimizer, make_scheduler, resolve_device
@@ -200,7 +200,7 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
             dataset.set_epoch(epoch)
         losses: dict[str, list[float]] = {}
         samples, started = 0, time.perf_counter()
-        bar = tqdm(loader, desc=f"{name} epoch {epoch + 1}/{hyper.epochs}", unit="batch", leave=False,
+        bar = progress(loader, desc=f"{name} epoch {epoch + 1}/{hyper.epochs}", unit="batch", leave=False,
                    disable=not cfg.progress or world.rank != 0, dynamic_ncols=True)
         for batch in bar:
             named = task.loss(model, batch, device)
@@ -234,8 +234,9 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
             elapsed += time.perf_counter() - started
             metrics["elapsed_s"] = elapsed  # training + validation time of the whole run so far
             score = metrics.get(task.monitor, float("nan"))
-            # without a validation split (--val-split none) every epoch is "best": model.pt is the latest
-            improved = not math.isfinite(score) or score >= best
+            # without a validation split (--val-split none) every epoch is "best": model.pt is the latest; with one,
+            # only a strictly better score is (a run whose mAP stays 0.0 keeps its first epoch as the best)
+            improved = not math.isfinite(score) or score > best
             if improved:
                 best = score if math.isfinite(score) else best
                 save_checkpoint(_checkpoint(task, model, {"epoch": epoch + 1, "step": step, "metrics": metrics}),

@@ -120,9 +120,12 @@ class SegmenterTask(Task):
                 # RADARSEG_SMOKE: a detector of two steps matches nothing; the command's path runs on, said aloud.
                 log.warning("smoke mode: %s; using Gaussian errors of std %s bins", exc, self.hyper.jitter_std)
                 self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (smoke mode)")
+        elif self.cfg.jitter_std is not None:  # asked for: said once, at INFO
+            log.info("seeds jittered by Gaussian errors of std %s bins (--jitter-std)", self.hyper.jitter_std)
+            self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (--jitter-std)")
         else:
-            log.warning("no --jitter-from detector given: seeds jittered by Gaussian errors of std %s bins",
-                        self.hyper.jitter_std)
+            log.warning("neither --jitter-from nor --jitter-std given: seeds jittered by Gaussian errors of the "
+                        "default std %s bins", self.hyper.jitter_std)
             self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (assumed)")
         if weights_path.is_file():
             self.class_weights = torch.tensor(json.loads(weights_path.read_text())["weights"])
