@@ -1,4 +1,4 @@
-"""End-to-end ERASE-Net inference with its compute report (SPEC sections 5-8, 10).
+"""End-to-end ERASE-Net inference with its compute report (docs/design.md sections 5-8, 10).
 
 cube -> log transform -> normalised detector input -> detector -> decode -> region growing ->
 ROI points -> sparse segmenter -> RAD label cube (background outside the ROI) -> RA / RD masks ->
@@ -115,6 +115,23 @@ class EraseNet:
         """Both stages from checkpoints that carry their own architecture; the detector's checkpoint
         gives the preset, class names and input normalisation. A swapped pair, the same file twice or a
         checkpoint of another stage raises CheckpointError naming what was given and what was expected."""
+        det, seg = cls.load_pair(detector, segmenter)
+        if det.preset != seg.preset:
+            raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
+        # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
+        profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
+        for ckpt, what in ((det, "detector"), (seg, "segmenter")):
+            if "schema" in ckpt.extra:
+                check_schema(cube_schema(profile), ckpt.extra["schema"], what=f"{what} checkpoint")
+        return cls(det.build(), seg.build(), profile, class_names=det.class_names,
+                   mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
+                   device=device, **kwargs)
+
+    @staticmethod
+    def load_pair(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint
+                  ) -> tuple[Checkpoint, Checkpoint]:
+        """The two checkpoints, checked to be a detector and a segmenter (CheckpointError naming a swapped pair,
+        the same file twice, or a checkpoint of another stage). Cheap: nothing is built."""
         if not isinstance(detector, Checkpoint) and not isinstance(segmenter, Checkpoint):
             if Path(detector).resolve() == Path(segmenter).resolve():
                 raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
@@ -126,16 +143,7 @@ class EraseNet:
                                   f"{det.describe()} given as detector, {seg.describe()} as segmenter")
         expect_stage(det, "detector", role="detector")
         expect_stage(seg, "segmenter", role="segmenter")
-        if det.preset != seg.preset:
-            raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
-        # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
-        profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
-        for ckpt, what in ((det, "detector"), (seg, "segmenter")):
-            if "schema" in ckpt.extra:
-                check_schema(cube_schema(profile), ckpt.extra["schema"], what=f"{what} checkpoint")
-        return cls(det.build(), seg.build(), profile, class_names=det.class_names,
-                   mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
-                   device=device, **kwargs)
+        return det, seg
 
     def schema(self, content: str = "complex") -> dict[str, Any]:
         """The cube schema this model accepts (radar.schema)."""

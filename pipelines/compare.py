@@ -1,4 +1,4 @@
-"""ERASE-Net and the 2-D baselines side by side on the same frames (issue 8; SPEC sections 9, 10 and 12).
+"""ERASE-Net and the 2-D baselines side by side on the same frames (docs/design.md sections 9, 10 and 12).
 
 The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``)::
 
@@ -67,7 +67,7 @@ log = logging.getLogger(__name__)
 KINDS = ("erasenet", "cfar", "baseline")
 CFAR_NAME = "CFAR + ERASE-Net segmenter"
 VIEWS = ("RD", "RA")  # the paper's column order
-PAPER_CARRADA = {  # SPEC section 12: mIoU % RD / RA, MACs G (paper's counter); other data, for context only
+PAPER_CARRADA = {  # docs/design.md section 12: mIoU % RD / RA, MACs G (paper's counter); other data, for context only
     "U-Net": ("58.01", "30.42", "54.84 RD / 13.71 RA"), "TMVA-Net": ("57.03", "37.86", "102.35"),
     "SMVA-Net": ("56.39", "38.17", "72.35"), "ERASE-Net (M)": ("53.57", "43.95", "8.41 + 0.49"),
 }
@@ -415,7 +415,7 @@ def render_compare(result: dict[str, Any]) -> str:
                      for row in result["models"]])
     lines += ["", "Every model is scored on the same frames, those the longest-window model can use, so the columns "
               "are comparable; \"frames it could use alone\" says how many each could score on its own.", "",
-              "Paper, CARRADA (SPEC section 12; other data, for context only): "
+              "Paper, CARRADA (docs/design.md section 12; other data, for context only): "
               + "; ".join(f"{name} RD {rd} / RA {ra} mIoU, {macs} GMACs" for name, (rd, ra, macs)
                           in PAPER_CARRADA.items()) + ".", "",
               "## Command", "", "```", result["command"] or "(called from Python)", "```", ""]

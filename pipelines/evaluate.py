@@ -1,4 +1,4 @@
-"""Evaluation of a trained ERASE-Net on a split of a store (issue 6; SPEC sections 6, 10 and 12).
+"""Evaluation of a trained ERASE-Net on a split of a store (docs/design.md sections 6, 10 and 12).
 
 ``radarseg evaluate --detector CKPT --segmenter CKPT --store STORE --split test --out DIR`` (or
 ``python -m pipelines.evaluate ...``) runs :class:`models.erasenet.EraseNet` on every frame of the

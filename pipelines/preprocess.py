@@ -1,4 +1,4 @@
-"""Ray job: RAD cubes into the zarr v3 store of inputs and targets (SPEC section 4).
+"""Ray job: RAD cubes into the zarr v3 store of inputs and targets (docs/design.md section 4).
 
 ::
 

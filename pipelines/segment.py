@@ -12,6 +12,7 @@ from radar import transforms
 from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
 from radar.io.errors import DataError
 from radar.io.npy import load_npy
+from radar.profiles import resolve_profile
 
 
 def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str | Path,
@@ -21,19 +22,21 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
     (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
     say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake."""
     declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
-    net = EraseNet.from_checkpoints(detector, segmenter, score_threshold=score_threshold)
+    det, seg = EraseNet.load_pair(detector, segmenter)  # checked before anything is built or read
+    profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
     if declared is InputKind.adc:
         from radar.adc import adc_shape
 
-        shape, what = adc_shape(net.profile), "ADC samples (samples, chirps, virtual elements)"
+        shape, what = adc_shape(profile), "ADC samples (samples, chirps, virtual elements)"
     else:
-        shape, what = net.profile.shape, "RAD cube (range, angle, Doppler)"
+        shape, what = profile.shape, "RAD cube (range, angle, Doppler)"
     cube = load_npy(cube_path, shape=shape, dtypes=(np.complexfloating, np.floating), what=what)
     try:
         kind = resolve_kind(cube.dtype, declared)
         check_values(cube, kind)
     except ValueError as exc:
         raise DataError(cube_path, str(exc)) from None
+    net = EraseNet.from_checkpoints(det, seg, score_threshold=score_threshold)
     if kind is InputKind.adc:
         from radar.adc import process_adc
 

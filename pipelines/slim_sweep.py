@@ -1,4 +1,4 @@
-"""Compression sweep of network slimming (issue 9; SPEC section 11): prune, optionally fine-tune, score.
+"""Compression sweep of network slimming (docs/design.md section 11): prune, optionally fine-tune, score.
 
 The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``)::
 

@@ -1,4 +1,4 @@
-"""Training of both ERASE-Net stages from the preprocessed store (SPEC sections 5 and 7), and the export
+"""Training of both ERASE-Net stages from the preprocessed store (docs/design.md sections 5 and 7), and the export
 of a shippable checkpoint::
 
     radarseg train detector  --store STORE.zarr --out runs/det [--profile quick|paper] [--resume]

@@ -1,4 +1,4 @@
-"""Training of the 2-D baselines (U-Net per view, TMVA-Net, SMVA-Net; SPEC section 9) with the same loop
+"""Training of the 2-D baselines (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9) with the same loop
 as ERASE-Net (:mod:`pipelines.training`; the stage is :mod:`pipelines.training.baselines`)::
 
     radarseg train-baseline tmvanet --store STORE.zarr --out runs/tmva [--profile quick|paper]

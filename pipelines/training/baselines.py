@@ -1,4 +1,4 @@
-"""The 2-D baselines' stage (U-Net per view, TMVA-Net, SMVA-Net; SPEC section 9).
+"""The 2-D baselines' stage (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9).
 
 Data: :class:`pipelines.views.ViewDataset` (RD/RA/AD views scaled by the train split's min/max; TMVA-Net
 reads the target frame and the 4 before it in its sequence, so the first 4 frames of each sequence
