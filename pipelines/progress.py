@@ -15,6 +15,20 @@ from typing import Any, TextIO
 from tqdm import tqdm
 
 LINE_EVERY_S = 5.0
+_last_line_at = [time.perf_counter()]  # when this process last wrote a progress line (see seconds_since_line)
+
+
+def note_line() -> None:
+    """Record that a line of progress was just written (by a bar, or by a caller's own report)."""
+    _last_line_at[0] = time.perf_counter()
+
+
+def seconds_since_line() -> float:
+    """Seconds since the last progress line of this process: a heartbeat speaks only when this grows. A visible
+    tqdm bar on a terminal counts as a line written now (it redraws itself)."""
+    if any(not getattr(bar, "disable", True) for bar in list(getattr(tqdm, "_instances", ()))):
+        note_line()
+    return time.perf_counter() - _last_line_at[0]
 
 
 class PlainProgress:
@@ -66,6 +80,7 @@ class PlainProgress:
         extra = f", {self.postfix}" if self.postfix else ""
         print(f"{self.desc}: {done} {self.unit}{share}, {now - self.started:.1f} s{extra}", file=self.stream,
               flush=True)
+        note_line()
 
 
 def progress(iterable: Iterable[Any] | None = None, *, disable: bool = False, **kwargs: Any) -> Any:
