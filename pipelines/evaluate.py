@@ -180,8 +180,8 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
             pictures.append(path.name)
 
     curves = detection.curves()
-    summary_pictures = [plot_pr_curves({f"k = {k:g}": (c.recall, c.precision, c.ap) for k, c in curves.items()},
-                                       out / "pr_curves.png").name]
+    legend = {f"k = {k:g} (m and Doppler bins)": (c.recall, c.precision, c.ap) for k, c in curves.items()}
+    summary_pictures = [plot_pr_curves(legend, out / "pr_curves.png").name]
     for view, matrix in confusion.matrices.items():
         summary_pictures.append(plot_confusion(matrix, class_names, out / f"confusion_{view}.png",
                                                title=f"{view.upper()} confusion ({split_name}, {len(frames)} frames)"
