@@ -7,15 +7,29 @@ STAMP := $(VENV)/.installed
 export RAY_AUTH_MODE ?= disabled
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: venv test test-fast demo lint bench clean
+.PHONY: venv clean-venv test test-fast demo lint bench clean
+
+# torch is pinned in pyproject.toml; which build of it is installed is chosen here:
+#   TORCH_VARIANT=cpu  (default) the CPU build, about 200 MB, from PyTorch's CPU index (its "+cpu" wheel outranks
+#                      PyPI's build of the same version; torch alone comes from there, its dependencies from PyPI
+#                      with the project's); where a local wheel folder already holds it (our CI), pip takes that
+#                      one and only warns that the index cannot be reached
+#   TORCH_VARIANT=cuda PyPI's default build, with CUDA (several GB)
+#   TORCH_INDEX=URL    another index for torch (a mirror, or https://download.pytorch.org/whl/cu126 for one CUDA)
+TORCH_VERSION := $(shell sed -n 's/.*"torch==\([^"]*\)".*/\1/p' pyproject.toml)
+TORCH_VARIANT ?= cpu
+TORCH_INDEX ?= $(if $(filter cpu,$(TORCH_VARIANT)),https://download.pytorch.org/whl/cpu,)
 
 venv: $(STAMP)
 
-# Re-installs only when pyproject.toml changes; torch is pinned to the CPU wheel on local disk.
+# Re-installs only when pyproject.toml changes (or the torch choice is changed by hand: `make clean-venv`).
 $(STAMP): pyproject.toml
+	@echo "set-up: .venv with torch $(TORCH_VERSION) ($(TORCH_VARIANT) build$(if $(TORCH_INDEX), from $(TORCH_INDEX),)) and the project's dependencies; this takes a few minutes"
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet --no-deps 'torch==$(TORCH_VERSION)' $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX),)
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@$(BIN)/python -c "import torch; print(f'set-up done: torch {torch.__version__}, CUDA available: {torch.cuda.is_available()}')"
 	touch $(STAMP)
 
 test: venv
@@ -39,3 +53,7 @@ bench: venv
 
 clean:
 	rm -rf out .pytest_cache
+
+# To switch the torch build: make clean-venv && make venv TORCH_VARIANT=cuda
+clean-venv:
+	rm -rf $(VENV)

@@ -4,6 +4,12 @@ plus the radar preset, class names and input normalisation the model was trained
 Saved with ``torch.save`` as plain containers and tensors; loaded with ``weights_only=True``, so a
 checkpoint can never run code on load. A pruned (slimmed) model stores the config of its narrower
 architecture, so it loads without the original.
+
+A checkpoint says what it is: its ``stage`` (detector, segmenter or baseline), its architecture (the registry
+name), its preset and the ``input_kind`` it takes (normalised log power in dB for every model we train). Files
+written before these fields existed still load: the stage comes from ``extra["stage"]`` or, failing that, from
+the architecture. Every command that loads a checkpoint for a role names the role (``load_checkpoint(path,
+stage="detector")``), so a swapped or foreign file is one line naming what was given and what was expected.
 """
 
 from __future__ import annotations
@@ -24,8 +30,21 @@ FORMAT = "radarseg.checkpoint"
 VERSION = 1
 
 
+# The stage of each architecture (registry name without its ``_tiny`` suffix): for checkpoints that predate
+# the ``stage`` field and carry no ``extra["stage"]``.
+STAGE_OF_ARCHITECTURE = {"centre_detector": "detector", "minkunet": "segmenter", "spvcnn": "segmenter",
+                         "unet": "baseline", "tmvanet": "baseline", "smvanet": "baseline"}
+STAGES = ("detector", "segmenter", "baseline")
+INPUT_KIND = "log_power_db"  # what every model we train takes (normalised with the checkpoint's statistics)
+
+
 class CheckpointError(UserError):
-    """A checkpoint file that is missing, unreadable or not a radarseg checkpoint."""
+    """A checkpoint file that is missing, unreadable, not a radarseg checkpoint, or not the one expected."""
+
+
+def architecture_stage(model_name: str) -> str | None:
+    """The stage of a registry name (``centre_detector_tiny`` -> ``detector``); None for an unknown one."""
+    return STAGE_OF_ARCHITECTURE.get(model_name.removesuffix("_tiny"))
 
 
 @dataclass
@@ -39,6 +58,21 @@ class Checkpoint:
     class_names: tuple[str, ...]  # including background at index 0
     normalisation: dict[str, float] = field(default_factory=lambda: {"mean": 0.0, "std": 1.0})  # of log power (dB)
     extra: dict[str, Any] = field(default_factory=dict)  # epoch, metrics, optimiser config, ...
+    source: str | None = field(default=None, compare=False)  # the file it was loaded from (not saved)
+
+    @property
+    def stage(self) -> str | None:
+        """detector, segmenter or baseline (stored, or derived from the architecture for older files)."""
+        return self.extra.get("stage") or architecture_stage(self.model_name)
+
+    @property
+    def input_kind(self) -> str:
+        """What the model takes as input (``log_power_db``: normalised log power, radar.input_kind)."""
+        return self.extra.get("input_kind", INPUT_KIND)
+
+    def describe(self) -> str:
+        """``a detector checkpoint (centre_detector, preset small)``."""
+        return f"a {self.stage or 'model'} checkpoint ({self.model_name}, preset {self.preset})"
 
     def build(self, *, device: str | torch.device = "cpu") -> nn.Module:
         """The model in eval mode with the checkpoint's weights."""
@@ -51,6 +85,8 @@ class Checkpoint:
             "format": FORMAT, "version": VERSION, "model_name": self.model_name, "config": dict(self.config),
             "state_dict": self.state_dict, "preset": self.preset, "class_names": list(self.class_names),
             "normalisation": dict(self.normalisation), "extra": dict(self.extra),
+            # what the file is, readable without the registry (older readers ignore these keys)
+            "stage": self.stage, "input_kind": self.input_kind,
         }
 
 
@@ -64,23 +100,45 @@ def save_checkpoint(checkpoint: Checkpoint, path: str | Path) -> Path:
     return path
 
 
-def load_checkpoint(path: str | Path) -> Checkpoint:
+def load_checkpoint(path: str | Path, *, stage: str | None = None, role: str | None = None) -> Checkpoint:
+    """The checkpoint in ``path``; with ``stage``, refused (CheckpointError) unless it is one of that stage.
+    ``role`` names the option it was given as (``--detector``) in the message."""
     path = Path(path)
+    what = f"{role} {path}" if role else str(path)
+    kind = stage or (role if role in STAGES else "model")
+    expected = f"expected a radarseg {kind} checkpoint (.pt written by radarseg train)"
     if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
+        raise CheckpointError(f"{what}: no such checkpoint file; {expected}")
     try:
         data = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for corrupt or unsafe files
-        raise CheckpointError(f"{path}: not a loadable radarseg checkpoint ({type(exc).__name__}: {exc})") from None
+    except Exception as exc:  # torch raises many types for corrupt or unsafe files; its advice (weights_only=False
+        # would run the file's code) is not relayed
+        raise CheckpointError(f"{what}: not a checkpoint (torch cannot load it: {type(exc).__name__}); "
+                              f"{expected}") from None
     if not isinstance(data, dict) or data.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a radarseg checkpoint (expected format {FORMAT!r})")
+        raise CheckpointError(f"{what}: a torch file but not a radarseg checkpoint; {expected}")
     if data.get("version") != VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {data.get('version')!r}, expected {VERSION}")
-    return Checkpoint(
+        raise CheckpointError(f"{what}: checkpoint version {data.get('version')!r}, expected {VERSION}")
+    checkpoint = Checkpoint(
         model_name=data["model_name"], config=dict(data["config"]), state_dict=data["state_dict"],
         preset=data["preset"], class_names=tuple(data["class_names"]),
-        normalisation=dict(data["normalisation"]), extra=dict(data["extra"]),
+        normalisation=dict(data["normalisation"]), extra=dict(data["extra"]), source=str(path),
     )
+    for key in ("stage", "input_kind"):  # the top-level fields (written since they exist) win over a guess
+        if data.get(key) and key not in checkpoint.extra:
+            checkpoint.extra[key] = data[key]
+    if stage is not None:
+        expect_stage(checkpoint, stage, role=role)
+    return checkpoint
+
+
+def expect_stage(checkpoint: Checkpoint, stage: str, *, role: str | None = None) -> None:
+    """CheckpointError unless ``checkpoint`` is of ``stage``, naming what was given and what was expected."""
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    if checkpoint.stage != stage:
+        where = " ".join(part for part in (role, checkpoint.source) if part) or "checkpoint"
+        raise CheckpointError(f"{where}: {checkpoint.describe()}, expected a {stage} checkpoint")
 
 
 def export_checkpoint(source: str | Path, target: str | Path, *, float16: bool = True) -> Path:

@@ -1,4 +1,4 @@
-"""End-to-end ERASE-Net inference with its compute report (SPEC sections 5-8, 10).
+"""End-to-end ERASE-Net inference with its compute report (docs/design.md sections 5-8, 10).
 
 cube -> log transform -> normalised detector input -> detector -> decode -> region growing ->
 ROI points -> sparse segmenter -> RAD label cube (background outside the ROI) -> RA / RD masks ->
@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_checkpoint
 from models.compute import ComputeCounter, MacRecorder, count_params
 from models.compute_report import STAGES, FrameCompute
 from models.detection import MAX_OBJECTS, decode_centres, normalise_log_power
@@ -114,9 +114,9 @@ class EraseNet:
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
                          device: str | torch.device = "cpu", **kwargs: Any) -> EraseNet:
         """Both stages from checkpoints that carry their own architecture; the detector's checkpoint
-        gives the preset, class names and input normalisation."""
-        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
-        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
+        gives the preset, class names and input normalisation. A swapped pair, the same file twice or a
+        checkpoint of another stage raises CheckpointError naming what was given and what was expected."""
+        det, seg = cls.load_pair(detector, segmenter)
         if det.preset != seg.preset:
             raise UserError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
         # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
@@ -127,6 +127,24 @@ class EraseNet:
         return cls(det.build(), seg.build(), profile, class_names=det.class_names,
                    mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
                    device=device, **kwargs)
+
+    @staticmethod
+    def load_pair(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint
+                  ) -> tuple[Checkpoint, Checkpoint]:
+        """The two checkpoints, checked to be a detector and a segmenter (CheckpointError naming a swapped pair,
+        the same file twice, or a checkpoint of another stage). Cheap: nothing is built."""
+        if not isinstance(detector, Checkpoint) and not isinstance(segmenter, Checkpoint):
+            if Path(detector).resolve() == Path(segmenter).resolve():
+                raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
+                                      f"detector checkpoint and a segmenter checkpoint")
+        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, role="detector")
+        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, role="segmenter")
+        if det.stage == "segmenter" and seg.stage == "detector":
+            raise CheckpointError(f"detector {det.source or ''} and segmenter {seg.source or ''} are swapped: "
+                                  f"{det.describe()} given as detector, {seg.describe()} as segmenter")
+        expect_stage(det, "detector", role="detector")
+        expect_stage(seg, "segmenter", role="segmenter")
+        return det, seg
 
     def schema(self, content: str = "complex") -> dict[str, Any]:
         """The cube schema this model accepts (radar.schema)."""

@@ -1,4 +1,4 @@
-"""ERASE-Net and the 2-D baselines side by side on the same frames (issue 8; SPEC sections 9, 10 and 12).
+"""ERASE-Net and the 2-D baselines side by side on the same frames (docs/design.md sections 9, 10 and 12).
 
 The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``)::
 
@@ -45,13 +45,13 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from models.capabilities import Role, dense_input_shapes
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet import EraseNet
 from pipelines.jobs import run_module
+from pipelines.progress import progress
 from pipelines.report import fmt_num, fmt_pct, md_table
 from pipelines.scoring import ViewConfusion, predicted_views, view_summary
 from pipelines.spread import spread
@@ -80,7 +80,7 @@ KINDS = tuple(Entry)
 CHECKPOINTS_TAKEN = {Entry.ERASENET: (2,), Entry.CFAR: (1,), Entry.BASELINE: (1, 2)}
 CFAR_NAME = "CFAR + ERASE-Net segmenter"
 VIEWS = ("RD", "RA")  # the paper's column order
-PAPER_CARRADA = {  # SPEC section 12: mIoU % RD / RA, MACs G (paper's counter); other data, for context only
+PAPER_CARRADA = {  # docs/design.md section 12: mIoU % RD / RA, MACs G (paper's counter); other data, for context only
     "U-Net": ("58.01", "30.42", "54.84 RD / 13.71 RA"), "TMVA-Net": ("57.03", "37.86", "102.35"),
     "SMVA-Net": ("56.39", "38.17", "72.35"), "ERASE-Net (M)": ("53.57", "43.95", "8.41 + 0.49"),
 }
@@ -161,7 +161,7 @@ class Prediction:
 
 
 def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: Role, preset: str, class_names: Sequence[str]) -> None:
-    found = checkpoint.extra.get("stage")
+    found = checkpoint.stage
     if found != stage:
         raise UserError(f"{path}: expected a {stage} checkpoint, found stage {found!r} ({checkpoint.model_name})")
     if checkpoint.preset != preset:
@@ -357,7 +357,8 @@ def _score_frames(cfg: CompareConfig, predictors: list, targets: np.ndarray, tal
     root = open_store(cfg.store)
     arrays = {name: root[name] for name in ("input", "ra_mask", "rd_mask")}
     pictures: dict[int, dict[str, Any]] = {}
-    for slot in tqdm(targets.tolist(), desc=f"compare {cfg.split or 'all'}", unit="frame", disable=not cfg.progress):
+    for slot in progress(targets.tolist(), desc=f"compare {cfg.split or 'all'}", unit="frame",
+                         disable=not cfg.progress):
         log_power = arrays["input"][slot].astype(np.float32)  # (R, A, D) dB
         truth = {"ra": arrays["ra_mask"][slot], "rd": arrays["rd_mask"][slot]}
         truth_tally.add(truth, truth["ra"], truth["rd"])
@@ -441,7 +442,7 @@ def render_compare(result: dict[str, Any]) -> str:
                      for row in result["models"]])
     lines += ["", "Every model is scored on the same frames, those the longest-window model can use, so the columns "
               "are comparable; \"frames it could use alone\" says how many each could score on its own.", "",
-              "Paper, CARRADA (SPEC section 12; other data, for context only): "
+              "Paper, CARRADA (docs/design.md section 12; other data, for context only): "
               + "; ".join(f"{name} RD {rd} / RA {ra} mIoU, {macs} GMACs" for name, (rd, ra, macs)
                           in PAPER_CARRADA.items()) + ".", "",
               "## Command", "", "```", result["command"] or "(called from Python)", "```", ""]
@@ -452,7 +453,7 @@ def render_compare(result: dict[str, Any]) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--store", required=True)
+    parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
     parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (compare.json, compare.md, compare_frames.png)")
     parser.add_argument("--erasenet", action="append", default=[], metavar="NAME=DETECTOR,SEGMENTER",
@@ -465,8 +466,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pictures", type=int, default=3, help="frames in compare_frames.png")
     parser.add_argument("--score-threshold", type=float, help="ERASE-Net seed score threshold")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (timings are taken with these)")
-    parser.add_argument("--device", default="cpu")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def config_from_args(args: argparse.Namespace) -> CompareConfig:

@@ -1,4 +1,4 @@
-"""Evaluation of a trained ERASE-Net on a split of a store (issue 6; SPEC sections 6, 10 and 12).
+"""Evaluation of a trained ERASE-Net on a split of a store (docs/design.md sections 6, 10 and 12).
 
 ``radarseg evaluate --detector CKPT --segmenter CKPT --store STORE --split test --out DIR`` (or
 ``python -m pipelines.evaluate ...``) runs :class:`models.erasenet.EraseNet` on every frame of the
@@ -32,12 +32,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from models.checkpoint import load_checkpoint
 from models.detection import detect_centres
 from models.erasenet import EraseNet
 from pipelines.jobs import run_module
+from pipelines.progress import progress
 from pipelines.scoring import DetectionScorer, ViewConfusion
 from pipelines.spread import spread
 from pipelines.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
@@ -122,9 +122,10 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
 
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    det_ckpt = load_checkpoint(cfg.detector, stage="detector", role="--detector")
+    seg_ckpt = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    det_ckpt, seg_ckpt = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
     net = EraseNet.from_checkpoints(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
@@ -136,7 +137,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     tallies = _Tallies.empty(net.profile, cfg.sweep)
     pictures: list[str] = []
     started = time.perf_counter()
-    for slot in tqdm(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
+    for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
         frame = {name: array[slot] for name, array in arrays.items()}
         picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames)
@@ -225,8 +226,8 @@ def _summary_pictures(tallies: _Tallies, class_names: Any, out: Path, what: str)
     from pipelines.figures import plot_confusion, plot_pr_curves
 
     curves = tallies.detection.curves()
-    names = [plot_pr_curves({f"k = {k:g}": (c.recall, c.precision, c.ap) for k, c in curves.items()},
-                            out / "pr_curves.png").name]
+    legend = {f"k = {k:g} (m and Doppler bins)": (c.recall, c.precision, c.ap) for k, c in curves.items()}
+    names = [plot_pr_curves(legend, out / "pr_curves.png").name]
     for view, matrix in tallies.confusion.matrices.items():
         names.append(plot_confusion(matrix, class_names, out / f"confusion_{view}.png",
                                     title=f"{view.upper()} confusion ({what})").name)
@@ -277,21 +278,22 @@ def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--detector", required=True, help="detector checkpoint")
     parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
-    parser.add_argument("--store", required=True)
+    parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
     parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
     parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread")
-    parser.add_argument("--pictures", type=int, default=4)
+    parser.add_argument("--pictures", type=int, default=4, help="frames drawn (truth above prediction)")
     parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
-    parser.add_argument("--sweep-frames", type=int, default=48)
-    parser.add_argument("--score-threshold", type=float)
+    parser.add_argument("--sweep-frames", type=int, default=48,
+                        help="frames of the region-growing D_thresh sweep")
+    parser.add_argument("--score-threshold", type=float, help="detector score threshold (default: the model's 0.3)")
     parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
     parser.add_argument("--no-doppler-refinement", action="store_true",
                         help="keep the detector's own Doppler (no refinement from the cube)")
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     parser.add_argument("--threads", type=int, default=0,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:

@@ -31,10 +31,11 @@ def _overlay(ax, mask: np.ndarray, extent, num_classes: int) -> None:
 def draw_views(axes, log_power: np.ndarray, profile: RadarProfile, ra_mask: np.ndarray | None,
                rd_mask: np.ndarray | None, annotations: list[tuple[str, float, float, float]], *,
                colorbar: bool = True, empty_note: str | None = None) -> None:
-    """RA view (sin(azimuth) x range) on ``axes[0]`` and RD view (velocity x range) on ``axes[1]``, masks
-    drawn over them and ``annotations`` ``(text, x m, y m, radial velocity m/s)`` placed on both; a colour
-    bar (dB) beside each view (``colorbar``); ``empty_note`` (e.g. "no detections") written on both views
-    when there is no annotation and no masked pixel, so an empty prediction does not look like a bug."""
+    """RA view (azimuth x range: uniform in sin(azimuth), ticks in degrees) on ``axes[0]`` and RD view (velocity x
+    range) on ``axes[1]``, masks drawn over them and ``annotations`` ``(text, x m, y m, radial velocity m/s)``
+    placed on both; a colour bar (dB) beside each view (``colorbar``); ``empty_note`` (e.g. "no detections")
+    written on both views when there is no annotation and no masked pixel, so an empty prediction does not look
+    like a bug."""
     p = profile
     ra, rd = transforms.ra_view(log_power, is_log_power=True), transforms.rd_view(log_power, is_log_power=True)
     ra_extent = (-1.0, 1.0, 0.0, p.max_range)
@@ -53,12 +54,18 @@ def draw_views(axes, log_power: np.ndarray, profile: RadarProfile, ra_mask: np.n
         _overlay(axes[0], ra_mask, ra_extent, p.num_classes)
     if rd_mask is not None:
         _overlay(axes[1], rd_mask, rd_extent, p.num_classes)
-    for text, x, y, velocity in annotations:
+    for n, (text, x, y, velocity) in enumerate(annotations):
         rng = float(np.hypot(x, y))
-        axes[0].annotate(text, (x / max(rng, 1e-6), rng), color="white", fontsize=8, xytext=(4, 4),
-                         textcoords="offset points")
-        axes[1].annotate(text, (velocity, rng), color="white", fontsize=8, xytext=(4, 4), textcoords="offset points")
-    axes[0].set(xlabel="sin(azimuth)  (right > 0)", ylabel="range (m)", title="RA: max log power over Doppler")
+        # labels point inwards (never cut at the right edge) and alternate up and down (fewer overlaps)
+        for ax, at, middle in ((axes[0], x / max(rng, 1e-6), 0.0), (axes[1], velocity, sum(rd_extent[:2]) / 2)):
+            right = at > middle
+            ax.annotate(text, (at, rng), color="white", fontsize=8, xytext=(-4 if right else 4, 4 if n % 2 else -10),
+                        textcoords="offset points", ha="right" if right else "left", annotation_clip=True)
+    # The RA image is uniform in sin(azimuth) (the angle FFT's bins); its axis is labelled in degrees, like the
+    # viewer's and the API's.
+    degrees = np.array([-60, -30, 0, 30, 60])
+    axes[0].set_xticks(np.sin(np.radians(degrees)), [f"{d:d}" for d in degrees])
+    axes[0].set(xlabel="azimuth (deg, right > 0)", ylabel="range (m)", title="RA: max log power over Doppler")
     axes[1].set(xlabel="radial velocity (m/s, receding > 0)", ylabel="range (m)",
                 title="RD: log power summed over angle")
 

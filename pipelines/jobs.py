@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib
+import json
 import logging
 import os
 import shlex
@@ -40,18 +41,63 @@ def job_module(name: str) -> ModuleType:
     return module
 
 
-def job_parser(module: ModuleType, prog: str, description: str | None = None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=prog, description=description or (module.__doc__ or "").split("\n")[0])
-    module.add_arguments(parser)
+class DefaultsHelpFormatter(argparse.HelpFormatter):
+    """Every option's help ends with its default (``(default: 8)``), unless it has none to show (None, a flag's
+    False) or its help already says it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if (not action.option_strings or action.default is None or action.default is argparse.SUPPRESS
+                or isinstance(action.default, bool) or "default" in text):
+            return text
+        default = " ".join(map(str, action.default)) if isinstance(action.default, (list, tuple)) else "%(default)s"
+        return f"{text} (default: {default})" if default else text
+
+
+def with_defaults_shown(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """``parser`` and every subparser below it formatting help with :class:`DefaultsHelpFormatter`."""
+    parser.formatter_class = DefaultsHelpFormatter
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                with_defaults_shown(sub)
     return parser
 
 
-def parse_config(module: ModuleType, argv: Sequence[str] | None, prog: str) -> Any:
-    """The job's config from command-line arguments (exits with argparse's message on bad ones). The
-    namespace also carries ``command_line``, the command as typed, for jobs that record it in their report."""
+def _with_json_option(parser: argparse.ArgumentParser) -> None:
+    """``--json`` on every leaf parser (a job with subcommands takes it after its subcommand)."""
+    subparsers = [a for a in parser._actions if isinstance(a, argparse._SubParsersAction)]
+    if not subparsers:
+        parser.add_argument("--json", action="store_true",
+                            help="print the result as one JSON line (for machines) instead of the text summary")
+    for action in subparsers:
+        for sub in action.choices.values():
+            _with_json_option(sub)
+
+
+def job_parser(module: ModuleType, prog: str, description: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog=prog, description=description or (module.__doc__ or "").split("\n")[0])
+    module.add_arguments(parser)
+    _with_json_option(parser)
+    return with_defaults_shown(parser)
+
+
+def parse_job_args(module: ModuleType, argv: Sequence[str] | None, prog: str) -> argparse.Namespace:
+    """The job's parsed options (exits with argparse's message on bad ones). The namespace also carries
+    ``command_line``, the command as typed, for jobs that record it in their report."""
     argv = list(sys.argv[1:] if argv is None else argv)
     args = job_parser(module, prog).parse_args(argv)
     args.command_line = shlex.join([*prog.split(), *argv])
+    return args
+
+
+def parse_config(module: ModuleType, argv: Sequence[str] | None, prog: str) -> Any:
+    """The job's config from command-line arguments (see :func:`parse_job_args`)."""
+    return config_of(module, parse_job_args(module, argv, prog))
+
+
+def config_of(module: ModuleType, args: argparse.Namespace) -> Any:
+    """``module.config_from_args(args)``; a ValueError there is the config refusing an argument: a UserError."""
     try:
         return module.config_from_args(args)
     except ValueError as exc:  # the config refused an argument: the user's mistake, whatever its type
@@ -105,13 +151,15 @@ def smoke_config(cfg: Any) -> Any:
 
 
 def run_job(name: str, argv: Sequence[str] | None, prog: str) -> tuple[dict[str, Any], str]:
-    """Parse, run and format one job: ``(result, printed summary)``; tiny sizes under ``RADARSEG_SMOKE=1``."""
+    """Parse, run and format one job: ``(result, printed summary)``; tiny sizes under ``RADARSEG_SMOKE=1``.
+    The summary is text for people, or with ``--json`` the result as one JSON line for machines."""
     module = job_module(name)
-    cfg = parse_config(module, argv, prog)
+    args = parse_job_args(module, argv, prog)
+    cfg = config_of(module, args)
     if smoke_mode():
         cfg = smoke_config(cfg)
     result = module.main(cfg)
-    return result, module.format_result(result)
+    return result, json.dumps(result, default=str) if getattr(args, "json", False) else module.format_result(result)
 
 
 def run_module(name: str, argv: Sequence[str] | None = None) -> int:

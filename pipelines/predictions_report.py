@@ -51,7 +51,7 @@ def summarise_predictions(path: str | Path) -> dict[str, Any]:
         "class_voxels": {name: int(v) for name, v in zip(names, voxels, strict=True)},
         "detections_per_frame": {
             "mean": float(n_objects.mean()) if len(n_objects) else 0.0,
-            "min": int(n_objects.min(initial=0)), "max": int(n_objects.max(initial=0)),
+            "min": int(n_objects.min()) if len(n_objects) else 0, "max": int(n_objects.max(initial=0)),
             "frames_without": int((n_objects == 0).sum()),
             "histogram": {str(k): int(v) for k, v in enumerate(np.bincount(n_objects)) if v},
         },
@@ -122,8 +122,11 @@ def write_predictions_report(path: str | Path, out: str | Path | None = None, *,
                                    x=float(row[OBJ["x"]]), y=float(row[OBJ["y"]]),
                                    velocity_mps=float(row[OBJ["velocity_mps"]])) for row in table]
         sequence, index = sequences[int(group["sequence_id"][i])], int(group["frame_index"][i])
-        log_power = _log_power(summary["source"], int(group["source_slot"][i]), sequence, index)
+        source_slot = int(group["source_slot"][i])
+        log_power = _log_power(summary["source"], source_slot, sequence, index)
+        # named by the source's slot, as radarseg evaluate names the frames of a store
         drawn.append(plot_prediction(log_power, profile, group["ra_mask"][i], group["rd_mask"][i], objects,
-                                     out / f"frame_{i:05d}.png",
-                                     title=f"{sequence} frame {index}: {len(objects)} detections").name)
+                                     out / f"frame_{source_slot:05d}.png",
+                                     title=f"{sequence} frame {index}: {len(objects)} objects labelled; masks: "
+                                           f"predicted classes").name)
     return {"dir": str(out), "summary": summary, "pictures": drawn}

@@ -1,4 +1,4 @@
-"""Ray job: RAD cubes into the zarr v3 store of inputs and targets (SPEC section 4).
+"""Ray job: RAD cubes into the zarr v3 store of inputs and targets (docs/design.md section 4).
 
 ::
 
@@ -32,7 +32,6 @@ the result is deterministic) into the store's ``normalisation`` and ``class_voxe
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from collections.abc import Iterator, Sequence
@@ -420,10 +419,11 @@ def main(cfg: PreprocessConfig) -> dict[str, Any]:
 
 
 def format_result(result: dict[str, Any]) -> str:
-    """The summary line, then the figures as one JSON line (what drivers of ``ray job submit`` read)."""
+    """The summary line (``--json`` prints the figures as one JSON line instead: what drivers of ``ray job
+    submit`` read)."""
     return (f"store {result['store']}: {result['written']}/{result['frames']} frames written, "
             f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
-            f"{result['shards_skipped']} already done\n{json.dumps(result)}")
+            f"{result['shards_skipped']} already done")
 
 
 if __name__ == "__main__":

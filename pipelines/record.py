@@ -5,8 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from tqdm import tqdm
-
+from pipelines.progress import progress as progress_bar
 from radar.errors import UserError
 from radar.io.recording import RecordingWriter
 from radar.profiles import get_profile
@@ -25,7 +24,8 @@ def simulate_recording(*, preset: str, sequences: int, frames: int, seed: int, o
     config = config or SimulatorConfig()
     source = {"kind": "sim", "seed": seed, "simulator": config.to_dict()}
     with RecordingWriter(out, profile, source=source, content="adc" if adc else "cube") as writer, \
-            tqdm(total=sequences * frames, desc=f"simulate {preset}", unit="frame", disable=not progress) as bar:
+            progress_bar(total=sequences * frames, desc=f"simulate {preset}", unit="frame",
+                         disable=not progress) as bar:
         for s in range(sequences):
             for frame in simulate_sequence(profile, frames, seed=seed, sequence_index=s, config=config):
                 writer.write(frame)

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import json
 import logging
 import os
 import sys
@@ -174,7 +173,8 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
     if kind == "recording" and cfg.split is not None:
         raise UserError("--split: only with a store source (a recording is segmented whole)")
 
-    det, seg = load_checkpoint(cfg.detector), load_checkpoint(cfg.segmenter)
+    det = load_checkpoint(cfg.detector, stage="detector", role="--detector")
+    seg = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
     if det.preset != seg.preset:
         raise UserError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
                          f"for {seg.preset!r}")
@@ -382,12 +382,12 @@ def store_attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
 
 
 def format_result(result: dict[str, Any]) -> str:
-    """The summary line, then the figures as one JSON line (what drivers of ``ray job submit`` read)."""
+    """The summary line (``--json`` prints the figures as one JSON line instead: what drivers of ``ray job
+    submit`` read)."""
     return (f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
             f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
             f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
-            f"{result['workers']} worker(s) on {result['nodes']} node(s); summary and pictures in {result['report']}"
-            f"\n{json.dumps(result)}")
+            f"{result['workers']} worker(s) on {result['nodes']} node(s); summary and pictures in {result['report']}")
 
 
 if __name__ == "__main__":

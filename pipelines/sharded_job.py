@@ -30,8 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from tqdm import tqdm
-
+from pipelines.progress import progress
 from pipelines.provenance import code_version
 from pipelines.ray_runtime import init_ray
 from pipelines.shard_frames import FrameSlot, ShardJob, SourceSpec
@@ -134,7 +133,7 @@ def run_sharded(job: ShardedJob, execution: Execution) -> ShardedRun:
         ready = time.perf_counter()
         log.info("%s: %d shards (%d done before), %d worker(s) %s", plan.out, plan.layout.n_shards, len(done),
                  workers, backend.where)
-        with tqdm(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
+        with progress(total=plan.layout.n_frames, initial=sum(s["frames"] for s in done.values()), unit="frame",
                   desc=execution.desc, disable=not execution.progress) as bar:
             for summary in backend.run(todo):
                 new.append(summary)

@@ -175,7 +175,9 @@ def open_sharded_store(path: str | Path, *, store_format: str, version: int, req
     """
     path = Path(path)
     if not (path / "zarr.json").is_file():
-        raise DataError(path, "not a zarr store (missing zarr.json)")
+        hint = (f"; it is a recording: preprocess it first (radarseg preprocess --source recording:{path} --out "
+                f"STORE.zarr)" if (path / "recording.json").is_file() else "")
+        raise DataError(path, f"not a zarr store (missing zarr.json){hint}")
     root = zarr.open_group(str(path), mode="r")
     attrs = root.attrs.asdict()
     if attrs.get("format") != store_format:

@@ -1,4 +1,4 @@
-"""Compression sweep of network slimming (issue 9; SPEC section 11): prune, optionally fine-tune, score.
+"""Compression sweep of network slimming (docs/design.md section 11): prune, optionally fine-tune, score.
 
 The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``)::
 
@@ -302,16 +302,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--work", default="out/slim-sweep", help="pruned checkpoints and fine-tune runs")
     for kind in SLOTS:
         parser.add_argument(f"--{kind}", help=f"{kind} checkpoint (trained with --slim-lambda, ideally)")
-    parser.add_argument("--ratios", type=float, nargs="+", default=list(PAPER_RATIOS))
-    parser.add_argument("--split", default="test")
+    parser.add_argument("--ratios", type=float, nargs="+", default=list(PAPER_RATIOS),
+                        help="compression ratios (fraction of BatchNorm channels removed)")
+    parser.add_argument("--split", default="test", help="store split scored")
     parser.add_argument("--max-frames", type=int, default=0, help="frames scored per model and ratio (0: all)")
     parser.add_argument("--finetune-steps", type=int, default=0, help="optimiser steps after pruning (0: none)")
     parser.add_argument("--finetune-steps-smvanet", type=int, help="SMVA-Net's fine-tuning steps (default: the same)")
-    parser.add_argument("--lr-erasenet", type=float, default=1e-3)
-    parser.add_argument("--lr-baseline", type=float, default=1e-5)
-    parser.add_argument("--batch-size", type=int, default=4)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--lr-erasenet", type=float, default=1e-3, help="fine-tuning lr of the detector and segmenters")
+    parser.add_argument("--lr-baseline", type=float, default=1e-5, help="fine-tuning lr of the baselines")
+    parser.add_argument("--batch-size", type=int, default=4, help="fine-tuning batch size")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads")
+    parser.add_argument("--seed", type=int, default=0, help="seed of fine-tuning")
     parser.add_argument("--notes-file", help="markdown file saying how the checkpoints were made (goes in the report)")
 
 

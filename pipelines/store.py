@@ -1,4 +1,4 @@
-"""The preprocessed store (SPEC section 4): zarr v3 schema, frame encoding, reader, torch Dataset.
+"""The preprocessed store (docs/design.md section 4): zarr v3 schema, frame encoding, reader, torch Dataset.
 
 Layout of ``STORE.zarr`` (one zarr v3 group; ``N`` frame slots, ``S`` frames per shard)::
 
@@ -7,7 +7,7 @@ Layout of ``STORE.zarr`` (one zarr v3 group; ``N`` frame slots, ``S`` frames per
     instances  uint8   (N, R, A, D)   instance cube; ids index the object table   sharded likewise
     ra_mask    uint8   (N, R, A)      RA projection of ``labels``                  sharded, chunk 1 frame
     rd_mask    uint8   (N, R, D)      RD projection of ``labels``                  sharded, chunk 1 frame
-    heatmap    float16 (N, R/4, A/4)  centre heatmap (SPEC section 5 Gaussian)    sharded, chunk 1 frame
+    heatmap    float16 (N, R/4, A/4)  centre heatmap (docs/design.md section 5 Gaussian)    sharded, chunk 1 frame
     objects    float32 (N, K, F)      object table, NaN padded (columns OBJECT_FIELDS)   chunk S frames
     n_objects  int32   (N,)           rows of ``objects`` in use                  chunk S frames
     frame_index int32  (N,)           frame index within its sequence             chunk S frames
@@ -21,7 +21,7 @@ owns a shard writes it whole, then its progress marker, and ``complete`` comes l
 both of our stores: :mod:`pipelines.sharded_store`).
 
 Objects with no labelled voxel (``n_voxels == 0``) are not in the table: they are not targets.
-Encoding uses zstd level 1 without shuffle (noise-like log power barely compresses; SPEC section 4).
+Encoding uses zstd level 1 without shuffle (noise-like log power barely compresses; docs/design.md section 4).
 """
 
 from __future__ import annotations
@@ -164,7 +164,7 @@ def frames_of_split(root: zarr.Group, split: str | None) -> np.ndarray:
     if split is None:
         return np.flatnonzero(valid)
     if split not in SPLIT_CODE:
-        raise ValueError(f"split must be one of {SPLITS} or None, got {split!r}")
+        raise ValueError(f"split must be one of {', '.join(SPLITS)} (or all), got {split!r}")
     return np.flatnonzero(valid & (root["split"][:] == SPLIT_CODE[split]))
 
 
@@ -206,7 +206,7 @@ class StoreDataset(torch.utils.data.Dataset):
 
     A sample is a dict with (depending on ``fields``):
 
-    - ``input``: float32 (D, R, A), Doppler as channels (SPEC section 5); log power in dB, or
+    - ``input``: float32 (D, R, A), Doppler as channels (docs/design.md section 5); log power in dB, or
       ``(x - mean_d) / std_d`` with the store's train-split statistics per Doppler bin when ``normalise``;
     - ``labels``, ``instances``: uint8 (R, A, D); ``ra_mask`` uint8 (R, A); ``rd_mask`` uint8 (R, D);
     - ``heatmap``: float32 (1, R/4, A/4);

@@ -1,4 +1,4 @@
-"""Training of both ERASE-Net stages from the preprocessed store (SPEC sections 5 and 7), and the export
+"""Training of both ERASE-Net stages from the preprocessed store (docs/design.md sections 5 and 7), and the export
 of a shippable checkpoint::
 
     radarseg train detector  --store STORE.zarr --out runs/det [--profile quick|paper] [--resume]
@@ -47,8 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             sub.add_argument("--jitter-std", type=float, nargs=3, metavar=("RANGE", "ANGLE", "DOPPLER"),
                              help="Gaussian seed errors in bins instead")
     export = stages.add_parser("export", help="a shippable copy of a checkpoint: weights only, float16")
-    export.add_argument("source")
-    export.add_argument("target")
+    export.add_argument("source", help="training checkpoint (model.pt or last.pt)")
+    export.add_argument("target", help="shippable copy to write (float16, no optimiser state)")
     export.add_argument("--float32", action="store_true", help="keep float32 weights (default float16)")
 
 

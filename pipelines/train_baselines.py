@@ -1,4 +1,4 @@
-"""Training of the 2-D baselines (U-Net per view, TMVA-Net, SMVA-Net; SPEC section 9) with the same loop
+"""Training of the 2-D baselines (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9) with the same loop
 as ERASE-Net (:mod:`pipelines.training`; the stage is :mod:`pipelines.training.baselines`)::
 
     radarseg train-baseline tmvanet --store STORE.zarr --out runs/tmva [--profile quick|paper]
@@ -21,7 +21,7 @@ MODELS = ("unet", "tmvanet", "smvanet", "unet_tiny", "tmvanet_tiny", "smvanet_ti
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("model", choices=MODELS)
+    parser.add_argument("model", choices=MODELS, help="baseline architecture")
     parser.add_argument("--view", choices=("ra", "rd"), help="one-view models (U-Net): the view it segments")
     add_common_arguments(parser)
 

@@ -17,7 +17,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from typing import Any
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
@@ -27,6 +27,7 @@ from service.errors import DeclaredBodyLimit, install_error_handlers
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import MetricsMiddleware, ServiceMetrics
+from service.query import reject_unknown_query
 from service.routes import examples, health, metrics, models, segment, usage, viewer
 from service.routes.docs import install_docs
 from service.schemas import ErrorBody
@@ -98,8 +99,12 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     install_error_handlers(app)
     install_docs(app)
     # FastAPI's body limit on the one route that reads a body (GET routes never read one).
-    app.include_router(segment.router, max_body_size=settings.max_body_bytes)
-    for router in (models.router, usage.router, examples.router, viewer.router, health.router, metrics.router):
+    # The API routes refuse query parameters they do not take (service.query); the viewer page reads its own.
+    strict = [Depends(reject_unknown_query)]
+    app.include_router(segment.router, max_body_size=settings.max_body_bytes, dependencies=strict)
+    for router in (models.router, usage.router, examples.router):
+        app.include_router(router, dependencies=strict)
+    for router in (viewer.router, health.router, metrics.router):
         app.include_router(router)
     app.add_middleware(DeclaredBodyLimit, max_body_size=settings.max_body_bytes)
     app.add_middleware(SecurityHeaders)

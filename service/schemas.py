@@ -6,13 +6,9 @@ from enum import StrEnum
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from radar.input_kind import InputKind  # what an uploaded cube holds: the CLI's rule too (docs/design.md section 2)
 
-class InputKind(StrEnum):
-    """What the uploaded cube holds."""
-
-    complex = "complex"  # complex RAD cube (complex64 or complex128)
-    log_power = "log_power"  # 10 log10(|I|^2 + 1) in dB (float16/32/64)
-    adc = "adc"  # raw complex ADC samples (samples, chirps, virtual elements), processed by radar.adc
+__all__ = ["InputKind"]  # re-exported: the query parameter ?input= takes it
 
 
 class MaskEncoding(StrEnum):

@@ -21,17 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from radar.input_kind import ACCEPTED_DTYPES, InputKindError, resolve_kind
 from radar.io.errors import DataError
 from radar.io.npy import MAGIC, MAX_HEADER_LEN, NpyHeader, parse_npy_header
 from service.errors import ApiError
 from service.schemas import InputKind
 from service.settings import Settings
-
-ACCEPTED_DTYPES = {
-    InputKind.complex: (np.complex64, np.complex128),
-    InputKind.log_power: (np.float16, np.float32, np.float64),
-    InputKind.adc: (np.complex64, np.complex128),
-}
 
 
 @dataclass(frozen=True)
@@ -164,7 +159,7 @@ async def paced(chunks: AsyncIterator[bytes], settings: Settings) -> AsyncIterat
 
 def _header_length(head: bytes | bytearray) -> int | None:
     """Bytes needed for the whole header, or None until the length field has arrived."""
-    if len(head) >= len(MAGIC) and not bytes(head[:len(MAGIC)]) == MAGIC:
+    if not MAGIC.startswith(bytes(head[:len(MAGIC)])):  # also a body shorter than the magic string ("hello")
         raise ApiError(400, "body is not a .npy file (missing the \\x93NUMPY magic string)", error="malformed_npy")
     if len(head) < 12:
         return None
@@ -184,7 +179,11 @@ def _header_length(head: bytes | bytearray) -> int | None:
 def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int | None) -> None:
     """Refuse a header whose dtype, shape or byte count is not what the model takes (before allocation)."""
     if header.dtype.newbyteorder("=") not in [np.dtype(d) for d in ACCEPTED_DTYPES[expected.kind]]:
-        hint = " (send ?input=log_power for float log-power cubes)" if expected.kind is InputKind.complex else ""
+        try:  # radar.input_kind's rule: a real-valued cube says what it holds
+            resolve_kind(header.dtype, expected.kind, flag="?input={}")
+            hint = ""
+        except InputKindError as exc:
+            hint = f" ({exc})"
         raise ApiError(422, f"cube has dtype {header.dtype.name}, model {expected.model!r} expects "
                             f"{expected.describe()}{hint}", error="invalid_cube")
     if header.shape != expected.shape:

@@ -14,17 +14,18 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True, help="preprocessed store (zarr)")
     parser.add_argument("--out", required=True, help="run directory (keep it outside the repository, or under "
                                                      "runs/, which git and ray job submit ignore)")
-    parser.add_argument("--profile", choices=("quick", "paper"), default="quick")
+    parser.add_argument("--profile", choices=("quick", "paper"), default="quick",
+                        help="hyperparameter profile: quick (2-core CPU) or paper (GPUs)")
     parser.add_argument("--model-config", type=json.loads, help="builder keyword arguments as JSON")
-    parser.add_argument("--epochs", type=int)
-    parser.add_argument("--batch-size", type=int)
-    parser.add_argument("--lr", type=float)
+    parser.add_argument("--epochs", type=int, help="epochs (default: the profile's)")
+    parser.add_argument("--batch-size", type=int, help="frames per step, >= 2 (default: the profile's)")
+    parser.add_argument("--lr", type=float, help="learning rate (default: the profile's)")
     parser.add_argument("--optimizer", choices=OPTIMIZERS,
                         help="instead of the profile's (detector and baselines Adam, segmenter SGD), e.g. Adam for "
                              "sparsity training")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of initialisation and shuffling")
     parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N")
-    parser.add_argument("--train-split", default="train")
+    parser.add_argument("--train-split", default="train", help="store split trained on")
     parser.add_argument("--val-split", default="val", help="'none' to skip validation (model.pt = last epoch)")
     parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
     parser.add_argument("--max-minutes", type=float,
@@ -37,7 +38,7 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
                         help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
     parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def common_config(args: argparse.Namespace) -> dict[str, Any]:
@@ -52,5 +53,12 @@ def common_config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def format_training(result: dict[str, Any]) -> str:
-    """What a trainer prints: the run, its checkpoint and the last epoch's figures."""
-    return json.dumps(result, indent=2, default=str)
+    """What a trainer prints for people: the run, its checkpoint and the last epoch's figures (``--json``: all of
+    ``result`` as one JSON line); for ``train export``, the copy and its size."""
+    if "run" not in result:
+        return f"{result['checkpoint']}: {result['bytes'] / 1e6:.2f} MB"
+    metrics = result.get("metrics") or {}
+    figures = ", ".join(f"{key} {value:.4g}" for key, value in metrics.items()
+                        if isinstance(value, float) and (key.startswith("val_") or key == "train_total"))
+    return (f"run {result['run']}: {metrics.get('epoch', 0)} epochs in {result['seconds']:.0f} s; best epoch in "
+            f"{result['checkpoint']}\nlast epoch: {figures or 'no figures'}")

@@ -1,4 +1,4 @@
-"""The 2-D baselines' stage (U-Net per view, TMVA-Net, SMVA-Net; SPEC section 9).
+"""The 2-D baselines' stage (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9).
 
 Data: :class:`pipelines.views.ViewDataset` (RD/RA/AD views scaled by the train split's min/max; TMVA-Net
 reads the target frame and the 4 before it in its sequence, so the first 4 frames of each sequence
@@ -32,8 +32,8 @@ STAGE = "baseline"
 def load_baseline(path: str | Path, *, device: str | torch.device = "cpu") -> tuple[nn.Module, Checkpoint, ViewStats]:
     """A trained baseline (eval mode), its checkpoint and the view scaling it was trained with."""
     checkpoint = load_checkpoint(path)
-    if checkpoint.extra.get("stage") != STAGE:
-        raise UserError(f"{path}: not a baseline checkpoint (stage {checkpoint.extra.get('stage')!r})")
+    if checkpoint.stage != STAGE:
+        raise UserError(f"{path}: {checkpoint.describe()}, expected a baseline checkpoint")
     return checkpoint.build(device=device), checkpoint, ViewStats.from_dict(checkpoint.normalisation)
 
 

@@ -111,6 +111,9 @@ class TrainConfig:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ValueError(f"{name} must be >= 1, got {value}")
+        if self.stage == "detector" and self.batch_size == 1:  # BatchNorm at the 1x1 deepest level needs 2 frames
+            raise ValueError("--batch-size must be >= 2 for the detector: the BatchNorm of its deepest BiFPN level "
+                             "(one cell per frame) needs at least 2 values per channel")
         if self.lr is not None and not self.lr > 0:
             raise ValueError(f"lr must be > 0, got {self.lr}")
         check_budget(self.max_minutes)

@@ -23,10 +23,10 @@ import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader, DistributedSampler
-from tqdm import tqdm
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.slimming import slimming_penalty
+from pipelines.progress import progress
 from pipelines.ray_runtime import init_ray
 from pipelines.store import frames_of_split, open_store
 from pipelines.store_info import StoreInfo
@@ -187,7 +187,7 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
         if hasattr(dataset, "set_epoch"):
             dataset.set_epoch(epoch)
         started = time.perf_counter()
-        bar = tqdm(loader, desc=f"{name} epoch {epoch + 1}/{hyper.epochs}", unit="batch", leave=False,
+        bar = progress(loader, desc=f"{name} epoch {epoch + 1}/{hyper.epochs}", unit="batch", leave=False,
                    disable=not cfg.progress or world.rank != 0, dynamic_ncols=True)
         step, losses, samples = _run_epoch(cfg, task, model, bar, (optimizer, scheduler if per_step else None),
                                            device, world, budget, step)
@@ -273,8 +273,9 @@ def _save_epoch(task: Task, model: nn.Module, stepping: tuple[Any, Any], metrics
     optimizer, scheduler = stepping
     epoch, step = metrics["epoch"], metrics["step"]
     score = metrics.get(task.monitor, float("nan"))
-    # without a validation split (--val-split none) every epoch is "best": model.pt is the latest
-    improved = not math.isfinite(score) or score >= best
+    # without a validation split (--val-split none) every epoch is "best": model.pt is the latest; with one,
+    # only a strictly better score is (a run whose mAP stays 0.0 keeps its first epoch as the best)
+    improved = not math.isfinite(score) or score > best
     if improved:
         best = score if math.isfinite(score) else best
         save_checkpoint(_checkpoint(task, model, {"epoch": epoch, "step": step, "metrics": metrics}),

@@ -108,9 +108,12 @@ class SegmenterTask(Task):
         elif self.cfg.jitter_from:
             self.jitter = measure_detector_errors(self.cfg.jitter_from, self.store.path,
                                                   self.cfg.val_split or self.cfg.train_split, max_frames=JITTER_FRAMES)
+        elif self.cfg.jitter_std is not None:  # asked for: said once, at INFO
+            log.info("seeds jittered by Gaussian errors of std %s bins (--jitter-std)", self.hyper.jitter_std)
+            self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (--jitter-std)")
         else:
-            log.warning("no --jitter-from detector given: seeds jittered by Gaussian errors of std %s bins",
-                        self.hyper.jitter_std)
+            log.warning("neither --jitter-from nor --jitter-std given: seeds jittered by Gaussian errors of the "
+                        "default std %s bins", self.hyper.jitter_std)
             self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (assumed)")
         if weights_path.is_file():
             self.class_weights = torch.tensor(json.loads(weights_path.read_text())["weights"])

@@ -14,6 +14,7 @@ from starlette.requests import ClientDisconnect
 from models.compute_report import FrameCompute
 from models.erasenet import SegmentationResult
 from radar.adc import adc_shape
+from radar.input_kind import SCHEMA_CONTENT, InputKindError, check_values
 from radar.schema import SchemaMismatch, check_schema
 from service.deps import Caller, ServiceState, State
 from service.encoding import encode_array
@@ -42,7 +43,8 @@ REQUEST_BODY = {
     "requestBody": {
         "required": True,
         "description": "A .npy file: the complex RAD cube (R, A, D) of the model's preset (complex64/complex128), "
-                       "or its log power in dB (float16/32/64) with ?input=log_power. Pickled arrays are refused.",
+                       "its linear magnitude with ?input=magnitude or its log power in dB with ?input=log_power "
+                       "(float16/32/64), or raw ADC samples with ?input=adc. Pickled arrays are refused.",
         "content": {content_type: _BINARY for content_type in CONTENT_TYPES},
     }
 }
@@ -97,7 +99,7 @@ def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind, 
     """400 for JSON nested too deep or invalid, 422 naming every difference between the client's cube schema and
     the model's (radar.schema)."""
     given = load_json_header("X-Cube-Schema", header, max_depth=max_depth)
-    content = {InputKind.log_power: "log_power_db"}.get(input_kind, "complex")
+    content = SCHEMA_CONTENT[input_kind]
     try:
         check_schema(served.net.schema(content), given, what="cube")
     except SchemaMismatch as exc:
@@ -219,6 +221,10 @@ async def segment(
     expected = accepted[input_kind]
     await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
     cube, decode_s = await _read_body(request, state, caller.tenant, expected, content_length)
+    try:  # values impossible for the declared kind (linear magnitude as ?input=log_power, ...): radar.input_kind
+        check_values(cube, input_kind, flag="?input={}")
+    except InputKindError as exc:
+        raise ApiError(422, f"model {name!r}: {exc}", error="invalid_cube") from None
 
     async with state.billing.hold(caller.tenant, served) as quota:  # reserved; given back unless settled
         _take_slot(served, state)  # 503 when every slot of the model is taken

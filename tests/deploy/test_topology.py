@@ -49,7 +49,7 @@ def test_cluster_runs_both_jobs_and_two_apis_share_the_ledger(cluster, tiny_chec
     store = tmp_path / "store.zarr"
     pre = submit_job(cluster, "pipelines.preprocess", "--source", "sim", "--preset", "small", "--sequences", "2",
                      "--frames", "2", "--seed", "3", "--shard-frames", "1", "--split-fractions", "0.5", "0.5", "0",
-                     "--no-progress", "--out", str(store))
+                     "--no-progress", "--json", "--out", str(store))
     assert pre["written"] == 4 and pre["shards_run"] == 4, pre
     assert open_store(store).attrs["complete"]
 
@@ -57,7 +57,7 @@ def test_cluster_runs_both_jobs_and_two_apis_share_the_ledger(cluster, tiny_chec
     predictions = tmp_path / "predictions.zarr"
     job = ["pipelines.segment_batch", "--source", f"store:{store}", "--detector", str(det), "--segmenter", str(seg),
            "--out", str(predictions), "--workers", "2", "--shard-frames", "1", "--score-threshold", "0",
-           "--max-objects", "2", "--no-progress"]
+           "--max-objects", "2", "--no-progress", "--json"]
     result = submit_job(cluster, *job)
     assert (result["written"], result["shards_run"], result["workers"], result["nodes"]) == (4, 4, 2, 2), result
     assert [w["model_loads"] for w in result["worker_stats"]] == [1, 1]

@@ -77,14 +77,34 @@ def test_bad_checkpoints_are_refused(tmp_path):
     with pytest.raises(CheckpointError, match="no such checkpoint"):
         load_checkpoint(tmp_path / "missing.pt")
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    with pytest.raises(CheckpointError, match="not a loadable"):
+    with pytest.raises(CheckpointError, match="not a checkpoint") as junk:
         load_checkpoint(tmp_path / "junk.pt")
+    assert "weights_only" not in str(junk.value)  # torch's advice (run the file's code) is not relayed
     torch.save({"format": "something-else"}, tmp_path / "other.pt")
     with pytest.raises(CheckpointError, match="not a radarseg checkpoint"):
         load_checkpoint(tmp_path / "other.pt")
     torch.save({"format": "radarseg.checkpoint", "payload": Checkpoint}, tmp_path / "code.pt")  # needs unpickling code
-    with pytest.raises(CheckpointError, match="not a loadable"):
+    with pytest.raises(CheckpointError, match="not a checkpoint") as code:
         load_checkpoint(tmp_path / "code.pt")
+    assert "weights_only" not in str(code.value)
+
+
+def test_checkpoints_say_what_they_are_and_roles_are_checked(tmp_path):
+    net = _net()
+    classes = ("background", "pedestrian", "cyclist", "car")
+    det = save_checkpoint(Checkpoint("centre_detector_tiny", {"preset": "small"}, net.detector.state_dict(), "small",
+                                     classes), tmp_path / "det.pt")
+    seg = save_checkpoint(Checkpoint("minkunet_tiny", {"preset": "small"}, net.segmenter.state_dict(), "small",
+                                     classes), tmp_path / "seg.pt")
+    stored = torch.load(det, weights_only=True)
+    assert (stored["stage"], stored["input_kind"]) == ("detector", "log_power_db")
+    assert load_checkpoint(seg).stage == "segmenter"  # no extra["stage"]: derived from the architecture
+    with pytest.raises(CheckpointError, match="swapped"):
+        EraseNet.from_checkpoints(seg, det)
+    with pytest.raises(CheckpointError, match="the same file"):
+        EraseNet.from_checkpoints(det, det)
+    with pytest.raises(CheckpointError, match="a detector checkpoint .*expected a segmenter checkpoint"):
+        load_checkpoint(det, stage="segmenter", role="--segmenter")
 
 
 def test_given_centres_replace_the_detector(frame):

@@ -61,3 +61,48 @@ def test_serve_becomes_the_services_runner_and_refuses_a_busy_port_before_loadin
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert str(port) in proc.stderr and "Traceback" not in proc.stderr
     assert "loaded" not in proc.stderr.lower()  # refused before any model was loaded
+
+
+def test_demo_says_each_step_and_its_time(tmp_path):
+    said: list[str] = []
+    run_demo(tmp_path / "demo", sequences=1, frames=1, pictures=1, store=False, say=said.append, progress=False)
+    assert said[0].startswith("1. simulating 1 sequences of 1 frames") and said[-1].startswith("  done in ")
+
+
+def test_progress_is_plain_lines_without_carriage_returns_off_a_terminal():
+    import io
+
+    from pipelines.progress import PlainProgress
+
+    stream = io.StringIO()
+    for _ in PlainProgress(range(3), desc="evaluate test", unit="frame", stream=stream, every_s=0.0):
+        pass
+    text = stream.getvalue()
+    assert "\r" not in text and text.splitlines()[-1].startswith("evaluate test: 3/3 frame (100 %)")
+
+
+def test_version_and_every_option_shows_its_default(capsys):
+    import argparse
+
+    import pytest
+
+    from pipelines.cli import build_parser
+    from pipelines.jobs import DefaultsHelpFormatter
+
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out.startswith("radarseg ")
+    formatter = DefaultsHelpFormatter("radarseg")
+
+    def options(parser):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    yield from options(sub)
+            elif action.option_strings and not isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+                yield action
+
+    for action in options(build_parser()):
+        assert action.help, action.option_strings
+        if action.default is not None and not isinstance(action.default, bool) and action.default != []:
+            assert "default" in formatter._get_help_string(action), action.option_strings

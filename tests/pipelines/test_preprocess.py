@@ -90,7 +90,7 @@ def test_simulated_frames_start_mid_sequence_as_simulate_sequence():
 def test_ray_job_submit_on_a_local_cluster(ray_head, tmp_path):
     out = tmp_path / "STORE.zarr"
     log = ray_job_submit(ray_head.dashboard_url, "pipelines.preprocess", *SUBMIT_ARGS, "--out", str(out),
-                         "--no-progress")
+                         "--no-progress", "--json")
     result = json.loads(next(line for line in log.splitlines() if line.startswith('{"store"')))
     assert result["written"] == 24 and result["quarantined"] == 0 and result["shards_run"] == 3
     assert_store_matches_simulator(out, preset="small", sequences=3, frames=8, seed=11)
@@ -111,7 +111,7 @@ def embedded_ray():
 
 
 def _job(*args: str, env_extra: dict[str, str] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "pipelines.preprocess", *args, "--no-progress"], cwd=REPO,
+    return subprocess.Popen([sys.executable, "-m", "pipelines.preprocess", *args, "--no-progress", "--json"], cwd=REPO,
                             env=ray_env(**(env_extra or {})), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
 

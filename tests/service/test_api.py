@@ -69,6 +69,10 @@ def _pickled() -> bytes:
     ("unknown_model", 422, "served models: ['tiny']"),
     ("bad_outputs", 422, "unknown outputs"),
     ("bad_input_kind", 422, "input"),
+    ("unknown_parameter", 422, "takes encoding, input, model, outputs, tdm_compensation"),
+    ("float_without_kind", 422, "?input=magnitude or ?input=log_power"),
+    ("linear_as_log_power", 422, "linear magnitude or power?"),
+    ("log_power_as_magnitude", 422, "looks like log power"),
 ])
 def test_bad_input_gives_its_4xx_and_the_server_stays_up(client, cube_body, frame, case, status, message):
     cube = frame.cube
@@ -100,7 +104,15 @@ def test_bad_input_gives_its_4xx_and_the_server_stays_up(client, cube_body, fram
     elif case == "bad_outputs":
         url = "/v1/segment?outputs=objects,everything"
     elif case == "bad_input_kind":
-        url = "/v1/segment?input=magnitude"
+        url = "/v1/segment?input=amplitude"
+    elif case == "unknown_parameter":
+        url = "/v1/segment?output=objects"
+    elif case == "float_without_kind":
+        body = npy_bytes(transforms.log_power(cube))
+    elif case == "linear_as_log_power":
+        url, body = "/v1/segment?input=log_power", npy_bytes(np.abs(cube))
+    elif case == "log_power_as_magnitude":
+        url, body = "/v1/segment?input=magnitude", npy_bytes(transforms.log_power(cube))
     r = client.post(url, content=body, headers=headers)
     assert r.status_code == status, r.text
     assert message in r.json()["detail"]

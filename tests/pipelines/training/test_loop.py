@@ -69,6 +69,8 @@ def test_detector_trains_resumes_and_rebuilds(small_store, tmp_path):
     assert resumed["epoch"] == 2 and resumed["step"] == 2
     lines = _lines(run / "metrics.jsonl")
     assert [line["epoch"] for line in lines] == [1, 2]
+    # only a strictly better validation score is "best" (a tiny detector's mAP stays 0.0: epoch 1 stays the best)
+    assert lines[0]["best"] and lines[1]["best"] == (lines[1]["val_mAP"] > lines[0]["val_mAP"])
     last = load_checkpoint(run / "last.pt")
     assert last.extra["epoch"] == 2 and "optimizer" in last.extra and last.extra["elapsed_s"] > 0
     # resuming with other settings is refused
