@@ -7,6 +7,7 @@ import json
 import logging
 import sys
 
+from models.engines import ENGINES
 from pipelines.jobs import USER_ERRORS, report_error, run_job
 from radar.profiles import BUILTIN_PRESETS
 
@@ -115,7 +116,8 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     from pipelines.segment import segment_file
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
-                          is_log_power=args.log_power, png=args.png, score_threshold=args.score_threshold)
+                          is_log_power=args.log_power, png=args.png, score_threshold=args.score_threshold,
+                          engine=args.engine)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -125,9 +127,24 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     compute = result["compute"]
     print(f"objects: {len(result['objects'])}  MACs: {compute['macs']['total'] / 1e9:.3f} G "
           f"(detect {compute['macs']['detect'] / 1e9:.3f}, segment {compute['macs']['segment'] / 1e9:.3f})  "
-          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms")
+          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms  "
+          f"engine: {compute['engine']}")
     if result["png"]:
         print(f"picture: {result['png']}")
+    return 0
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from models.export.onnx_export import export_onnx
+
+    manifest = export_onnx(args.detector, args.segmenter, args.out)
+    for stage in ("detector", "segmenter"):
+        graph = manifest[stage]
+        inputs = ", ".join(f"{name} {tuple(v['shape'])}" for name, v in graph["inputs"].items())
+        outputs = ", ".join(f"{name} {tuple(v['shape'])}" for name, v in graph["outputs"].items())
+        print(f"{args.out}/{graph['file']}: {inputs} -> {outputs}")
+    print(f"opset {manifest['opset']}, standard operators only, checked with onnx.checker; "
+          f"manifest: {args.out}/manifest.json")
     return 0
 
 
@@ -250,8 +267,21 @@ def build_parser() -> argparse.ArgumentParser:
     seg.add_argument("--log-power", action="store_true", help="the cube holds log power (dB), not complex values")
     seg.add_argument("--score-threshold", type=float, default=0.3)
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
+    seg.add_argument("--engine", choices=ENGINES, default="torch",
+                     help="torch (default), or onnx: the exported graphs in onnxruntime, exported on first use "
+                          "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)")
     seg.add_argument("--json", action="store_true")
     seg.set_defaults(func=_cmd_segment)
+
+    export = sub.add_parser("export", help="export the models for other runtimes (`train export` writes a "
+                                           "shippable checkpoint)")
+    export_sub = export.add_subparsers(dest="export_command", required=True)
+    onnx = export_sub.add_parser("onnx", help="detector.onnx and segmenter.onnx (standard ONNX operators, for "
+                                              "ONNX Runtime, OpenVINO, TensorRT, ...) and manifest.json")
+    onnx.add_argument("--detector", required=True, help="detector checkpoint")
+    onnx.add_argument("--segmenter", required=True, help="segmenter checkpoint (MinkUNet)")
+    onnx.add_argument("--out", required=True, help="output directory")
+    onnx.set_defaults(func=_cmd_export_onnx)
 
     radar_cmd = sub.add_parser("radar", help="radar profiles")
     radar_sub = radar_cmd.add_subparsers(dest="radar_command", required=True)

@@ -7,15 +7,17 @@ from typing import Any
 
 import numpy as np
 
-from models.erasenet import EraseNet
+from models.engines import load_erasenet
 from radar import transforms
 from radar.io.npy import load_npy
 
 
 def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str | Path, is_log_power: bool = False,
-                 png: str | Path | None = None, score_threshold: float = 0.3) -> dict[str, Any]:
-    """Segment a .npy cube (complex or magnitude RAD, or log power) and return objects and compute."""
-    net = EraseNet.from_checkpoints(detector, segmenter, score_threshold=score_threshold)
+                 png: str | Path | None = None, score_threshold: float = 0.3, engine: str = "torch") -> dict[str, Any]:
+    """Segment a .npy cube (complex or magnitude RAD, or log power) and return objects and compute.
+
+    ``engine``: "torch" or "onnx" (``models.engines``)."""
+    net = load_erasenet(detector, segmenter, engine=engine, score_threshold=score_threshold)
     dtypes = (np.floating,) if is_log_power else (np.complexfloating, np.floating)
     cube = load_npy(cube_path, shape=net.profile.shape, dtypes=dtypes, what="RAD cube")
     result = net.segment(cube, is_log_power=is_log_power)
