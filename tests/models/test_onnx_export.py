@@ -59,17 +59,36 @@ def test_export_refuses_spvcnn():
         ExportMinkUNet(create_model("spvcnn_tiny", preset="small").eval())
 
 
+@pytest.fixture(scope="module")
+def export(tmp_path_factory):
+    """pair -> (detector, segmenter, export dir), each pair exported once by `radarseg export onnx`."""
+    done = {}
+
+    def exported(pair: tuple[Path, Path]) -> tuple[Path, Path, Path]:
+        if pair not in done:
+            out = tmp_path_factory.mktemp("onnx")
+            args = ["export", "onnx", "--detector", str(pair[0]), "--segmenter", str(pair[1]), "--out", str(out)]
+            assert main(args) == 0
+            done[pair] = (*pair, out)
+        return done[pair]
+
+    return exported
+
+
 @pytest.fixture(scope="module", params=PAIRS)
-def exported(request, tmp_path_factory):
-    """(detector, segmenter, export dir) of one shipped pair, exported by `radarseg export onnx`."""
-    detector, segmenter = request.param
-    out = tmp_path_factory.mktemp("onnx")
-    assert main(["export", "onnx", "--detector", str(detector), "--segmenter", str(segmenter), "--out", str(out)]) == 0
-    return detector, segmenter, out
+def exported(request, export):
+    """(detector, segmenter, export dir) of every shipped pair."""
+    return export(request.param)
 
 
-def test_export_writes_checked_standard_graphs_and_a_manifest(exported):
-    _, segmenter, out = exported
+@pytest.fixture(scope="module")
+def shipped(export):
+    """(detector, segmenter, export dir) of the shipped pair only (for checks the pruned twin adds nothing to)."""
+    return export(PAIRS[0].values[0])
+
+
+def test_export_writes_checked_standard_graphs_and_a_manifest(shipped):
+    _, segmenter, out = shipped
     manifest = json.loads((out / "manifest.json").read_text())
     checkpoint = load_checkpoint(segmenter)
     assert manifest["preset"] == checkpoint.preset and manifest["class_names"] == list(checkpoint.class_names)
@@ -82,15 +101,13 @@ def test_export_writes_checked_standard_graphs_and_a_manifest(exported):
     assert {"Gather", "MatMul"} <= set(seg["operators"]) and not {"ScatterND", "Loop"} & set(seg["operators"])
 
 
-@pytest.fixture(scope="module")
-def engines(exported):
+def engines(detector: Path, segmenter: Path, out: Path):
     torch.set_num_threads(1)
-    detector, segmenter, out = exported
     return (load_erasenet(detector, segmenter), load_erasenet(detector, segmenter, engine="onnx", onnx_dir=out))
 
 
-def test_onnx_engine_segments_like_the_torch_engine(engines):
-    reference, onnx = engines
+def test_onnx_engine_segments_like_the_torch_engine(exported):
+    reference, onnx = engines(*exported)
     frames = list(simulate_sequence(reference.profile.name, FRAMES, seed=2026))
     for frame in frames:
         expected, got = reference.segment(frame.cube), onnx.segment(frame.cube)
@@ -130,9 +147,9 @@ print(json.dumps(ours))
 """
 
 
-def test_graphs_run_with_numpy_and_onnxruntime_alone(exported, engines, tmp_path):
-    reference, _ = engines
-    _, _, out = exported
+def test_graphs_run_with_numpy_and_onnxruntime_alone(shipped, tmp_path):
+    detector, segmenter, out = shipped
+    reference = load_erasenet(detector, segmenter)
     frame = next(simulate_sequence(reference.profile.name, 1, seed=7))
     expected = reference.segment(frame.cube)
     log_power = transforms.log_power(frame.cube)
