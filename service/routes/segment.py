@@ -91,7 +91,7 @@ def _compute(result: SegmentationResult, decode_s: float) -> tuple[Compute, int]
                "total": compute_us / 1e6}
     c = result.compute
     return Compute(macs=c["macs"], params=c["params"], seconds=seconds, roi_voxels=c["roi_voxels"],
-                   visited_points=c["visited_points"], detections=c["detections"]), compute_us
+                   visited_points=c["visited_points"], detections=c["detections"], engine=c["engine"]), compute_us
 
 
 def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind, max_depth: int) -> None:
