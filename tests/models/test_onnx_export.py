@@ -12,6 +12,7 @@ import torch
 
 from models.checkpoint import load_checkpoint
 from models.engines import load_erasenet
+from models.export.centres_numpy import decode_centres
 from models.export.kernel_maps_numpy import STRIDES, input_names, kernel_maps
 from models.export.sparse_graph import ExportMinkUNet
 from models.registry import create_model
@@ -129,19 +130,36 @@ def test_onnx_engine_segments_like_the_torch_engine(exported):
         np.testing.assert_allclose(onnx_logits, torch_logits, atol=1e-4, rtol=0)
 
 
+def test_numpy_decoding_equals_the_detectors(shipped):
+    detector, segmenter, out = shipped
+    onnx = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=out)
+    for frame in simulate_sequence(onnx.profile.name, 2, seed=11):
+        outputs = onnx._run_detector(transforms.log_power(frame.cube))
+        expected = onnx.detector.decode(outputs, k=onnx.max_objects, score_threshold=0.05)[0]
+        got = decode_centres(*(outputs[name].numpy() for name in ("heatmap", "offset", "doppler")),
+                             k=onnx.max_objects, score_threshold=0.05)
+        assert len(expected["score"]) > 0
+        for name, values in expected.items():
+            np.testing.assert_allclose(got[name], values.numpy(), rtol=0, atol=1e-5)
+
+
 STANDALONE = """
 import importlib.util, json, sys
 import numpy as np
 import onnxruntime as ort
-spec = importlib.util.spec_from_file_location("kernel_maps_numpy", sys.argv[1])
-kmaps = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(kmaps)
+def load(path):
+    spec = importlib.util.spec_from_file_location(path.rsplit("/", 1)[1][:-3], path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+kmaps, centres = load(sys.argv[1] + "/kernel_maps_numpy.py"), load(sys.argv[1] + "/centres_numpy.py")
 data = np.load(sys.argv[3])
 detector = ort.InferenceSession(sys.argv[2] + "/detector.onnx", providers=["CPUExecutionProvider"])
 segmenter = ort.InferenceSession(sys.argv[2] + "/segmenter.onnx", providers=["CPUExecutionProvider"])
 heatmap, offset, doppler = detector.run(None, {"log_power": data["log_power"]})
 logits, labels = segmenter.run(None, {"features": data["features"], **kmaps.kernel_maps(data["coords"])})
-np.savez(sys.argv[4], heatmap=heatmap, logits=logits, labels=labels)
+found = centres.decode_centres(heatmap, offset, doppler, k=32, score_threshold=0.3)
+np.savez(sys.argv[4], heatmap=heatmap, logits=logits, labels=labels, **found)
 ours = sorted(m for m in sys.modules if m.split(".")[0] in ("torch", "models", "radar", "pipelines"))
 print(json.dumps(ours))
 """
@@ -158,9 +176,9 @@ def test_graphs_run_with_numpy_and_onnxruntime_alone(shipped, tmp_path):
     np.savez(tmp_path / "in.npz", log_power=log_power, features=points.features, coords=points.coords)
     script = tmp_path / "standalone.py"
     script.write_text(STANDALONE)
-    module = ROOT / "models" / "export" / "kernel_maps_numpy.py"
+    modules = ROOT / "models" / "export"
     # -I: isolated mode, neither PYTHONPATH nor the current directory: this package cannot be imported
-    run = subprocess.run([sys.executable, "-I", str(script), str(module), str(out), str(tmp_path / "in.npz"),
+    run = subprocess.run([sys.executable, "-I", str(script), str(modules), str(out), str(tmp_path / "in.npz"),
                           str(tmp_path / "out.npz")], capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert json.loads(run.stdout) == []  # nothing of torch or this package was imported
@@ -170,3 +188,6 @@ def test_graphs_run_with_numpy_and_onnxruntime_alone(shipped, tmp_path):
     np.testing.assert_allclose(result["heatmap"], torch_heatmap, atol=1e-4)
     roi = tuple(expected.regions.voxels.T)
     assert (result["labels"] == expected.labels[roi]).mean() >= 0.999
+    assert len(expected.centres) > 0  # the same seeds (Doppler is refined from the cube afterwards)
+    np.testing.assert_allclose(result["score"], expected.centres.score, atol=1e-4)
+    np.testing.assert_allclose(result["range_bin"], expected.centres.range_bin, atol=1e-3)
