@@ -207,7 +207,8 @@ def export_onnx(detector: str | Path | Checkpoint, segmenter: str | Path | Check
                                      "std_db, computed by the caller with the other features"},
         "detector": {
             "file": "detector.onnx", **validate(out / "detector.onnx"),
-            "input_kind": "log power in dB, float32 (R, A, D) = cube_shape: 10 log10 |cube|^2 of the complex RAD cube",
+            "input_kind": "log power in dB, float32 (R, A, D) = cube_shape: 10 log10(|cube|^2 + 1) of the complex "
+                          "RAD cube (radar.transforms.log_power)",
             "output_stride": int(getattr(detector_model, "output_stride", 4)),
             "macs": int(detector_report.macs), "params": count_params(detector_model),
             "checkpoint_sha256": checkpoint_digest(detector),

@@ -191,3 +191,22 @@ def test_graphs_run_with_numpy_and_onnxruntime_alone(shipped, tmp_path):
     assert len(expected.centres) > 0  # the same seeds (Doppler is refined from the cube afterwards)
     np.testing.assert_allclose(result["score"], expected.centres.score, atol=1e-4)
     np.testing.assert_allclose(result["range_bin"], expected.centres.range_bin, atol=1e-3)
+
+
+def test_documented_example_segments_like_the_engine_without_torch(shipped, tmp_path):
+    detector, segmenter, out = shipped
+    reference = load_erasenet(detector, segmenter)
+    frame = next(simulate_sequence(reference.profile.name, 1, seed=7))
+    np.save(tmp_path / "cube.npy", frame.cube)
+    run = subprocess.run([sys.executable, "-I", str(ROOT / "docs" / "onnx_example.py"), str(out),
+                          str(tmp_path / "cube.npy"), str(tmp_path / "labels.npy")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert "imported: none" in run.stdout
+    expected = reference.segment(frame.cube)
+    roi = tuple(expected.regions.voxels.T)
+    labels = np.load(tmp_path / "labels.npy")
+    assert len(expected.regions) > 0 and (labels[roi] == expected.labels[roi]).mean() >= 0.999
+    outside = np.ones(labels.shape, bool)
+    outside[roi] = False
+    assert not labels[outside].any()  # the same regions: background everywhere else
