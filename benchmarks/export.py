@@ -12,6 +12,9 @@ runs the shipped checkpoints; ``carrada`` has none, so it runs random-weight mod
 size (detector "slim_sep", MinkUNet ratio 0.37), exported like a checkpoint (cost does not depend on the
 weights; with random weights the detector seeds threshold 0, top-K = the true object count).
 
+Then, for every shipped checkpoint pair (``--agreement-frames``, 48 by default), the engines' agreement on fresh
+frames: labels on the ROI voxels, objects, the largest logit difference.
+
 Writes benchmarks/results/export.json with the load average before and after and the CPU's flags: the
 machine is shared, so compare the ratios, not the absolute times.
 """
@@ -34,12 +37,17 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from models.erasenet import STAGES, EraseNet
 from models.export.onnx_engine import OnnxEraseNet, exported_dir
 from models.registry import create_model
+from models.sparse import SparseTensor
+from radar import transforms
 from radar.detections import Centres
 from radar.profiles import get_profile
+from radar.roi import roi_points
 from radar.simulate import simulate_sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = {"small": (ROOT / "checkpoints" / "detector.pt", ROOT / "checkpoints" / "segmenter.pt")}
+SHIPPED_PAIRS = {"shipped": SHIPPED["small"],
+                 "p40": (ROOT / "checkpoints" / "detector-p40.pt", ROOT / "checkpoints" / "segmenter-p40.pt")}
 CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_vnni", "amx_tile")
 
 
@@ -129,6 +137,33 @@ def bench_preset(preset: str, n_frames: int, repeats: int, cache: Path) -> dict[
     return out
 
 
+def agreement(pair: tuple[Path, Path], n_frames: int, cache: Path) -> dict[str, object]:
+    """Both engines on ``n_frames`` fresh frames of the pair's preset: label agreement on the ROI voxels, frames
+    whose objects (class, voxels) are identical, the largest logit difference on the ROI points."""
+    det, seg = (load_checkpoint(p) for p in pair)
+    reference = EraseNet.from_checkpoints(det, seg)
+    onnx = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=exported_dir(*pair, root=cache))
+    fractions, same_objects, logit_diff, voxels = [], 0, 0.0, 0
+    for frame in simulate_sequence(reference.profile.name, n_frames, seed=4848):
+        expected, got = reference.segment(frame.cube), onnx.segment(frame.cube)
+        roi = tuple(expected.regions.voxels.T)
+        voxels += len(expected.regions)
+        if len(expected.regions):
+            fractions.append(float((got.labels[roi] == expected.labels[roi]).mean()))
+            points = roi_points(expected.regions.voxels, transforms.log_power(frame.cube), reference.profile,
+                                mean_db=reference.mean_db, std_db=reference.std_db)
+            coords = torch.from_numpy(np.hstack([np.zeros((len(points), 1), np.int64), points.coords]))
+            with torch.no_grad():
+                torch_logits = reference.segmenter(SparseTensor(coords, torch.from_numpy(points.features))).numpy()
+            onnx_logits = onnx.voxel_logits(points.coords, points.features)[0]
+            logit_diff = max(logit_diff, float(np.abs(onnx_logits - torch_logits).max()))
+        same_objects += [(o.class_id, o.n_voxels) for o in got.objects] == [(o.class_id, o.n_voxels)
+                                                                            for o in expected.objects]
+    return {"frames": n_frames, "roi_voxels": voxels, "labels_equal_min": min(fractions),
+            "labels_equal_mean": float(np.mean(fractions)), "frames_with_same_objects": same_objects,
+            "logits_max_abs_diff": logit_diff}
+
+
 def format_table(results: dict[str, object]) -> str:
     lines = []
     for preset, result in results["presets"].items():
@@ -147,6 +182,8 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=3)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--presets", nargs="+", default=["small", "carrada"])
+    parser.add_argument("--agreement-frames", type=int, default=48, help="fresh frames per shipped pair for the "
+                        "agreement check (0: none)")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "export.json"))
     args = parser.parse_args()
     torch.set_num_threads(1)  # the ONNX engine takes its thread count from torch's
@@ -160,6 +197,10 @@ def main() -> None:
         for preset in args.presets:
             results["presets"][preset] = bench_preset(preset, args.frames, args.repeats, Path(cache))
             print(format_table({"presets": {preset: results["presets"][preset]}}), flush=True)
+        if args.agreement_frames:
+            results["agreement"] = {name: agreement(pair, args.agreement_frames, Path(cache))
+                                    for name, pair in SHIPPED_PAIRS.items() if all(p.is_file() for p in pair)}
+            print(json.dumps(results["agreement"], indent=2), flush=True)
     results["load_average_after"] = os.getloadavg()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2) + "\n")
