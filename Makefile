@@ -46,7 +46,7 @@ lint: venv
 	$(BIN)/ruff check .
 
 # Every benchmark, one after the other (about 10 minutes on 2 idle cores); figures in benchmarks/results/.
-BENCHMARKS := simulate detector stage1 sparse_conv end_to_end preprocess service scale baselines compare
+BENCHMARKS := simulate detector stage1 sparse_conv end_to_end preprocess service scale baselines compare export
 
 bench: venv
 	for b in $(BENCHMARKS); do echo "== benchmarks/$$b.py"; $(BIN)/python -m benchmarks.$$b || exit 1; done

@@ -32,6 +32,7 @@ class FrameCompute:
     roi_voxels: int = 0
     visited_points: int = 0  # voxels region growing looked at
     detections: int = 0  # seeds the ROI grew from
+    engine: str = "torch"  # what ran the networks: "torch" (this package's PyTorch engine) or "onnx" (ONNX Runtime)
 
     # ----- totals
     @property
@@ -92,4 +93,5 @@ class FrameCompute:
             "roi_voxels": self.roi_voxels,
             "visited_points": self.visited_points,
             "detections": self.detections,
+            "engine": self.engine,
         }

@@ -75,6 +75,9 @@ class EraseNet:
     """The two-stage segmenter. Thread-safe for concurrent ``segment`` calls only if the caller
     serialises them (the segmenter's per-layer MAC counters are per call)."""
 
+    engine = "torch"
+    """What runs the networks, reported in the compute report (``models.export.onnx_engine``: "onnx")."""
+
     def __init__(self, detector: nn.Module | None, segmenter: nn.Module, profile: RadarProfile | str, *,
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
                  score_threshold: float = 0.3, max_objects: int = MAX_OBJECTS,
@@ -178,9 +181,7 @@ class EraseNet:
         seconds: dict[str, float] = {}
         with _stage(seconds, "transform"):
             log_power = cube.astype(np.float32, copy=False) if is_log_power else transforms.log_power(cube)
-            # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.
-            cube_view = torch.from_numpy(log_power).to(self.device)[None].permute(0, 3, 1, 2)
-            x = normalise_log_power(cube_view, self.mean_db, self.std_db)
+            x = self._detector_input(log_power)
         with _stage(seconds, "detect"):
             if centres is None:
                 centres = decode_centres(self._run_detector, self._run_detector(x), [log_power], k=self.max_objects,
@@ -205,8 +206,14 @@ class EraseNet:
             detect_macs=detect_macs, segment_macs=segment_macs, segment_executed_macs=segment_executed,
             detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],
             seconds={name: seconds.get(name, 0.0) for name in STAGES}, roi_voxels=len(regions),
-            visited_points=regions.visited, detections=len(centres))
+            visited_points=regions.visited, detections=len(centres), engine=self.engine)
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute)
+
+    def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
+        """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""
+        # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.
+        cube_view = torch.from_numpy(log_power).to(self.device)[None].permute(0, 3, 1, 2)
+        return normalise_log_power(cube_view, self.mean_db, self.std_db)
 
     def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int, int]:
         """Class of every ROI voxel (N,) uint8 and the segmenter's useful and executed MACs."""

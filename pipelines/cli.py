@@ -9,6 +9,7 @@ import sys
 import time
 from typing import Any
 
+from models.engines import ENGINES
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
 from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS
@@ -136,7 +137,8 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     from pipelines.segment import segment_file
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
-                          input_kind=args.input, png=args.png, score_threshold=args.score_threshold)
+                          input_kind=args.input, png=args.png, score_threshold=args.score_threshold,
+                          engine=args.engine)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -146,9 +148,24 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     compute = result["compute"]
     print(f"objects: {len(result['objects'])}  MACs: {compute['macs']['total'] / 1e9:.3f} G "
           f"(detect {compute['macs']['detect'] / 1e9:.3f}, segment {compute['macs']['segment'] / 1e9:.3f})  "
-          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms")
+          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms  "
+          f"engine: {compute['engine']}")
     if result["png"]:
         print(f"picture: {result['png']}")
+    return 0
+
+
+def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from models.export.onnx_export import export_onnx
+
+    manifest = export_onnx(args.detector, args.segmenter, args.out)
+    for stage in ("detector", "segmenter"):
+        graph = manifest[stage]
+        inputs = ", ".join(f"{name} {tuple(v['shape'])}" for name, v in graph["inputs"].items())
+        outputs = ", ".join(f"{name} {tuple(v['shape'])}" for name, v in graph["outputs"].items())
+        print(f"{args.out}/{graph['file']}: {inputs} -> {outputs}")
+    print(f"opset {manifest['opset']}, standard operators only, checked with onnx.checker; "
+          f"manifest: {args.out}/manifest.json")
     return 0
 
 
@@ -288,8 +305,21 @@ def _add_frame_commands(sub: Any) -> None:
                      help="the same as --input log_power")
     seg.add_argument("--score-threshold", type=float, default=0.3, help="detector score threshold")
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
+    seg.add_argument("--engine", choices=ENGINES, default="torch",
+                     help="torch, or onnx: the exported graphs in onnxruntime, exported on first use "
+                          "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)")
     seg.add_argument("--json", action="store_true", help="print the result as JSON (for machines)")
     seg.set_defaults(func=_cmd_segment)
+
+    export = sub.add_parser("export", help="export the models for other runtimes (`train export` writes a "
+                                           "shippable checkpoint)")
+    export_sub = export.add_subparsers(dest="export_command", required=True)
+    onnx = export_sub.add_parser("onnx", help="detector.onnx and segmenter.onnx (standard ONNX operators, for "
+                                              "ONNX Runtime, OpenVINO, TensorRT, ...) and manifest.json")
+    onnx.add_argument("--detector", required=True, help="detector checkpoint")
+    onnx.add_argument("--segmenter", required=True, help="segmenter checkpoint (MinkUNet)")
+    onnx.add_argument("--out", required=True, help="output directory")
+    onnx.set_defaults(func=_cmd_export_onnx)
 
     radar_cmd = sub.add_parser("radar", help="radar profiles")
     radar_sub = radar_cmd.add_subparsers(dest="radar_command", required=True)

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from models.engines import load_erasenet
 from models.erasenet import EraseNet
 from radar import transforms
 from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
@@ -17,10 +18,11 @@ from radar.profiles import resolve_profile
 
 def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str | Path,
                  input_kind: InputKind | str | None = None, png: str | Path | None = None,
-                 score_threshold: float = 0.3) -> dict[str, Any]:
+                 score_threshold: float = 0.3, engine: str = "torch") -> dict[str, Any]:
     """Segment a .npy cube and return objects and compute. ``input_kind`` says what the cube holds
     (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
-    say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake."""
+    say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake.
+    ``engine``: "torch" or "onnx" (``models.engines``)."""
     declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
     det, seg = EraseNet.load_pair(detector, segmenter)  # checked before anything is built or read
     profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
@@ -36,7 +38,8 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
         check_values(cube, kind)
     except ValueError as exc:
         raise DataError(cube_path, str(exc)) from None
-    net = EraseNet.from_checkpoints(det, seg, score_threshold=score_threshold)
+    pair = (det, seg) if engine == "torch" else (detector, segmenter)  # the ONNX export is keyed by the files
+    net = load_erasenet(*pair, engine=engine, score_threshold=score_threshold)
     if kind is InputKind.adc:
         from radar.adc import process_adc
 

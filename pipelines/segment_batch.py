@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from models.engines import ENGINES
 from pipelines import shard_frames, sharded_job
 from pipelines.jobs import run_module
 from pipelines.predictions_store import (
@@ -84,6 +85,7 @@ class SegmentBatchConfig:
     shard_frames: int = DEFAULT_SHARD_FRAMES
     progress: bool = True
     in_process: bool = False  # every shard in this process (one ShardSegmenter), no Ray
+    engine: str = "torch"  # models.engines: torch, or onnx (the exported graphs in onnxruntime)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -131,6 +133,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                     "(default: the cluster's CPUs / --cpus-per-worker)")
     parser.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per actor")
     parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
+    parser.add_argument("--engine", choices=ENGINES, default="torch",
+                        help="torch (default), or onnx: the exported graphs in onnxruntime (exported once into "
+                             "each node's $RADARSEG_ONNX_CACHE, default ~/.cache/radarseg/onnx)")
     sharded_job.add_execution_arguments(parser, shard_frames=DEFAULT_SHARD_FRAMES)
 
 
@@ -141,7 +146,7 @@ def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
         split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
         address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
         torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
-        in_process=args.in_process,
+        in_process=args.in_process, engine=args.engine,
     )
 
 
@@ -244,15 +249,15 @@ class ShardSegmenter:
     """
 
     def __init__(self, detector: str, segmenter: str, *, score_threshold: float = 0.3,
-                 max_objects: int = DEFAULT_MAX_OBJECTS, torch_threads: int = 1) -> None:
+                 max_objects: int = DEFAULT_MAX_OBJECTS, torch_threads: int = 1, engine: str = "torch") -> None:
         import torch
 
-        from models.erasenet import EraseNet
+        from models.engines import load_erasenet
 
-        torch.set_num_threads(torch_threads)
+        torch.set_num_threads(torch_threads)  # the ONNX engine takes its thread count from torch's too
         started = time.perf_counter()
-        self.net = EraseNet.from_checkpoints(detector, segmenter, score_threshold=score_threshold,
-                                             max_objects=max_objects)
+        self.net = load_erasenet(detector, segmenter, engine=engine, score_threshold=score_threshold,
+                                 max_objects=max_objects)
         # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
         # not count against the first shard.
         self.net.segment(np.zeros(self.net.profile.shape, np.float32), is_log_power=True)
@@ -311,10 +316,14 @@ REPORT_PICTURES = 3  # frames drawn in the report beside the store (most detecti
 def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
+    if cfg.engine == "onnx":  # export once here, not in every actor at once (they share this node's cache)
+        from models.export.onnx_engine import exported_dir
+
+        exported_dir(cfg.detector, cfg.segmenter)
     job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
                                  stage_args=(cfg.detector, cfg.segmenter),
                                  stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
-                                               "torch_threads": cfg.torch_threads},
+                                               "torch_threads": cfg.torch_threads, "engine": cfg.engine},
                                  reduce=reduce_summaries, finish=partial(store_attributes, plan))
     execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
                                       cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment")

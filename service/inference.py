@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from models.checkpoint import CheckpointError
+from models.engines import load_erasenet
 from models.erasenet import EraseNet, SegmentationResult
 from radar.adc import process_adc
 from service.settings import ModelSpec, Settings, resolve_path
@@ -86,8 +87,8 @@ class ServedModel:
             executor = inference_executor(replicas, threads, f"model-{self.spec.name}")
 
         def build() -> EraseNet:
-            return EraseNet.from_checkpoints(detector, segmenter, score_threshold=self.spec.score_threshold,
-                                             max_objects=self.spec.max_objects)
+            return load_erasenet(detector, segmenter, engine=self.spec.engine,
+                                 score_threshold=self.spec.score_threshold, max_objects=self.spec.max_objects)
 
         # Built and warmed on the inference threads themselves: no other thread of the process runs torch, so
         # each replica's OpenMP team is the only one (a second team's idle threads compete for the cores).

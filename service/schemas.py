@@ -102,6 +102,7 @@ class Compute(BaseModel):
     roi_voxels: int
     visited_points: int
     detections: int
+    engine: str = Field("torch", description="what ran the networks: torch, or onnx (onnxruntime)")
 
 
 class UsageTotals(BaseModel):

@@ -15,7 +15,7 @@ import ipaddress
 import os
 import re
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -52,6 +52,9 @@ class ModelSpec(BaseModel):
     segmenter: Path
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = 0.3
     max_objects: Annotated[int, Field(ge=1, le=256)] = 32
+    # torch: the sparse engine; onnx: the exported graphs in onnxruntime (models.engines), exported on first load
+    # into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)
+    engine: Literal["torch", "onnx"] = "torch"
 
 
 class Settings(BaseSettings):

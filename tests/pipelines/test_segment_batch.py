@@ -71,6 +71,21 @@ def test_job_in_process_writes_what_erasenet_predicts(small_store, tiny_checkpoi
     assert (again["shards_run"], again["shards_skipped"], again["written"]) == (0, 2, 3)
 
 
+def test_job_on_the_onnx_engine_writes_what_the_torch_engine_predicts(small_store, tiny_checkpoints, tmp_path,
+                                                                     monkeypatch):
+    monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
+    torch_cfg = _config(f"store:{small_store}", tiny_checkpoints, tmp_path / "torch.zarr", split="val")
+    onnx_cfg = _config(f"store:{small_store}", tiny_checkpoints, tmp_path / "onnx.zarr", split="val", engine="onnx")
+    assert main(onnx_cfg)["written"] == main(torch_cfg)["written"] > 0
+    assert len(list((tmp_path / "onnx").glob("*/manifest.json"))) == 1  # exported once, before the shards
+    torch_root, onnx_root = open_predictions(torch_cfg.out), open_predictions(onnx_cfg.out)
+    roi = torch_root["labels"][:] > 0
+    assert roi.any() and (onnx_root["labels"][:][roi] == torch_root["labels"][:][roi]).mean() >= 0.999
+    np.testing.assert_array_equal(onnx_root["n_objects"][:], torch_root["n_objects"][:])
+    macs = COMPUTE_FIELDS.index("macs_total")
+    np.testing.assert_array_equal(onnx_root["compute"][:, macs], torch_root["compute"][:, macs])
+
+
 def test_bad_recording_frames_are_quarantined(small_recording, tiny_checkpoints, tmp_path):
     recording = tmp_path / "rec"
     shutil.copytree(small_recording, recording)

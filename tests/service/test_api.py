@@ -315,3 +315,23 @@ def test_each_replica_runs_on_its_own_thread_with_the_configured_torch_threads(m
     # One set of inference threads for the whole process, shared by its models (issue 24).
     assert {threads for _, threads in seen} == {3} and all(name.startswith("inference") for name, _ in seen)
     assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 200
+
+
+def test_a_model_served_by_the_onnx_engine_answers_like_the_torch_one(make_settings, client_for, cube_body,
+                                                                      tiny_checkpoints, monkeypatch, tmp_path):
+    from service.settings import ModelSpec
+
+    det, seg = tiny_checkpoints
+    monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
+    models = [ModelSpec(name=name, detector=det, segmenter=seg, score_threshold=0.0, max_objects=1, engine=engine)
+              for name, engine in (("tiny", "torch"), ("tiny-onnx", "onnx"))]
+    client = client_for(make_settings(models=models))
+    bodies = {}
+    for name in ("tiny", "tiny-onnx"):
+        r = client.post(f"/v1/segment?model={name}&outputs=objects", content=cube_body, headers=NPY)
+        assert r.status_code == 200, r.text
+        bodies[name] = r.json()
+    assert bodies["tiny"]["compute"]["engine"] == "torch" and bodies["tiny-onnx"]["compute"]["engine"] == "onnx"
+    assert bodies["tiny-onnx"]["compute"]["macs"] == bodies["tiny"]["compute"]["macs"]
+    classes = {name: [o["class_name"] for o in body["objects"]] for name, body in bodies.items()}
+    assert classes["tiny-onnx"] == classes["tiny"]

@@ -1,0 +1,166 @@
+"""ERASE-Net on onnxruntime: the exported graphs behind :meth:`models.erasenet.EraseNet.segment`'s contract.
+
+The same stages as the PyTorch engine (transform, detect, grow, segment, project) and the same result
+and compute report (``compute.engine == "onnx"``): the detector graph replaces the traced detector
+(its outputs are decoded by the detector's own ``decode``), the segmenter graph replaces the sparse
+MinkUNet (kernel maps from :mod:`models.export.kernel_maps_numpy`); region growing, Doppler refinement,
+projection and objects are the shared code. Useful MACs are counted from the kernel maps exactly as the
+PyTorch engine counts them; executed MACs are what the graph's matrix products run.
+
+:meth:`OnnxEraseNet.from_checkpoints` exports on demand into a cache keyed by the checkpoints' sha256
+(``RADARSEG_ONNX_CACHE``, default ``~/.cache/radarseg/onnx``), so the .pt files are all it needs.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from models.checkpoint import Checkpoint, load_checkpoint
+from models.erasenet import EraseNet
+from models.export.kernel_maps_numpy import kernel_maps, segmenter_macs
+from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
+from radar.profiles import RadarProfile
+from radar.region_growing import Regions
+from radar.roi import roi_points
+
+log = logging.getLogger(__name__)
+
+CACHE_ENV = "RADARSEG_ONNX_CACHE"
+
+
+def cache_root() -> Path:
+    """Where exports are cached: ``$RADARSEG_ONNX_CACHE``, else ``~/.cache/radarseg/onnx``."""
+    configured = os.environ.get(CACHE_ENV)
+    return Path(configured).expanduser() if configured else Path.home() / ".cache" / "radarseg" / "onnx"
+
+
+def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint,
+                 root: Path | None = None) -> Path:
+    """The export of this checkpoint pair, made now if the cache does not hold it yet.
+
+    The directory is named by the sha256 of both checkpoints and the export format version; a new export is
+    written to a temporary directory and renamed into place, so concurrent processes (Ray actors) never read
+    half a directory: the first rename wins and the others use its files.
+    """
+    root = cache_root() if root is None else root
+    digests = (checkpoint_digest(detector), checkpoint_digest(segmenter))
+    key = hashlib.sha256(f"{FORMAT}/{VERSION}/{digests[0]}/{digests[1]}".encode()).hexdigest()[:24]
+    target = root / key
+    if (target / "manifest.json").is_file():
+        return target
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".export-", dir=root))
+    try:
+        log.info("exporting the checkpoints to ONNX into %s", target)
+        export_onnx(detector, segmenter, staging)
+        try:
+            os.rename(staging, target)
+        except OSError:  # another process renamed its export first
+            if not (target / "manifest.json").is_file():
+                raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
+def _session(path: Path, threads: int):
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.log_severity_level = 3  # warnings about unused initialisers of the folded BatchNorms are noise
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+class OnnxDetector:
+    """The detector graph called like the PyTorch detector: log power (R, A, D) -> dict of outputs, plus
+    the detector's own ``decode``."""
+
+    def __init__(self, session: Any, detector: nn.Module) -> None:
+        self.session = session
+        self.detector = detector
+        self.output_names = [o.name for o in session.get_outputs()]
+
+    def __call__(self, log_power: np.ndarray) -> dict[str, torch.Tensor]:
+        outputs = self.session.run(None, {"log_power": log_power})
+        return {name: torch.from_numpy(value) for name, value in zip(self.output_names, outputs, strict=True)}
+
+    def decode(self, outputs: dict[str, torch.Tensor], k: int = 100,
+               score_threshold: float = 0.1) -> list[dict[str, torch.Tensor]]:
+        return self.detector.decode(outputs, k=k, score_threshold=score_threshold)
+
+
+class OnnxEraseNet(EraseNet):
+    """:class:`EraseNet` whose detector and segmenter run as ONNX graphs in onnxruntime (CPU).
+
+    The PyTorch modules are still built (parameter counts, the detector's analytic MACs and ``decode``) but
+    never run.
+    """
+
+    engine = "onnx"
+
+    def __init__(self, detector: nn.Module, segmenter: nn.Module, profile: RadarProfile | str, *,
+                 onnx_dir: str | Path, threads: int | None = None, **kwargs: Any) -> None:
+        """``onnx_dir``: an export of these models (``radarseg export onnx``); ``threads``: onnxruntime's
+        intra-op threads (default: torch's thread count, so one setting governs both engines)."""
+        if torch.device(kwargs.get("device", "cpu")).type != "cpu":
+            raise ValueError(f"the ONNX engine runs on the CPU, got device {kwargs['device']!r}")
+        kwargs["frozen_detector"] = False  # the graph replaces the traced detector
+        super().__init__(detector, segmenter, profile, **kwargs)
+        self.onnx_dir = Path(onnx_dir)
+        manifest_path = self.onnx_dir / "manifest.json"
+        if not manifest_path.is_file():
+            raise ValueError(f"{self.onnx_dir}: no ONNX export here (expected manifest.json; "
+                             "run `radarseg export onnx`)")
+        self.manifest = json.loads(manifest_path.read_text())
+        if self.manifest.get("format") != FORMAT or self.manifest.get("version") != VERSION:
+            raise ValueError(f"{manifest_path}: expected format {FORMAT!r} version {VERSION}, got "
+                             f"{self.manifest.get('format')!r} version {self.manifest.get('version')!r}")
+        if self.manifest["preset"] != self.profile.name or tuple(self.manifest["cube_shape"]) != self.profile.shape:
+            raise ValueError(f"{self.onnx_dir}: exported for preset {self.manifest['preset']!r} "
+                             f"{tuple(self.manifest['cube_shape'])}, not {self.profile.name!r} {self.profile.shape}")
+        threads = torch.get_num_threads() if threads is None else threads
+        self._run_detector = OnnxDetector(_session(self.onnx_dir / "detector.onnx", threads), self.detector)
+        self._segmenter_session = _session(self.onnx_dir / "segmenter.onnx", threads)
+        self._layers = self.manifest["segmenter"]["layers"]
+
+    @classmethod
+    def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
+                         onnx_dir: str | Path | None = None, **kwargs: Any) -> OnnxEraseNet:
+        """Both stages from checkpoints, run from ``onnx_dir`` (default: the export cache, exporting now if
+        these checkpoints were never exported)."""
+        if onnx_dir is None:
+            onnx_dir = exported_dir(detector, segmenter)
+        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
+        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
+        return super().from_checkpoints(det, seg, onnx_dir=onnx_dir, **kwargs)
+
+    def _detector_input(self, log_power: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(log_power, dtype=np.float32)  # the graph normalises
+
+    def voxel_logits(self, coords: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """The segmenter graph on voxels (N, 3) bins with features (N, 4): logits (N, C), labels (N,) int64,
+        useful and executed MACs."""
+        maps = kernel_maps(coords)
+        logits, labels = self._segmenter_session.run(None, {"features": features, **maps})
+        return (logits, labels, *segmenter_macs(maps, self._layers))
+
+    def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int, int]:
+        if len(regions) == 0:
+            return np.zeros(0, np.uint8), 0, 0
+        points = roi_points(regions.voxels, log_power, self.profile, mean_db=self.mean_db, std_db=self.std_db)
+        _, labels, useful, executed = self.voxel_logits(points.coords, points.features)
+        return labels.astype(np.uint8)[points.inverse], useful, executed
