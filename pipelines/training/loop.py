@@ -2,7 +2,9 @@
 slimming penalty, and Ray Train's data-parallel world, for every :class:`~pipelines.training.task.Task`.
 
 Run directory: ``config.json`` (the resolved configuration), ``metrics.jsonl`` (one JSON line per epoch:
-train losses, lr, seconds, frames/s, validation figures), ``last.pt`` (model, optimiser and scheduler
+train losses, lr, seconds, frames/s, training CPU seconds so far ``cpu_s``, validation figures), ``curve.jsonl``
+(with ``curve_every``: a validation before the first step, every ``curve_every`` steps and at each epoch's end,
+against training CPU seconds: learning curves), ``last.pt`` (model, optimiser and scheduler
 state: ``--resume`` continues from it), ``model.pt`` (weights of the epoch with the best validation
 score). Epochs are shuffled from ``(seed, epoch)``, so a resumed run sees the same order as a straight one.
 A run that fails before its first epoch is saved removes the run directory it created.
@@ -17,6 +19,8 @@ import math
 import os
 import shutil
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -87,9 +91,51 @@ class Budget:
                 or (self.deadline is not None and time.perf_counter() >= self.deadline))
 
 
+class CpuClock:
+    """Training CPU seconds of this process (all its threads): time spent inside :meth:`paused` (validation) is
+    not counted; ``spent_s`` is what a resumed run had already used."""
+
+    def __init__(self, spent_s: float = 0.0) -> None:
+        self._origin = time.process_time() - spent_s
+
+    def seconds(self) -> float:
+        return time.process_time() - self._origin
+
+    @contextmanager
+    def paused(self) -> Iterator[None]:
+        started = time.process_time()
+        try:
+            yield
+        finally:
+            self._origin += time.process_time() - started
+
+
 # --------------------------------------------------------------------------- the loop
 def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else float("nan")
+
+
+def _append_line(path: Path, record: dict[str, Any]) -> None:
+    with path.open("a") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+def _keep_curve_until(path: Path, step: int) -> None:
+    """A resumed run repeats the steps after its last checkpoint: drop their curve points."""
+    if path.is_file():
+        lines = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
+        path.write_text("".join(line + "\n" for line in lines))
+
+
+def _curve_point(task: Task, model: nn.Module, device: torch.device, clock: CpuClock, *, epoch: float, step: int,
+                 elapsed_s: float) -> dict[str, Any]:
+    """Validation figures at this point of training, with the training CPU seconds spent to reach it."""
+    cpu_s = clock.seconds()
+    started = time.perf_counter()
+    with clock.paused():
+        figures = task.validate(unwrap(model), device)
+    return {"epoch": epoch, "step": step, "cpu_s": cpu_s, "elapsed_s": elapsed_s, **figures,
+            "seconds_validation": time.perf_counter() - started}
 
 
 def _checkpoint(task: Task, model: nn.Module, extra: dict[str, Any]) -> Checkpoint:
@@ -177,7 +223,7 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
     per_step = hyper.schedule == "cosine"
     scheduler = make_scheduler(hyper, optimizer, len(loader))
 
-    start_epoch, step, best, elapsed = 0, 0, -math.inf, 0.0
+    start_epoch, step, best, elapsed, cpu_spent = 0, 0, -math.inf, 0.0, 0.0
     if cfg.resume and last_path.is_file():
         state = load_checkpoint(last_path)
         model.load_state_dict(state.state_dict)
@@ -185,11 +231,19 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
         scheduler.load_state_dict(state.extra["scheduler"])
         start_epoch, step, best = int(state.extra["epoch"]), int(state.extra["step"]), float(state.extra["best"])
         elapsed = float(state.extra.get("elapsed_s", 0.0))
+        cpu_spent = float(state.extra.get("cpu_s", 0.0))
         log.info("resumed %s at epoch %d, step %d", run_dir, start_epoch, step)
     model = world.wrap(model)
     model.train()
 
     metrics: dict[str, Any] = {}
+    clock = CpuClock(cpu_spent)
+    curve_path = run_dir / "curve.jsonl"
+    curving = bool(cfg.curve_every) and world.rank == 0
+    if curving:
+        _keep_curve_until(curve_path, step)
+        if step == 0:  # the curve's first point: the initial (or --init) weights
+            _append_line(curve_path, _curve_point(task, model, device, clock, epoch=0, step=0, elapsed_s=0.0))
     budget = Budget(cfg.max_steps, cfg.max_minutes, spent_s=elapsed)
     name = cfg.model or hyper.model
     for epoch in range(start_epoch, hyper.epochs):
@@ -220,6 +274,10 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
             bar.set_postfix(loss=f"{_mean(losses['total'][-20:]):.4f}", frames_s=f"{rate:.1f}")
             if budget.spent(step):
                 break
+            if curving and step % cfg.curve_every == 0 and step % len(loader):  # epoch ends are scored below
+                _append_line(curve_path, _curve_point(
+                    task, model, device, clock, epoch=epoch + (step % len(loader)) / len(loader), step=step,
+                    elapsed_s=elapsed + time.perf_counter() - started))
         bar.close()
         if not per_step:
             scheduler.step()
@@ -228,9 +286,10 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
                    **{f"train_{k}": _mean(v) for k, v in losses.items()}, "seconds": seconds,
                    "frames_per_second": samples / max(seconds, 1e-9)}
         if world.rank == 0:
-            started_val = time.perf_counter()
-            metrics.update(task.validate(unwrap(model), device))
-            metrics["seconds_validation"] = time.perf_counter() - started_val
+            point = _curve_point(task, model, device, clock, step=step,
+                                 epoch=epoch + (step % len(loader)) / len(loader) if step % len(loader) else epoch + 1,
+                                 elapsed_s=elapsed + time.perf_counter() - started)
+            metrics.update({k: v for k, v in point.items() if k not in ("epoch", "step", "elapsed_s")})
             elapsed += time.perf_counter() - started
             metrics["elapsed_s"] = elapsed  # training + validation time of the whole run so far
             score = metrics.get(task.monitor, float("nan"))
@@ -242,10 +301,12 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
                                 model_path)
             metrics["best"] = improved
             save_checkpoint(_checkpoint(task, model, {
-                "epoch": epoch + 1, "step": step, "best": best, "elapsed_s": elapsed, "metrics": metrics,
+                "epoch": epoch + 1, "step": step, "best": best, "elapsed_s": elapsed, "cpu_s": metrics["cpu_s"],
+                "metrics": metrics,
                 "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}), last_path)
-            with (run_dir / "metrics.jsonl").open("a") as fh:
-                fh.write(json.dumps(metrics) + "\n")
+            _append_line(run_dir / "metrics.jsonl", metrics)
+            if curving:
+                _append_line(curve_path, {**point, "elapsed_s": elapsed})
             log.info("%s epoch %d: %s", name, epoch + 1,
                      ", ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float)))
         world.report(metrics)
