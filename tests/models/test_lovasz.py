@@ -43,7 +43,7 @@ def test_gradient_lowers_the_loss_and_bad_shapes_are_named():
     first.backward()
     with torch.no_grad():
         stepped = logits - 5.0 * logits.grad
-    assert float(lovasz_softmax(stepped.softmax(1), labels)) < float(first)
+    assert float(lovasz_softmax(stepped.softmax(1), labels)) < float(first.detach())
     assert float(lovasz_softmax(torch.eye(3)[labels], labels)) == 0.0
     with pytest.raises(ValueError, match=r"probabilities \(N, C\) and labels \(N,\)"):
         lovasz_softmax(torch.zeros(4, 3), torch.zeros(5, dtype=torch.int64))
