@@ -63,7 +63,7 @@ from radar.io.recording import Recording
 from radar.profile_files import ProfileError, profile_to_dict
 from radar.profiles import UnknownPresetError, get_profile
 from radar.schema import cube_schema
-from radar.simulate import sequence_name, simulate_sequence
+from radar.simulate import SimulatorConfig, sequence_name, simulate_sequence
 
 log = logging.getLogger(__name__)
 
@@ -112,12 +112,14 @@ class JobPlan(sharded_job.ShardedPlan):
     and the split rule."""
 
     split_rule: dict[str, Any]
+    simulator: dict[str, Any] | None = None  # version and options of the simulator behind the frames (None: not one)
 
     def identity(self) -> dict[str, Any]:
-        """What a resumed run must share with the run that created the store."""
+        """What a resumed run must share with the run that created the store (a store begun by another
+        simulator version is not continued by this one)."""
         return {"source": self.source.to_dict(), "layout": self.layout.to_dict(), "sequences": list(self.sequences),
                 "split_rule": self.split_rule,
-                "slots": [[s.sequence_id, s.index, s.split] for s in self.frames]}
+                "slots": [[s.sequence_id, s.index, s.split] for s in self.frames], "simulator": self.simulator}
 
 
 # --------------------------------------------------------------------------- arguments
@@ -198,6 +200,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         if n_sequences < 1 or n_frames < 1:
             raise UserError(f"--sequences and --frames must be >= 1, got {n_sequences} and {n_frames}")
         source = sharded_job.SourceSpec("sim", None, preset, cfg.seed)
+        simulator = SimulatorConfig().stamp()  # the frames are simulated in the tasks with the default options
         frame_counts = {sequence_name(i): n_frames for i in range(n_sequences)}
     else:
         given = [f"--{n}" for n in ("preset", "sequences", "frames") if getattr(cfg, n) is not None]
@@ -211,6 +214,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
         # the store records a seed for any source
         source = sharded_job.SourceSpec(kind, str(root), reader.profile.name, seed=0)
         frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
+        simulator = reader.meta.get("simulator") if isinstance(reader, Recording) else None
         if not any(frame_counts.values()):
             raise DataError(root, "the source holds no frame")
         if kind == "carrada" and cfg.split_fractions is None:
@@ -238,7 +242,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
             slots.append(Slot(len(slots), sequence_id, seq, index, SPLIT_CODE[splits[seq]]))
     layout = StoreLayout(get_profile(source.preset), len(slots), cfg.shard_frames, max_objects=cfg.max_objects)
     plan = JobPlan(cfg=cfg, out=Path(cfg.out).expanduser().absolute(), source=source, layout=layout, sequences=names,
-                   frames=tuple(slots), split_rule=split_rule)
+                   frames=tuple(slots), split_rule=split_rule, simulator=simulator)
     _check_out(plan)
     return plan
 
@@ -379,6 +383,7 @@ def store_attributes(plan: JobPlan, stats: dict[str, Any]) -> dict[str, Any]:
         "report": {"frames": stats["frames"], "written": stats["written"], "quarantined": stats["quarantined"]},
         "source": plan.source.to_dict(),
         "split_rule": plan.split_rule,
+        "simulator": plan.simulator,  # {"version", "options"} of the simulator that made the frames, or None
         "job": plan.cfg.to_dict(),
     }
 

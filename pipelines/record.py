@@ -22,7 +22,7 @@ def simulate_recording(*, preset: str, sequences: int, frames: int, seed: int, o
         raise UserError(f"sequences and frames must be >= 1, got {sequences} and {frames}")
     profile = get_profile(preset)
     config = config or SimulatorConfig()
-    source = {"kind": "sim", "seed": seed, "simulator": config.to_dict()}
+    source = {"kind": "sim", "seed": seed, "simulator": config.stamp()}
     with RecordingWriter(out, profile, source=source, content="adc" if adc else "cube") as writer, \
             progress_bar(total=sequences * frames, desc=f"simulate {preset}", unit="frame",
                          disable=not progress) as bar:

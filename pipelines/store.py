@@ -308,6 +308,7 @@ def summarise(path: str | Path) -> dict[str, Any]:
             "done": len(done_shards(path)),
         },
         "code_version": attrs.get("code_version"),
+        "simulator": attrs.get("simulator"),
     }
 
 
@@ -323,6 +324,12 @@ def format_summary(summary: dict[str, Any]) -> str:
     norm = summary["normalisation"]
     if norm["mean"] is not None:
         lines.append(f"  input (train, {norm['frames']} frames): mean {norm['mean']:.3f} dB, std {norm['std']:.3f} dB")
+    simulator = summary.get("simulator")
+    if simulator:
+        options = ", ".join(f"{k} {v}" for k, v in simulator["options"].items())
+        lines.append(f"  simulator: version {simulator['version']} ({options})")
+    else:
+        lines.append("  simulator: none recorded (not simulated, or made before simulator versions were recorded)")
     lines.append(f"  quarantined: {len(summary['quarantined'])}")
     for q in summary["quarantined"]:
         lines.append(f"    {q['sequence']}/{q['index']} (slot {q['frame']}): {q['reason']}")

@@ -46,6 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                                    "split) jitter the training seeds")
             sub.add_argument("--jitter-std", type=float, nargs=3, metavar=("RANGE", "ANGLE", "DOPPLER"),
                              help="Gaussian seed errors in bins instead")
+            sub.add_argument("--lovasz-weight", type=float,
+                             help="add this weight x Lovasz-softmax to the weighted cross entropy (default 0: off)")
     export = stages.add_parser("export", help="a shippable copy of a checkpoint: weights only, float16")
     export.add_argument("source", help="training checkpoint (model.pt or last.pt)")
     export.add_argument("target", help="shippable copy to write (float16, no optimiser state)")
@@ -57,7 +59,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig:
         return ExportConfig(args.source, args.target, float16=not args.float32)
     jitter_std = getattr(args, "jitter_std", None)
     return TrainConfig(stage=args.stage, model=args.model, jitter_from=getattr(args, "jitter_from", None),
-                       jitter_std=tuple(jitter_std) if jitter_std else None, **common_config(args))
+                       jitter_std=tuple(jitter_std) if jitter_std else None,
+                       lovasz_weight=getattr(args, "lovasz_weight", None), **common_config(args))
 
 
 def main(cfg: TrainConfig | ExportConfig) -> dict[str, Any]:

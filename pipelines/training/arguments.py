@@ -38,6 +38,11 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
                         help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
     parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
+    parser.add_argument("--val-frames", type=int,
+                        help="validation frames scored per epoch, evenly spread (default: the profile's; 0 = all)")
+    parser.add_argument("--curve-every", type=int, default=0, metavar="STEPS",
+                        help="learning curve: validate before the first step, every STEPS steps and at each epoch's "
+                             "end into RUN/curve.jsonl, against training CPU seconds (0: off)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -49,7 +54,8 @@ def common_config(args: argparse.Namespace) -> dict[str, Any]:
                 val_split=None if args.val_split.lower() == "none" else args.val_split,
                 max_steps=args.max_steps, max_minutes=args.max_minutes, threads=args.threads, resume=args.resume,
                 workers=args.workers, ray_workers=args.ray_workers, address=args.address,
-                progress=not args.no_progress, slim_lambda=args.slim_lambda, init=args.init)
+                progress=not args.no_progress, slim_lambda=args.slim_lambda, init=args.init,
+                val_frames=args.val_frames, curve_every=args.curve_every)
 
 
 def format_training(result: dict[str, Any]) -> str:

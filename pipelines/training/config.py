@@ -43,6 +43,7 @@ class Hyper:
     flip_prob: float = 0.5
     val_frames: int = 0  # frames (windows) of the validation split scored per epoch, evenly spread (0 = all)
     jitter_std: tuple[float, float, float] = DEFAULT_JITTER_STD  # segmenter, bins, when no detector is given
+    lovasz_weight: float = 0.0  # segmenter: weight of the Lovasz-softmax term beside weighted cross entropy
 
 
 PROFILES: dict[str, dict[str, Hyper]] = {
@@ -101,6 +102,9 @@ class TrainConfig:
     progress: bool = True
     slim_lambda: float = 0.0  # network slimming: weight of the L1 penalty on every BatchNorm scale
     init: str | None = None  # start from this checkpoint's architecture and weights (fine-tuning)
+    lovasz_weight: float | None = None  # segmenter: Lovasz-softmax beside the weighted cross entropy
+    val_frames: int | None = None  # validation frames per epoch instead of the profile's (0 = all)
+    curve_every: int = 0  # validate every this many steps too, into curve.jsonl (learning curves; 0 = off)
 
     def __post_init__(self) -> None:
         if self.stage not in STAGES:
@@ -122,6 +126,14 @@ class TrainConfig:
         if self.max_minutes is not None and self.ray_workers:
             raise ValueError("--max-minutes is for single-process runs: Ray Train workers would stop at different "
                              "steps; use --max-steps with --ray-workers")
+        if self.curve_every < 0:
+            raise ValueError(f"curve_every must be >= 0, got {self.curve_every}")
+        if self.val_frames is not None and self.val_frames < 0:
+            raise ValueError(f"val_frames must be >= 0, got {self.val_frames}")
+        if self.lovasz_weight is not None and not self.lovasz_weight >= 0:
+            raise ValueError(f"lovasz_weight must be >= 0, got {self.lovasz_weight}")
+        if self.lovasz_weight and self.stage != "segmenter":
+            raise ValueError(f"lovasz_weight is a segmenter loss, not for the {self.stage} stage")
         if not self.slim_lambda >= 0:
             raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
         if self.ray_workers < 0 or self.workers < 0:
@@ -147,7 +159,8 @@ class TrainConfig:
         """The profile's hyperparameters with every override that is not None (another ``model`` without a
         ``model_config`` is built with its builder's defaults: the profile's arguments belong to its own model)."""
         base = PROFILES[self.stage][self.profile]
-        overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr", "optimizer")
+        overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr", "optimizer",
+                                                             "lovasz_weight", "val_frames")
                      if getattr(self, name) is not None}
         if self.model_config is not None:
             overrides["model_config"] = dict(self.model_config)
@@ -173,5 +186,5 @@ class TrainConfig:
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run it continues."""
         keep = ("stage", "store", "profile", "model", "view", "model_config", "batch_size", "lr", "seed",
-                "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer")
+                "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer", "lovasz_weight")
         return {k: v for k, v in self.to_dict().items() if k in keep}

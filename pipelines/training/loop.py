@@ -2,7 +2,9 @@
 slimming penalty, and Ray Train's data-parallel world, for every :class:`~pipelines.training.task.Task`.
 
 Run directory: ``config.json`` (the resolved configuration), ``metrics.jsonl`` (one JSON line per epoch:
-train losses, lr, seconds, frames/s, validation figures), ``last.pt`` (model, optimiser and scheduler
+train losses, lr, seconds, frames/s, training CPU seconds so far ``cpu_s``, validation figures), ``curve.jsonl``
+(with ``curve_every``: a validation before the first step, every ``curve_every`` steps and at each epoch's end,
+against training CPU seconds: learning curves), ``last.pt`` (model, optimiser and scheduler
 state: ``--resume`` continues from it), ``model.pt`` (weights of the epoch with the best validation
 score). Epochs are shuffled from ``(seed, epoch)``, so a resumed run sees the same order as a straight one.
 A run that fails before its first epoch is saved removes the run directory it created.
@@ -16,6 +18,8 @@ import logging
 import math
 import shutil
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -89,9 +93,73 @@ class Budget:
                 or (self.deadline is not None and time.perf_counter() >= self.deadline))
 
 
+class CpuClock:
+    """Training CPU seconds of this process (all its threads): time spent inside :meth:`paused` (validation) is
+    not counted; ``spent_s`` is what a resumed run had already used."""
+
+    def __init__(self, spent_s: float = 0.0) -> None:
+        self._origin = time.process_time() - spent_s
+
+    def seconds(self) -> float:
+        return time.process_time() - self._origin
+
+    @contextmanager
+    def paused(self) -> Iterator[None]:
+        started = time.process_time()
+        try:
+            yield
+        finally:
+            self._origin += time.process_time() - started
+
+
 # --------------------------------------------------------------------------- the loop
 def _mean(values: list[float]) -> float:
     return float(np.mean(values)) if values else float("nan")
+
+
+def _append_line(path: Path, record: dict[str, Any]) -> None:
+    with path.open("a") as fh:
+        fh.write(json.dumps(record) + "\n")
+
+
+def _keep_curve_until(path: Path, step: int) -> None:
+    """A resumed run repeats the steps after its last checkpoint: drop their curve points."""
+    if path.is_file():
+        lines = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
+        path.write_text("".join(line + "\n" for line in lines))
+
+
+def _curve_point(task: Task, model: nn.Module, device: torch.device, clock: CpuClock, *, epoch: float, step: int,
+                 elapsed_s: float) -> dict[str, Any]:
+    """Validation figures at this point of training, with the training CPU seconds spent to reach it."""
+    cpu_s = clock.seconds()
+    started = time.perf_counter()
+    with clock.paused():
+        figures = task.validate(unwrap(model), device)
+    return {"epoch": epoch, "step": step, "cpu_s": cpu_s, "elapsed_s": elapsed_s, **figures,
+            "seconds_validation": time.perf_counter() - started}
+
+
+class _Curve:
+    """Learning-curve points into ``path`` (``curve.jsonl``) when ``every`` > 0: the initial weights, every
+    ``every`` steps inside an epoch (``between``) and each epoch's end (``append``, from the epoch's validation)."""
+
+    def __init__(self, path: Path, every: int, steps_per_epoch: int, measure: Callable[..., dict[str, Any]],
+                 step: int) -> None:
+        self.path, self.every, self.steps_per_epoch, self.measure = path, every, steps_per_epoch, measure
+        if every:
+            _keep_curve_until(path, step)
+            if step == 0:  # the curve's first point: the initial (or --init) weights
+                self.append(measure(epoch=0, step=0, elapsed_s=0.0))
+
+    def between(self, epoch: int, step: int, elapsed_s: float) -> None:
+        within = step % self.steps_per_epoch
+        if self.every and step % self.every == 0 and within:  # epoch ends are scored by the epoch's validation
+            self.append(self.measure(epoch=epoch + within / self.steps_per_epoch, step=step, elapsed_s=elapsed_s))
+
+    def append(self, point: dict[str, Any]) -> None:
+        if self.every:
+            _append_line(self.path, point)
 
 
 def _checkpoint(task: Task, model: nn.Module, extra: dict[str, Any]) -> Checkpoint:
@@ -171,13 +239,16 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
     per_step = hyper.schedule == "cosine"
     scheduler = make_scheduler(hyper, optimizer, len(loader))
 
-    start_epoch, step, best, elapsed = 0, 0, -math.inf, 0.0
+    start_epoch, step, best, elapsed, cpu_spent = 0, 0, -math.inf, 0.0, 0.0
     if cfg.resume and last_path.is_file():
-        start_epoch, step, best, elapsed = _resume(last_path, model, optimizer, scheduler)
+        start_epoch, step, best, elapsed, cpu_spent = _resume(last_path, model, optimizer, scheduler)
     model = world.wrap(model)
     model.train()
 
     metrics: dict[str, Any] = {}
+    clock = CpuClock(cpu_spent)
+    curve = _Curve(run_dir / "curve.jsonl", cfg.curve_every if world.rank == 0 else 0, len(loader),
+                   lambda **at: _curve_point(task, model, device, clock, **at), step)
     budget = Budget(cfg.max_steps, cfg.max_minutes, spent_s=elapsed)
     name = cfg.model or hyper.model
     for epoch in range(start_epoch, hyper.epochs):
@@ -189,8 +260,9 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
         started = time.perf_counter()
         bar = progress(loader, desc=f"{name} epoch {epoch + 1}/{hyper.epochs}", unit="batch", leave=False,
                    disable=not cfg.progress or world.rank != 0, dynamic_ncols=True)
-        step, losses, samples = _run_epoch(cfg, task, model, bar, (optimizer, scheduler if per_step else None),
-                                           device, world, budget, step)
+        step, losses, samples = _run_epoch(
+            cfg, task, model, bar, (optimizer, scheduler if per_step else None), device, world, budget, step,
+            after_step=lambda done, e=epoch, t0=started - elapsed: curve.between(e, done, time.perf_counter() - t0))
         if not per_step:
             scheduler.step()
         seconds = time.perf_counter() - started
@@ -198,12 +270,14 @@ def _train(cfg: TrainConfig, task_class: type[Task], world: World, run_dir: Path
                    **{f"train_{k}": _mean(v) for k, v in losses.items()}, "seconds": seconds,
                    "frames_per_second": samples / max(seconds, 1e-9)}
         if world.rank == 0:
-            started_val = time.perf_counter()
-            metrics.update(task.validate(unwrap(model), device))
-            metrics["seconds_validation"] = time.perf_counter() - started_val
+            point = _curve_point(task, model, device, clock, step=step,
+                                 epoch=epoch + (step % len(loader)) / len(loader) if step % len(loader) else epoch + 1,
+                                 elapsed_s=elapsed + time.perf_counter() - started)
+            metrics.update({k: v for k, v in point.items() if k not in ("epoch", "step", "elapsed_s")})
             elapsed += time.perf_counter() - started
             metrics["elapsed_s"] = elapsed  # training + validation time of the whole run so far
             best = _save_epoch(task, model, (optimizer, scheduler), metrics, best, run_dir)
+            curve.append({**point, "elapsed_s": elapsed})
             log.info("%s epoch %d: %s", name, epoch + 1,
                      ", ".join(f"{k} {v:.4g}" for k, v in metrics.items() if isinstance(v, float)))
         world.report(metrics)
@@ -225,22 +299,26 @@ def _init_checkpoint(cfg: TrainConfig, store: StoreInfo) -> tuple[Checkpoint | N
                                      model_config={k: v for k, v in init.config.items() if k not in ("preset", "view")})
 
 
-def _resume(last_path: Path, model: nn.Module, optimizer: Any, scheduler: Any) -> tuple[int, int, float, float]:
-    """Load ``last.pt`` into the model, optimiser and scheduler; ``(epoch, step, best, elapsed seconds)``."""
+def _resume(last_path: Path, model: nn.Module, optimizer: Any, scheduler: Any
+            ) -> tuple[int, int, float, float, float]:
+    """Load ``last.pt`` into the model, optimiser and scheduler; ``(epoch, step, best, elapsed seconds, training
+    CPU seconds)``."""
     state = load_checkpoint(last_path)
     model.load_state_dict(state.state_dict)
     optimizer.load_state_dict(state.extra["optimizer"])
     scheduler.load_state_dict(state.extra["scheduler"])
     start_epoch, step, best = int(state.extra["epoch"]), int(state.extra["step"]), float(state.extra["best"])
     log.info("resumed %s at epoch %d, step %d", last_path.parent, start_epoch, step)
-    return start_epoch, step, best, float(state.extra.get("elapsed_s", 0.0))
+    return (start_epoch, step, best, float(state.extra.get("elapsed_s", 0.0)),
+            float(state.extra.get("cpu_s", 0.0)))
 
 
 def _run_epoch(cfg: TrainConfig, task: Task, model: nn.Module, bar: Any, stepping: tuple[Any, Any],
-               device: torch.device, world: World, budget: Budget, step: int
-               ) -> tuple[int, dict[str, list[float]], int]:
+               device: torch.device, world: World, budget: Budget, step: int,
+               after_step: Callable[[int], None] | None = None) -> tuple[int, dict[str, list[float]], int]:
     """One pass over ``bar`` (the loader), stopping early when the budget is spent; ``(step, losses per name,
-    frames seen)``. ``stepping``: the optimiser and the scheduler when it steps per optimiser step (else None)."""
+    frames seen)``. ``stepping``: the optimiser and the scheduler when it steps per optimiser step (else None);
+    ``after_step(step)`` runs after every step that did not spend the budget."""
     optimizer, per_step_scheduler = stepping
     losses: dict[str, list[float]] = {}
     samples, started = 0, time.perf_counter()
@@ -262,6 +340,8 @@ def _run_epoch(cfg: TrainConfig, task: Task, model: nn.Module, bar: Any, steppin
         bar.set_postfix(loss=f"{_mean(losses['total'][-20:]):.4f}", frames_s=f"{rate:.1f}")
         if budget.spent(step):
             break
+        if after_step is not None:
+            after_step(step)
     bar.close()
     return step, losses, samples
 
@@ -282,10 +362,10 @@ def _save_epoch(task: Task, model: nn.Module, stepping: tuple[Any, Any], metrics
                         run_dir / "model.pt")
     metrics["best"] = improved
     save_checkpoint(_checkpoint(task, model, {
-        "epoch": epoch, "step": step, "best": best, "elapsed_s": metrics["elapsed_s"], "metrics": metrics,
-        "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}), run_dir / "last.pt")
-    with (run_dir / "metrics.jsonl").open("a") as fh:
-        fh.write(json.dumps(metrics) + "\n")
+        "epoch": epoch, "step": step, "best": best, "elapsed_s": metrics["elapsed_s"], "cpu_s": metrics["cpu_s"],
+        "metrics": metrics, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict()}),
+        run_dir / "last.pt")
+    _append_line(run_dir / "metrics.jsonl", metrics)
     return best
 
 

@@ -3,7 +3,9 @@
 detector's (:mod:`pipelines.training.jitter`: ``--jitter-from DETECTOR_CKPT`` measures them on the
 validation split, ``--jitter-std R A D`` gives Gaussian errors instead, stated in the run's ``jitter.json``).
 Loss: class-weighted cross entropy (``1 / sqrt(frequency)`` of the classes among ROI voxels of up to 64
-training frames, normalised to mean 1; ``class_weights.json``). Validation: voxel mIoU over the ROI."""
+training frames, normalised to mean 1; ``class_weights.json``), plus ``--lovasz-weight`` x Lovasz-softmax
+(:mod:`models.segmenter.lovasz`) when given. Validation: voxel mIoU over the ROI (picks ``model.pt``), and RA/RD
+mIoU and IoU per class of whole frames, as ``radarseg evaluate`` scores them."""
 
 from __future__ import annotations
 
@@ -16,14 +18,17 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from models.segmenter.lovasz import lovasz_softmax
 from pipelines.scoring import ViewConfusion, frame_centres
 from pipelines.spread import subset
 from pipelines.store import StoreDataset, open_store
 from pipelines.store_info import StoreInfo
 from pipelines.training.jitter import SeedJitter, measure_detector_errors
 from pipelines.training.task import Task, unwrap
+from radar.metrics import iou_per_class
 from radar.region_growing import grow_regions
 from radar.roi import roi_points
+from radar.transforms import project_voxels
 
 log = logging.getLogger(__name__)
 
@@ -148,8 +153,12 @@ class SegmenterTask(Task):
 
     def loss(self, model: nn.Module, batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
         logits = model(sparse_input(model, batch, device))
-        loss = nn.functional.cross_entropy(logits, batch["labels"].to(device), weight=self.class_weights.to(device))
-        return {"ce": loss, "total": loss}
+        labels = batch["labels"].to(device)
+        ce = nn.functional.cross_entropy(logits, labels, weight=self.class_weights.to(device))
+        if not self.hyper.lovasz_weight:
+            return {"ce": ce, "total": ce}
+        lovasz = lovasz_softmax(logits.softmax(1), labels)
+        return {"ce": ce, "lovasz": lovasz, "total": ce + self.hyper.lovasz_weight * lovasz}
 
     @torch.no_grad()
     def validate(self, model: nn.Module, device: torch.device) -> dict[str, float]:
@@ -160,16 +169,32 @@ class SegmenterTask(Task):
         if len(dataset) == 0:
             return {}
         model.eval()
-        confusion = ViewConfusion(self.store.profile.num_classes, views=("roi",))
+        profile = self.store.profile
+        confusion = ViewConfusion(profile.num_classes, views=("roi", "ra", "rd"))
+        root = open_store(self.store.path)
+        truth_views = {"ra": root["ra_mask"], "rd": root["rd_mask"]}
         recalls = []
         for start in range(0, len(dataset), 4):
             batch = collate_roi([dataset[i] for i in range(start, min(start + 4, len(dataset)))])
             prediction = model(sparse_input(model, batch, device)).argmax(1).cpu().numpy()
             confusion.add("roi", batch["labels"].numpy(), prediction)
             recalls += batch["recall"]
+            coords = batch["coords"].numpy()
+            for b, slot in enumerate(batch["frames"]):  # the frame's RA/RD masks, as the evaluator scores them
+                mine = coords[:, 0] == b
+                for view, axis in (("ra", 2), ("rd", 1)):
+                    mask = project_voxels(coords[mine, 1:], prediction[mine], profile.shape, axis, profile.num_classes)
+                    confusion.add(view, truth_views[view][slot], mask)
         model.train()
-        # voxel-level mIoU over the ROI voxels (background included), seeds jittered like in training
-        return {"val_mIoU": confusion.miou("roi"), "val_roi_recall": float(np.mean(recalls))}
+        # mIoU over the ROI voxels (background included), seeds jittered like in training; and the RA/RD views'
+        # mIoU and IoU per class over whole frames (background outside the ROI), as `radarseg evaluate` scores them
+        figures = {"val_mIoU": confusion.miou("roi"), "val_roi_recall": float(np.mean(recalls))}
+        for view in ("ra", "rd"):
+            figures[f"val_{view.upper()}_mIoU"] = confusion.miou(view)
+            iou = iou_per_class(confusion.matrices[view])
+            figures.update({f"val_{view.upper()}_iou_{name}": float(value)
+                            for name, value in zip(self.store.class_names, iou, strict=True)})
+        return figures
 
     def extra(self) -> dict[str, Any]:
         return {"jitter": {k: v for k, v in self.jitter.to_dict().items() if k != "residuals"},

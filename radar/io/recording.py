@@ -3,7 +3,8 @@
 ::
 
     DIR/
-      recording.json             format, version, preset, radar parameters, classes, sequences, source
+      recording.json             format, version, preset, radar parameters, classes, sequences, source,
+                                 simulator (version and options of the simulator that made it, or null)
       seq_000/
         cubes/000000.npy         complex64 (R, A, D) RAD cube in the project's frame (SPEC section 2)
         adc/000000.npy           (ADC recordings, content "adc", instead of cubes) complex64 raw samples
@@ -62,6 +63,7 @@ class RecordingWriter:
         self.content = content
         self.tdm_compensation = False  # ADC recordings: whether the samples carry TDM coupling to remove
         self.tdm_coupling = False
+        self.simulator: dict[str, Any] | None = None  # version and options of the simulator that made the frames
         self.root = Path(out_dir)
         if (self.root / "recording.json").exists():
             raise FileExistsError(f"{self.root}: a recording already exists here; choose another --out")
@@ -78,6 +80,11 @@ class RecordingWriter:
         (seq_dir / ("adc" if self.content == "adc" else "cubes")).mkdir(parents=True, exist_ok=True)
         (seq_dir / "labels").mkdir(exist_ok=True)
         name = _frame_name(frame.index)
+        if "simulator" in frame.extras:
+            if self.simulator is not None and frame.extras["simulator"] != self.simulator:
+                raise ValueError(f"{frame.sequence}/{frame.index}: made by simulator {frame.extras['simulator']}, "
+                                 f"the recording's earlier frames by {self.simulator}")
+            self.simulator = frame.extras["simulator"]
         if self.content == "adc":
             if "adc" not in frame.extras:
                 raise ValueError(f"{frame.sequence}/{frame.index}: an ADC recording needs frames that carry their ADC")
@@ -110,6 +117,7 @@ class RecordingWriter:
             "content": self.content,
             "tdm_coupling": self.tdm_coupling,
             "tdm_compensation": self.tdm_compensation,
+            "simulator": self.simulator,
             "radar": self.profile.to_dict(),
             "classes": list(self.profile.all_class_names),
             "sequences": dict(sorted(self.sequences.items())),

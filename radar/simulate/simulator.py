@@ -6,6 +6,7 @@ import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -17,6 +18,7 @@ from radar.simulate.fmcw import Scatterers, received_amplitude, synthesize_adc
 from radar.simulate.labels import exact_labels
 from radar.simulate.scene import ObjectState, SceneGenerator, StaticClutter, static_clutter
 from radar.simulate.targets import class_model, object_scatterers
+from radar.simulate.version import SIMULATOR_VERSION
 
 
 @dataclass(frozen=True)
@@ -36,6 +38,10 @@ class SimulatorConfig:
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
+
+    def stamp(self) -> dict[str, Any]:
+        """What a store or recording records of the simulator that made it: ``{"version", "options"}``."""
+        return {"version": SIMULATOR_VERSION, "options": self.to_dict()}
 
 
 def sequence_name(sequence_index: int) -> str:
@@ -78,7 +84,8 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
     """One labelled frame of the given object states at scene time ``t`` (s).
 
     ``timings`` (optional) accumulates seconds spent in ``synthesis``, ``fft`` and ``labels``.
-    The frame's ``extras["object_scatterers"]`` holds each object's scatterers (instance i+1 = list
+    The frame's ``extras["simulator"]`` is the simulator's version and options
+    (:meth:`SimulatorConfig.stamp`); ``extras["object_scatterers"]`` holds each object's scatterers (instance i+1 = list
     index i) so a response can be recomputed independently; ``extras["adc"]`` the raw ADC samples
     (Ns, Nc, K) the cube was processed from.
     """
@@ -118,7 +125,8 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
     return RadarFrame(cube=cube, profile=profile, sequence=sequence, index=index, labels=labels,
                       instances=instances, objects=objects,
                       extras={"object_scatterers": per_object, "adc": adc, "tdm_coupling": config.tdm_coupling,
-                              "tdm_compensation": compensated})
+                              "tdm_compensation": compensated,
+                              "simulator": config.stamp()})
 
 
 def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, sequence_index: int = 0,

@@ -118,7 +118,7 @@ def test_onnx_engine_segments_like_the_torch_engine(exported):
         assert len(expected.regions) > 0
         assert (got.labels[roi] == expected.labels[roi]).mean() >= 0.999
         assert [(o.class_id, o.n_voxels) for o in got.objects] == [(o.class_id, o.n_voxels) for o in expected.objects]
-        assert got.compute.macs_by_stage() == expected.compute.macs_by_stage()  # useful MACs counted from the same pairs
+        assert got.compute.macs_by_stage() == expected.compute.macs_by_stage()  # useful MACs, same pairs
         # logits, on this frame's ROI points
         log_power = transforms.log_power(frame.cube)
         points = roi_points(expected.regions.voxels, log_power, reference.profile, mean_db=reference.mean_db,

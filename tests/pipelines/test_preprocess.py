@@ -24,8 +24,15 @@ from pipelines.store import array_checksums, open_store, summarise
 from radar import transforms
 from radar.io.errors import DataError
 from radar.io.recording import Recording
-from radar.simulate import simulate_sequence
-from tests.pipelines.conftest import REPO, assert_store_matches_simulator, ray_env, ray_job_submit, stop_group
+from radar.simulate import SIMULATOR_VERSION, SimulatorConfig, simulate_sequence
+from tests.pipelines.conftest import (
+    REPO,
+    assert_store_matches_simulator,
+    build_store_inline,
+    ray_env,
+    ray_job_submit,
+    stop_group,
+)
 
 SUBMIT_ARGS = ["--source", "sim", "--preset", "small", "--sequences", "3", "--frames", "8", "--seed", "11"]
 
@@ -82,6 +89,19 @@ def test_simulated_frames_start_mid_sequence_as_simulate_sequence():
         np.testing.assert_array_equal(frame.cube, ref.cube)
         np.testing.assert_array_equal(frame.labels, ref.labels)
         assert frame.objects == ref.objects
+
+
+def test_a_store_records_the_simulator_of_its_frames(small_recording, tmp_path):
+    # a store of a simulated recording carries the recording's simulator; a resumed run must share it
+    recorded = json.loads((small_recording / "recording.json").read_text())["simulator"]
+    assert recorded["version"] == SIMULATOR_VERSION
+    cfg = PreprocessConfig(source=f"recording:{small_recording}", out=str(tmp_path / "rec.zarr"), progress=False)
+    assert plan_job(cfg).identity()["simulator"] == recorded
+    store = build_store_inline(cfg)
+    assert open_store(store).attrs["simulator"] == recorded
+    # a simulated store: the default options of this version
+    sim = PreprocessConfig(source="sim", out=str(tmp_path / "sim.zarr"), sequences=1, frames=1, progress=False)
+    assert plan_job(sim).identity()["simulator"] == SimulatorConfig().stamp()
 
 
 # --------------------------------------------------------------------------- Ray

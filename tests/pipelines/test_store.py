@@ -24,6 +24,7 @@ from pipelines.store import (
 from radar.instances import instance_stats
 from radar.io.errors import DataError
 from radar.profiles import get_profile
+from radar.simulate import SIMULATOR_VERSION, SimulatorConfig
 from tests.pipelines.conftest import assert_store_matches_simulator
 
 COL = {name: i for i, name in enumerate(OBJECT_FIELDS)}
@@ -42,6 +43,7 @@ def test_schema_attributes_and_encoding(small_store):
     assert attrs["radar"]["shape"] == [128, 128, 32]
     assert attrs["object_fields"] == list(OBJECT_FIELDS)
     assert attrs["job"]["seed"] == 5 and attrs["code_version"]["package"] == "0.1.0"
+    assert attrs["simulator"] == SimulatorConfig().stamp() and attrs["simulator"]["version"] == SIMULATOR_VERSION
     inp = root["input"]
     assert inp.dtype == np.float16 and inp.shape == (6, 128, 128, 32)
     sharding = inp.metadata.codecs[0]
@@ -154,6 +156,7 @@ def test_summary_and_store_info_command(small_store, capsys):
     assert cli_main(["store", "info", str(small_store)]) == 0
     out = capsys.readouterr().out
     assert "train 3, val 3, test 0" in out and "quarantined: 0" in out
+    assert f"simulator: version {SIMULATOR_VERSION} (" in out and "tdm_coupling True" in out
     assert cli_main(["store", "info", "--json", str(small_store)]) == 0
     assert json.loads(capsys.readouterr().out)["frames"]["val"] == 3
 

@@ -8,7 +8,7 @@ from radar.io.errors import DataError
 from radar.io.npy import decode_npy
 from radar.io.recording import Recording, RecordingWriter
 from radar.profiles import SMALL
-from radar.simulate import simulate_sequence
+from radar.simulate import SIMULATOR_VERSION, SimulatorConfig, simulate_sequence
 
 
 @pytest.fixture
@@ -31,6 +31,16 @@ def test_recording_round_trips_frames_and_objects(small_recording):
     meta = json.loads((small_recording / "recording.json").read_text())
     assert meta["preset"] == "small" and meta["radar"]["shape"] == [128, 128, 32]
     assert meta["classes"] == ["background", "pedestrian", "cyclist", "car"]
+    assert meta["simulator"] == SimulatorConfig().stamp() == meta["source"]["simulator"]
+    assert meta["simulator"]["version"] == SIMULATOR_VERSION
+
+
+def test_a_recording_of_two_simulator_configurations_is_refused(tmp_path):
+    with RecordingWriter(tmp_path / "rec", SMALL) as writer:
+        writer.write(next(simulate_sequence("small", 1, seed=3)))
+        other = next(simulate_sequence("small", 1, seed=3, sequence_index=1, config=SimulatorConfig(clutter=False)))
+        with pytest.raises(ValueError, match="made by simulator"):
+            writer.write(other)
 
 
 def test_writer_refuses_to_overwrite_a_recording(small_recording):

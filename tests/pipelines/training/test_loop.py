@@ -105,6 +105,26 @@ def test_segmenter_trains_with_the_same_command(small_store, tmp_path, model):
     checkpoint.build()
 
 
+def test_lovasz_option_and_learning_curve_points(small_store, tmp_path):
+    run = tmp_path / "lovasz"
+    cfg = TrainConfig(stage="segmenter", store=str(small_store), out=str(run), model="minkunet_tiny", model_config={},
+                      batch_size=2, epochs=2, max_steps=2, jitter_std=(1.0, 1.0, 0.5), progress=False,
+                      lovasz_weight=0.5, curve_every=1, val_frames=2)
+    result = train_loop(cfg)
+    assert 0.0 < result["train_lovasz"] <= 1.0
+    assert result["train_total"] == pytest.approx(result["train_ce"] + 0.5 * result["train_lovasz"], rel=1e-6)
+    curve = _lines(run / "curve.jsonl")
+    assert [p["step"] for p in curve] == [0, 1, 2]  # before the first step, then every step (epoch ends here)
+    assert curve[0]["cpu_s"] < 1.0 < curve[-1]["cpu_s"] and curve[1]["cpu_s"] <= curve[2]["cpu_s"]
+    for point in curve:
+        for view in ("RA", "RD"):
+            assert 0.0 <= point[f"val_{view}_mIoU"] <= 1.0
+            assert {f"val_{view}_iou_pedestrian", f"val_{view}_iou_car"} <= set(point)
+    assert curve[-1]["val_RA_mIoU"] == result["val_RA_mIoU"]  # the epoch's validation is the curve's point
+    with pytest.raises(ValueError, match="lovasz_weight is a segmenter loss"):
+        _detector_cfg(small_store, tmp_path / "det", lovasz_weight=1.0)
+
+
 def test_roi_samples_and_measured_jitter(small_store):
     store = StoreInfo.read(small_store)
     residuals = np.array([[2.0, -1.0, 0.5], [-2.0, 1.0, -0.5]])

@@ -1,0 +1,83 @@
+"""Learning curves of segmenter runs: validation RA/RD mIoU and pedestrian IoU against training CPU minutes.
+
+Reads each run's ``curve.jsonl`` (``radarseg train segmenter --curve-every STEPS``: a validation before the first
+step, every STEPS steps and at each epoch's end, with the training CPU seconds spent to reach it, validation
+excluded) and writes the curves into one JSON file and one picture (four panels). Runs are named ``NAME=RUN_DIR``.
+
+    .venv/bin/python -m benchmarks.learning_curves "CE=runs/lc/ft-ce" "CE+Lovasz=runs/lc/ft-ce-lovasz" \\
+        --out reports/learning_curves
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+PANELS = (("val_RA_mIoU", "RA mIoU"), ("val_RD_mIoU", "RD mIoU"),
+          ("val_RA_iou_pedestrian", "pedestrian IoU, RA"), ("val_RD_iou_pedestrian", "pedestrian IoU, RD"))
+KEPT = ("epoch", "step", "cpu_s", "elapsed_s", "val_mIoU", "val_roi_recall") + tuple(key for key, _ in PANELS) + (
+    "val_RA_iou_cyclist", "val_RD_iou_cyclist", "val_RA_iou_car", "val_RD_iou_car")
+
+
+def read_curve(run_dir: Path) -> dict[str, Any]:
+    """One run's points (the figures of :data:`KEPT`), its resolved configuration and its command's options."""
+    path = run_dir / "curve.jsonl"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no learning curve (train with --curve-every STEPS)")
+    points = [json.loads(line) for line in path.read_text().splitlines() if line]
+    config = json.loads((run_dir / "config.json").read_text())
+    return {"run": str(run_dir), "config": config,
+            "points": [{key: point.get(key) for key in KEPT} for point in points]}
+
+
+def plot(curves: dict[str, dict[str, Any]], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(2, 2, figsize=(10, 7), sharex=True)
+    for axis, (key, title) in zip(axes.ravel(), PANELS, strict=True):
+        for name, curve in curves.items():
+            minutes = [p["cpu_s"] / 60 for p in curve["points"]]
+            axis.plot(minutes, [100 * p[key] for p in curve["points"]], marker="o", markersize=3, label=name)
+        axis.set_title(title)
+        axis.set_ylabel("% (validation)")
+        axis.grid(alpha=0.3)
+    for axis in axes[1]:
+        axis.set_xlabel("training CPU minutes (one thread; validation excluded)")
+    axes[0, 0].legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", metavar="NAME=RUN_DIR")
+    parser.add_argument("--out", default="reports/learning_curves", help="writes OUT.json and OUT.png")
+    args = parser.parse_args()
+    curves = {}
+    for item in args.runs:
+        name, sep, run = item.partition("=")
+        if not sep or not name or not run:
+            parser.error(f"runs are NAME=RUN_DIR, got {item!r}")
+        curves[name] = read_curve(Path(run))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = {"load_average": os.getloadavg(), "curves": curves}
+    out.with_suffix(".json").write_text(json.dumps(result, indent=1))
+    plot(curves, out.with_suffix(".png"))
+    for name, curve in curves.items():
+        last = curve["points"][-1]
+        print(f"{name}: {len(curve['points'])} points, {last['cpu_s'] / 60:.1f} CPU min, "
+              + ", ".join(f"{title} {100 * last[key]:.1f}" for key, title in PANELS))
+    print(f"wrote {out.with_suffix('.json')} and {out.with_suffix('.png')}")
+
+
+if __name__ == "__main__":
+    main()
