@@ -115,7 +115,8 @@ def test_lovasz_option_and_learning_curve_points(small_store, tmp_path):
     assert result["train_total"] == pytest.approx(result["train_ce"] + 0.5 * result["train_lovasz"], rel=1e-6)
     curve = _lines(run / "curve.jsonl")
     assert [p["step"] for p in curve] == [0, 1, 2]  # before the first step, then every step (epoch ends here)
-    assert curve[0]["cpu_s"] < 1.0 < curve[-1]["cpu_s"] and curve[1]["cpu_s"] <= curve[2]["cpu_s"]
+    # training CPU seconds: each point after a step has spent more (validation excluded), whatever the machine's speed
+    assert curve[0]["cpu_s"] < curve[1]["cpu_s"] < curve[2]["cpu_s"]
     for point in curve:
         for view in ("RA", "RD"):
             assert 0.0 <= point[f"val_{view}_mIoU"] <= 1.0
