@@ -33,7 +33,7 @@ def load_baseline(path: str | Path, *, device: str | torch.device = "cpu") -> tu
     """A trained baseline (eval mode), its checkpoint and the view scaling it was trained with."""
     checkpoint = load_checkpoint(path)
     if checkpoint.stage != STAGE:
-        raise UserError(f"{path}: {checkpoint.describe()}, expected a baseline checkpoint")
+        raise UserError(f"{path}: not a baseline checkpoint ({checkpoint.describe()} given)")
     return checkpoint.build(device=device), checkpoint, ViewStats.from_dict(checkpoint.normalisation)
 
 

@@ -128,7 +128,7 @@ def test_model_arguments_and_bad_inputs(seq_store, checkpoints, tmp_path):
 
     with pytest.raises(ValueError, match="expected a detector checkpoint"):
         run(ModelSpec("E", "erasenet", (c["segmenter"], c["segmenter"])))
-    with pytest.raises(ValueError, match="expected a baseline checkpoint"):
+    with pytest.raises(ValueError, match="not a baseline checkpoint"):
         run(ModelSpec("B", "baseline", (c["detector"],)))
     with pytest.raises(ValueError, match="U-Net pair"):
         run(ModelSpec("U-Net", "baseline", (c["unet_ra"],)))
