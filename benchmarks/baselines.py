@@ -5,7 +5,7 @@ and CPU forward latency (batch 1). Prints a table and writes benchmarks/results/
 
 MACs are analytic (models.compute): ``macs`` is the correct count (= FlopCounterMode FLOPs / 2);
 ``macs_paper`` counts transposed convs per output position, as the paper's counter did (overcounts a
-2x2 stride-2 transposed conv by 4, a (2, 1) one by 2). Reference (SPEC sections 9 and 12): TMVA-Net
+2x2 stride-2 transposed conv by 4, a (2, 1) one by 2). Reference (docs/design.md sections 9 and 12): TMVA-Net
 5,630,984 params, 95.62 G correct / 102.35 G paper; SMVA-Net 4,739,336, 65.72 / 72.35; U-Net 31.04 M,
 paper table 54.84 G and 13.71 G at carrada (its 256 x 256 view is RA, the 256 x 64 one RD).
 """

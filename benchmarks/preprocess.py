@@ -7,7 +7,7 @@ benchmarks/results/preprocess.json.
 
 Source: the simulator, run inside the Ray tasks (simulation is part of the measured work). Ray is
 embedded (local, 2 CPUs) and started once; its workers are warmed up (imports) before timing.
-Targets (issue 3): 2 workers >= 1.7x one worker; Dataset reads >= 5x the detector's training rate.
+Targets: 2 workers >= 1.7x one worker; Dataset reads >= 5x the detector's training rate.
 """
 
 from __future__ import annotations

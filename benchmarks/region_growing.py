@@ -1,7 +1,7 @@
 """Region growing against the detector it follows: median ms per frame of `grow_regions` (seeded at the true
 centres, as a trained detector seeds it) and of the shipped detector architecture in its inference form
 (`FrozenDetector`: BatchNorms folded, channels_last, traced), interleaved in one loop, one thread, at `small` and
-`carrada`. Issue 16 asks for growing in at most a quarter of the detector's time. Prints the figures and writes
+`carrada`. The goal is growing in at most a quarter of the detector's time. Prints the figures and writes
 benchmarks/results/region_growing.json with the load average; never asserts a time.
 
     .venv/bin/python -m benchmarks.region_growing [--frames 6] [--repeats 4]

@@ -11,7 +11,7 @@ starts. Serve: ``service.serve_app.RadarsegService`` with 1, then 2 replicas (1 
 one SQLite ledger), warmed up, then ``--requests`` cubes posted by 4 client threads. Configurations
 alternate over ``--rounds`` rounds and the best round of each is reported with every round kept.
 Our machines have 2 cores shared with other work: the 1-minute load average is recorded beside each
-figure, and the ratios say as much about the load as about the code (target, issue 10: >= 1.7x for
+figure, and the ratios say as much about the load as about the code (target: >= 1.7x for
 batch segmentation from 1 to 2 workers on an idle 2-core machine).
 """
 

@@ -8,16 +8,16 @@ run keeps its previous figures):
   ``decode`` stage runs while the body streams in, so it includes the upload), model stages, response encoding,
   and the rest (HTTP parsing of the headers, the response transfer, queueing behind the model's one replica at
   concurrency > 1).
-- ``stages`` (issue 16 item 3): the model stages of the same frames inside the service (``Server-Timing``, at
+- ``stages``: the model stages of the same frames inside the service (``Server-Timing``, at
   concurrency 1) against a plain process (``EraseNet.segment`` on the main thread of this process, with the
   service's torch thread count), side by side, and the client's p50 against the plain process's end to end.
-- ``slow_clients`` (issue 17): normal clients alone (the idle p95), then the same clients while 16 clients
+- ``slow_clients``: normal clients alone (the idle p95), then the same clients while 16 clients
   upload at 1 KB/s (each reconnects when cut off with 408): the share of normal requests answered 200 and their
   p95 against the idle p95. Goal: >= 95 % and <= 2x.
-- ``startup`` (issue 27): a fresh ``python -m service.server`` with the default models: seconds from the start of
+- ``startup``: a fresh ``python -m service.server`` with the default models: seconds from the start of
   the process to the first ``/healthz`` 200 and to ``/readyz`` 200, and the stages its log reports (importing
   the service, each model's load and warm-up). Goals: ``/healthz`` within 2 s; ready in <= 10 s on an idle machine.
-- ``fairness`` (issue 27): two tenants; one holds 10 uploads that send nothing (reopening each when answered),
+- ``fairness``: two tenants; one holds 10 uploads that send nothing (reopening each when answered),
   first declaring 64 MiB + 64 KiB (the issue's attack), then declaring a valid cube's length; the other tenant's
   requests meanwhile: the share answered 200. Goal: >= 95 %.
 

@@ -3,7 +3,7 @@ CARRADA's statistics. Prints a table and writes benchmarks/results/simulate.json
 
     .venv/bin/python benchmarks/simulate.py [--frames-small 30 --frames-carrada 10 --frames-nxp 4]
 
-Targets (issue 2): a carrada frame with labels in <= 0.5 s, an nxp frame in <= 3 s, on one core.
+Targets: a carrada frame with labels in <= 0.5 s, an nxp frame in <= 3 s, on one core.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 from radar import transforms  # noqa: E402
 from radar.simulate import simulate_sequence  # noqa: E402
 
-CARRADA_RD_REFERENCE = {"mean_db": 58.0, "std_db": 4.0, "max_db": 119.0}  # SPEC section 3.1
+CARRADA_RD_REFERENCE = {"mean_db": 58.0, "std_db": 4.0, "max_db": 119.0}  # docs/design.md section 3.1
 TARGET_S = {"carrada": 0.5, "nxp": 3.0}
 
 

@@ -1,11 +1,11 @@
 """Stage 1 side by side: detector forward, region growing and CFAR per frame, each as a ratio to the
 log transform of the same cube (the floor every method pays), and a D_thresh sweep of region growing
-(visited points and recall, seeded at true centres) like the paper's table (SPEC section 6).
+(visited points and recall, seeded at true centres) like the paper's table (docs/design.md section 6).
 Prints tables and writes benchmarks/results/stage1.json.
 
     .venv/bin/python benchmarks/stage1.py [--frames 4] [--sweep-frames 3] [--threads 1]
 
-Target (issue 4): region growing at most 10% of the detector's forward time. The detector is
+Target: region growing at most 10% of the detector's forward time. The detector is
 untrained here (its cost does not depend on its weights); region growing is seeded at the true
 centres so that its cost and recall are those of a detector that finds every object.
 """

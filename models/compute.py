@@ -1,4 +1,4 @@
-"""Analytic parameter and MAC counts of our networks (SPEC section 10).
+"""Analytic parameter and MAC counts of our networks (docs/design.md section 10).
 
 MACs are counted per layer from the layer's hyper-parameters and the shapes it sees, never by timing
 or by tracing every op: convolutions (1-3 D, grouped and depthwise), transposed convolutions, linear

@@ -1,5 +1,5 @@
 """The detection step, one function for every caller: normalise the log power, run the detector, decode
-its centres (top ``k`` above a score), refine their Doppler from the cube (SPEC sections 5-6).
+its centres (top ``k`` above a score), refine their Doppler from the cube (docs/design.md sections 5-6).
 
 :meth:`models.erasenet.EraseNet.segment` times normalisation and detection as two stages, so it calls the
 two halves (:func:`normalise_log_power`, :func:`decode_centres`); evaluation, the trainer's validation AP

@@ -1,4 +1,4 @@
-"""Network slimming (SPEC section 11): BatchNorm-scale sparsity, global channel selection, real surgery.
+"""Network slimming (docs/design.md section 11): BatchNorm-scale sparsity, global channel selection, real surgery.
 
 Three steps, as in Liu et al. (2017) and the paper:
 
@@ -32,7 +32,7 @@ checkpoints load (:class:`models.erasenet.EraseNet`, the service) and reports it
 **Torch-Pruning or our own surgery.** Torch-Pruning 1.6 (``BNScalePruner`` with ``regularize()``)
 prunes the detector (depthwise, SE and residual ties found by tracing; the BiFPN fusion weights must be
 listed in ``ignored_layers``/unwrapped parameters) and, through a custom pruner slicing ``[K, C_in,
-C_out]``, our sparse convs (SPEC section 11). We wrote the surgery ourselves because:
+C_out]``, our sparse convs (docs/design.md section 11). We wrote the surgery ourselves because:
 
 - Torch-Pruning mutates module objects in place and keeps no description of the result; a checkpoint
   rebuilt by ``create_model(name, **config)`` still needs the ``channels`` table and the code that

@@ -1,5 +1,5 @@
 """``report.md`` from the metrics of :func:`pipelines.evaluate.evaluate`: tables in the paper's form
-(SPEC section 12: mIoU in % per view, MACs in G; detection AP at 1/3/5 m and mAP; region-growing
+(docs/design.md section 12: mIoU in % per view, MACs in G; detection AP at 1/3/5 m and mAP; region-growing
 recall and visited points with a D_thresh sweep), cost per stage and the pictures."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-PAPER_REFERENCE = {  # SPEC section 12, ERASE-Net (M); for context only (other data, other radars)
+PAPER_REFERENCE = {  # docs/design.md section 12, ERASE-Net (M); for context only (other data, other radars)
     "NXP": {"RD": 73.70, "RA": 57.02, "mAP": 0.853, "macs_g": "12.0 + 1.46"},
     "CARRADA": {"RD": 53.57, "RA": 43.95, "mAP": 0.52, "macs_g": "8.41 + 0.49"},
 }

@@ -1,4 +1,4 @@
-"""CA/OS-CFAR centre detection: the non-learned baseline of stage 1 (SPEC section 5).
+"""CA/OS-CFAR centre detection: the non-learned baseline of stage 1 (docs/design.md section 5).
 
 CFAR runs on the RD view (power averaged over the array), where the array gain lifts objects out of
 the noise; 3-D CFAR on the RAD cube drowns in angle sidelobes. Each RD detection then takes the

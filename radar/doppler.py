@@ -1,4 +1,4 @@
-"""Doppler of detected centres refined from the cube's own Doppler profile (issue 20).
+"""Doppler of detected centres refined from the cube's own Doppler profile.
 
 The learned detector sees the Doppler axis only through the paper's 1x1 compression of D bins to
 3 channels, so its Doppler estimate is coarse (mean L1 error about 1.1 bins on fresh ``small``

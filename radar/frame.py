@@ -49,7 +49,7 @@ class ObjectRecord:
 
 @dataclass
 class RadarFrame:
-    """One radar frame in the project's RAD convention (SPEC section 2).
+    """One radar frame in the project's RAD convention (docs/design.md section 2).
 
     ``cube``: (R, A, D) complex64, or float32 magnitude for sources that store no phase.
     ``labels``: (R, A, D) uint8 class cube (0 = background); ``instances``: (R, A, D) uint8
@@ -70,7 +70,7 @@ class RadarFrame:
         return transforms.log_power(self.cube)
 
     def ra_mask(self) -> np.ndarray:
-        """(R, A) uint8 projection of the class cube (SPEC section 8)."""
+        """(R, A) uint8 projection of the class cube (docs/design.md section 8)."""
         return transforms.project_ra(self._require_labels(), self.profile.num_classes)
 
     def rd_mask(self) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 The centre of an object is the mean Cartesian position of its labelled voxels, mapped back to
 fractional (range, angle) bins; its Doppler is the circular mean of its voxels' Doppler bins (the
-Doppler axis wraps). These are the detector's targets (SPEC section 5).
+Doppler axis wraps). These are the detector's targets (docs/design.md section 5).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The paper's metrics (SPEC section 10), pure numpy.
+"""The paper's metrics (docs/design.md section 10), pure numpy.
 
 Detection: a predicted centre matches a ground-truth centre when their Cartesian distance is at most
 ``k`` metres *and* their mean Doppler bins differ by less than ``k`` bins. Within a frame, predictions

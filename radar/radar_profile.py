@@ -1,6 +1,6 @@
 """A radar profile: the chirp and array parameters of a radar and everything derived from them.
 
-A profile fixes the shape of the RAD cube and the meaning of every bin (SPEC section 2):
+A profile fixes the shape of the RAD cube and the meaning of every bin (docs/design.md section 2):
 
 - range bin ``r`` is ``r * range_res`` metres, bin 0 nearest;
 - angle bins are uniform in sin(theta): ``sin(theta) = (a - A/2) / (A/2)``, theta > 0 to the right;
@@ -71,7 +71,7 @@ class RadarProfile:
     # 0 dBsm point target at 10 m, straddle-free. Sets the transmit/antenna gain constant.
     snr_0dbsm_10m_db: float = 45.0
     # Mean thermal-noise power per RAD voxel in dB (10*log10 |I|^2). 58 dB puts the RD view's
-    # mean where CARRADA's is (SPEC section 3.1).
+    # mean where CARRADA's is (docs/design.md section 3.1).
     noise_floor_db: float = 58.0
     objects_per_frame: tuple[int, int] = (1, 4)
     window: str = "hann"  # on range, Doppler and the array

@@ -1,4 +1,4 @@
-"""Region growing: the compact representation of ERASE-Net (SPEC section 6).
+"""Region growing: the compact representation of ERASE-Net (docs/design.md section 6).
 
 From each seed (a predicted centre, in bins) a region grows through 6-connected voxels of the RAD
 cube. A voxel joins when its intensity is at least ``intensity_ratio`` times the seed's (the paper's
@@ -20,7 +20,7 @@ the cube (a binary dilation), counted once over all seeds. ``bridge`` lets a reg
 gaps (candidates dilated ``bridge`` times for connectivity, so gaps of up to ``2 * bridge`` voxels close;
 only real candidates become members).
 
-Cost (issue 16): members leave the padded box as flat cube indices (no argwhere / ravel), the first seed
+Cost: members leave the padded box as flat cube indices (no argwhere / ravel), the first seed
 keeps a voxel through a whole-cube claim mask (no np.unique), visited voxels are OR-ed into a whole-cube
 mask on each region's bounding box and counted there (whole-cube masks are zeroed by the OS page by page, so
 only the pages near the regions are touched), and the noise median is selected within a bracket. Same

@@ -1,4 +1,4 @@
-"""From ROI voxels to the points the sparse segmenter labels (SPEC section 7).
+"""From ROI voxels to the points the sparse segmenter labels (docs/design.md section 7).
 
 Every ROI voxel becomes a point with four features, each scaled to about [-1, 1]:
 ``x / max_range``, ``y / max_range`` (Cartesian metres of its RA cell), ``v / max_velocity`` (radial

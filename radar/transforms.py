@@ -86,7 +86,7 @@ def project_voxels(voxels: np.ndarray, classes: np.ndarray, shape: tuple[int, in
 
 def project_ra(labels: np.ndarray, num_classes: int) -> np.ndarray:
     """RA mask (R, A) uint8 of a RAD class cube: per cell the object class with the most voxels along
-    Doppler, background if none (SPEC section 8). Ties go to the lower class id."""
+    Doppler, background if none (docs/design.md section 8). Ties go to the lower class id."""
     return _project(labels, axis=2, num_classes=num_classes)
 
 

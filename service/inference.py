@@ -3,12 +3,12 @@ per replica, behind a bounded queue.
 
 ``EraseNet.segment`` is not safe to run concurrently on one instance (per-call MAC counters), so each
 replica is used by one inference thread at a time. The process has ``replicas`` long-lived inference
-threads, shared by every served model (issue 24: one pool per model gave two models on 2 cores two OpenMP
+threads, shared by every served model (one pool per model gave two models on 2 cores two OpenMP
 teams sized to all the cores, and the service ran 3-5x slower than a plain process); each sets its torch
 intra-op threads itself (``Settings.inference_threads``, the cores shared among the replicas) and runs
 the warm-up too, so that torch's OpenMP thread teams never exceed the cores, whatever number of models is
 served, and each is built once, on the thread that uses it. (Inference on a fresh worker thread with
-torch's default threads was measured 4x slower than on the main thread: issue 16.)
+torch's default threads was measured 4x slower than on the main thread.)
 
 A request takes a slot of its model once its body has been read (a slow upload holds no slot) and
 keeps it until its inference has finished; when ``replicas + max_queue`` slots are taken the request is

@@ -1,5 +1,5 @@
 """Ray Serve deployment of the HTTP service: the very app of ``service.main.create_app`` behind
-``@serve.ingress``, for scale-out across a Ray cluster (SPEC section 13).
+``@serve.ingress``, for scale-out across a Ray cluster (docs/design.md section 13).
 
 ::
 

@@ -198,7 +198,7 @@ def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int 
 
 # The largest magnitude of a value (each of real and imaginary part) accepted per input kind: the transform runs in
 # float32 (max 3.4e38), squares the values and sums the power of up to 256 angle bins (RD view), and a log-power cube
-# is raised to 10**(dB/10); a finite value past these bounds would overflow to Inf there (issue 27: 3e38 or 1e300
+# is raised to 10**(dB/10); a finite value past these bounds would overflow to Inf there (3e38 or 1e300
 # gave an empty answer, billed). ADC samples are bounded lower: the FFT chain adds up to ~4e6 of them per bin.
 VALUE_BOUNDS = {InputKind.complex: 1e15, InputKind.adc: 1e9, InputKind.log_power: 300.0}
 

@@ -1,4 +1,4 @@
-"""No function of ``pipelines/`` or ``service/`` is longer than :data:`MAX_LINES` lines (issue 23): a long one
+"""No function of ``pipelines/`` or ``service/`` is longer than :data:`MAX_LINES` lines: a long one
 is split along its seams. Measured with ``ast`` (from ``def`` to the last line of the body, decorators
 excluded); ``python -m tests.test_function_length`` lists the longest."""
 

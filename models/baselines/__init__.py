@@ -1,4 +1,4 @@
-"""The 2-D baselines of SPEC section 9: U-Net (one per view), TMVA-Net and SMVA-Net.
+"""The 2-D baselines of docs/design.md section 9: U-Net (one per view), TMVA-Net and SMVA-Net.
 
 Importing this package registers ``unet``, ``tmvanet``, ``smvanet`` and their ``*_tiny`` variants with
 :mod:`models.registry` (see :mod:`models.baselines.builders`).

@@ -1,4 +1,4 @@
-"""The reference (MVRSS) losses of the multi-view baselines (SPEC section 9).
+"""The reference (MVRSS) losses of the multi-view baselines (docs/design.md section 9).
 
 Per view: ``0.5 * weighted CE + 5 * soft Dice`` (MVRSS averages ``[CE, 10 * Dice]``); for the
 multi-view networks, plus ``5 * coherence`` between the RA and RD range profiles. Class weights are the

@@ -1,4 +1,4 @@
-"""The classic U-Net (Ronneberger et al.), one network per radar view (SPEC section 9).
+"""The classic U-Net (Ronneberger et al.), one network per radar view (docs/design.md section 9).
 
 Widths 64..1024 (four 2x max-pool downsamplings, four 2x2 stride-2 transposed-conv upsamplings, skip
 concatenation, double 3x3 conv-BN-ReLU everywhere, 1x1 classifier): 31.04 M parameters, as quoted by

@@ -10,7 +10,7 @@ with ``padding = k // 2``), upsampling goes to the exact size of the target leve
 works without padding to a multiple of 128.
 
 :class:`BiFPNNeck` adds one more top-down node that brings P3 to stride 4 by fusing it with the
-backbone's stride-4 feature (C2), since the CenterNet heads work at stride 4 (SPEC section 5). As only
+backbone's stride-4 feature (C2), since the CenterNet heads work at stride 4 (docs/design.md section 5). As only
 P3 feeds that node, the last BiFPN layer keeps its top-down path only.
 """
 

@@ -1,4 +1,4 @@
-"""CenterNet heads of the centre detector: forward, loss and decoding (SPEC section 5).
+"""CenterNet heads of the centre detector: forward, loss and decoding (docs/design.md section 5).
 
 Three branches on the stride-``S`` feature map ``(B, C, H, W)``, each a 3x3 conv (dense or depthwise
 separable) with ``head_channels`` channels, ReLU, then a 1x1 conv:

@@ -1,4 +1,4 @@
-"""Stage 1 of ERASE-Net: the centre detector (SPEC section 5) and its registered builders.
+"""Stage 1 of ERASE-Net: the centre detector (docs/design.md section 5) and its registered builders.
 
 Input: normalised log power with Doppler as channels, ``(B, D, R, A)``. A 1x1 conv compresses the
 ``D`` Doppler channels to 3; two channels with each RA cell's Cartesian (x, y), divided by the

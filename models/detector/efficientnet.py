@@ -1,6 +1,6 @@
 """EfficientNet-B0 MBConv backbone, declared as a stage table and built by :func:`build_efficientnet`.
 
-The table is SPEC section 5's: stem 32 channels stride 2, then stages (expand, kernel, stride,
+The table is docs/design.md section 5's: stem 32 channels stride 2, then stages (expand, kernel, stride,
 channels, repeats) (1,3,1,16,1) (6,3,2,24,2) (6,5,2,40,2) (6,3,2,80,3) (6,5,1,112,3) (6,5,2,192,4)
 (6,3,1,320,1); SE 0.25 of the block input; SiLU; BN momentum 0.01 (PyTorch convention), eps 1e-3.
 No 1280-channel head conv and no classifier: the backbone returns feature maps.
@@ -8,7 +8,7 @@ No 1280-channel head conv and no classifier: the backbone returns feature maps.
 Features are tapped at strides 4, 8, 16 and 32 (outputs of stages 2, 3, 5 and 7), ``(B, C_s, H_s,
 W_s)`` with ``H_s = ceil(H / s)``.
 
-"Smaller" variants (SPEC section 5), measured with ``benchmarks/detector.py`` as the whole detector
+"Smaller" variants (docs/design.md section 5), measured with ``benchmarks/detector.py`` as the whole detector
 (Doppler 1x1 conv 64 -> 3, backbone on the 5 x 256 x 256 image, BiFPN D0 whose last layer keeps only
 the top-down path, stride-4 fusion, CenterNet heads) at the ``carrada`` preset, batch 1, MACs as
 ``FlopCounterMode`` FLOPs / 2 (the Doppler 1x1 conv adds 0.013 G of them):
@@ -75,7 +75,7 @@ def smaller_stages(
     fewer_repeats: Sequence[int] = (),
 ) -> tuple[MBConvStage, ...]:
     """The stage table with ``channel_scale`` applied to ``scaled_stages`` and one repeat fewer in
-    ``fewer_repeats`` (0-based stage indices; SPEC's "stages 4-6" are indices 3, 4, 5).
+    ``fewer_repeats`` (0-based stage indices; the paper's "stages 4-6" are indices 3, 4, 5).
 
     Channels are rounded with :func:`make_divisible` (multiples of 8).
     """

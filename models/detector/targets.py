@@ -5,7 +5,7 @@ output grid ``(H, W) = (ceil(R / S), ceil(A / S))`` with output stride ``S`` and
 per frame:
 
 - ``heatmap``: float32 ``(B, 1, H, W)``, 1 at each object's centre cell, a Gaussian around it (radius
-  1 cell, sigma 1/3 cell along range and 1/2 cell along angle, SPEC section 5), the maximum where
+  1 cell, sigma 1/3 cell along range and 1/2 cell along angle, docs/design.md section 5), the maximum where
   objects overlap, 0 elsewhere;
 - ``indices``: int64 ``(B, K)``, flat index ``row * W + col`` of each object's centre cell on the grid;
 - ``offsets``: float32 ``(B, K, 2)``, sub-cell offset (range, angle) in cells, in ``[0, 1)``: the

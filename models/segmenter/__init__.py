@@ -1,4 +1,4 @@
-"""Stage 2 of ERASE-Net: sparse segmenters labelling region-grown ROI voxels (SPEC section 7).
+"""Stage 2 of ERASE-Net: sparse segmenters labelling region-grown ROI voxels (docs/design.md section 7).
 
 `MinkUNet` labels voxels of a `models.sparse.SparseTensor`; `SPVCNN` labels points of a `PointTensor`.
 """

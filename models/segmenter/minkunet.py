@@ -1,4 +1,4 @@
-"""MinkUNet: a residual sparse U-Net labelling every input voxel (SPEC section 7).
+"""MinkUNet: a residual sparse U-Net labelling every input voxel (docs/design.md section 7).
 
 Layout (widths w0..w8): stem of two 3^3 convs to w0; four encoder stages, each a 2^3 stride-2 conv then
 2 residual blocks (to w1..w4, tensor strides 2..16); four decoder stages, each a 2^3 transposed conv to

@@ -1,4 +1,4 @@
-"""SPVCNN: MinkUNet plus a point branch that keeps full-resolution point features (SPEC section 7).
+"""SPVCNN: MinkUNet plus a point branch that keeps full-resolution point features (docs/design.md section 7).
 
 Points carry continuous coordinates in units of the finest voxel: the voxel `c` (at tensor stride 1)
 covers `[c, c + 1)` along each axis, so a point at a voxel's centre has coordinates `c + 0.5`, and at

@@ -1,6 +1,6 @@
 """Pure-PyTorch sparse convolution: sparse tensors, kernel maps (dense index grids or hashing), conv layers.
 
-No sparse-convolution library trains on CPU here (SPEC section 7), so the project owns this one.
+No sparse-convolution library trains on CPU here (docs/design.md section 7), so the project owns this one.
 """
 
 from models.sparse.conv import (

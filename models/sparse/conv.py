@@ -323,7 +323,7 @@ per-offset path's gathers and scatters no longer fit in cache, and the GEMM wast
 
 def choose_path(kernel_map: KernelMap, in_channels: int, out_channels: int, *, transposed: bool) -> str:
     """The rule measured on the shipped MinkUNet's ROIs (2 x 25k voxels, fill 0.45-0.85 at every stride;
-    best of 5 interleaved runs, forward + backward, one thread; `/work/notes/issue16.md`):
+    best of 5 interleaved runs, forward + backward, one thread; `benchmarks/sparse_conv.py`):
 
     - down-sampling (K = 8): GEMM at every width (0.3-0.7x the per-offset time): 8 offsets make the
       per-offset path pay 24 small operations for about one product per input voxel;

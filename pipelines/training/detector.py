@@ -1,5 +1,5 @@
 """The detector stage: the centre detector on normalised log power ``(B, D, R, A)``; targets built from
-the store's object table (:func:`models.detector.targets.build_centre_targets`); SPEC section 5 losses
+the store's object table (:func:`models.detector.targets.build_centre_targets`); docs/design.md section 5 losses
 (focal + L1 offset + L1 Doppler); random left-right flips from the Dataset (angle bin ``a -> (A - a) mod A``,
 offsets and heatmap recomputed, range never flipped). Validation: loss and detection AP at 1/3/5 m."""
 

@@ -1,4 +1,4 @@
-"""Reader of the public CARRADA layout, converted to the project's RAD frame (SPEC section 3.2).
+"""Reader of the public CARRADA layout, converted to the project's RAD frame (docs/design.md section 3.2).
 
 Layout read::
 

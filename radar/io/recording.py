@@ -6,7 +6,7 @@
       recording.json             format, version, preset, radar parameters, classes, sequences, source,
                                  simulator (version and options of the simulator that made it, or null)
       seq_000/
-        cubes/000000.npy         complex64 (R, A, D) RAD cube in the project's frame (SPEC section 2)
+        cubes/000000.npy         complex64 (R, A, D) RAD cube in the project's frame (docs/design.md section 2)
         adc/000000.npy           (ADC recordings, content "adc", instead of cubes) complex64 raw samples
                                  (samples, chirps, virtual elements); processed into the cube on read
                                  by radar.adc.process_adc: 10-30x smaller than the cubes

@@ -1,5 +1,5 @@
 """FMCW signal chain: beat-signal synthesis over (sample, chirp, virtual element) and the FFT chain
-that turns it into a complex RAD cube in the project's frame (SPEC sections 2 and 3.1).
+that turns it into a complex RAD cube in the project's frame (docs/design.md sections 2 and 3.1).
 
 Signal model of point scatterer ``p`` (range ``R_p``, sin(theta) ``s_p``, radial velocity ``v_p``,
 complex amplitude ``alpha_p``), ADC sample ``n``, chirp cycle ``m``, virtual element ``k = t*n_rx + q``

@@ -1,4 +1,4 @@
-"""Exact labels from each object's own noiseless response (SPEC section 3.1).
+"""Exact labels from each object's own noiseless response (docs/design.md section 3.1).
 
 A voxel belongs to object ``o`` when ``o``'s response there is the largest of all objects', is at
 least ``snr_db`` above the mean noise power per voxel, and is within ``peak_db`` of ``o``'s own peak.

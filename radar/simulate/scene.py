@@ -1,5 +1,5 @@
 """Scenes as sequences: objects on smooth trajectories at the profile's frame rate, entering and
-leaving the field of view, and the static clutter they move through (SPEC section 3.1)."""
+leaving the field of view, and the static clutter they move through (docs/design.md section 3.1)."""
 
 from __future__ import annotations
 

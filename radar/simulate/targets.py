@@ -1,5 +1,5 @@
 """Extended-target scatterer models: every class of every preset as a few point scatterers with
-micro-Doppler (swinging limbs, wheel rims) and frame-to-frame RCS fluctuation (SPEC section 3.1).
+micro-Doppler (swinging limbs, wheel rims) and frame-to-frame RCS fluctuation (docs/design.md section 3.1).
 
 An object's state is its centre (x, y), heading and speed; a model places scatterers in the body
 frame (``along`` the heading, ``across`` to its left), gives each a velocity (body velocity plus

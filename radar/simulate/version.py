@@ -13,6 +13,6 @@ SIMULATOR_VERSION = 2
 SIMULATOR_HISTORY = {
     1: "the first simulator (up to commit 7ca8875): ADC synthesised without TDM Doppler-angle coupling",
     2: "TDM Doppler-angle coupling on by default (a TX firing later in the chirp cycle sees the target moved "
-       "further), compensated per Doppler bin by the processing chain (commit 811ae5d, issue 18)",
+       "further), compensated per Doppler bin by the processing chain (commit 811ae5d)",
 }
 

@@ -78,7 +78,7 @@ def test_mac_counters_against_flop_counter(name, shapes):
 
 
 def test_full_size_macs_at_carrada_match_the_reference_measurement():
-    """SPEC section 9: TMVA-Net 95.62 G, SMVA-Net 65.72 G (correct counter) at 256x256 / 256x64."""
+    """docs/design.md section 9: TMVA-Net 95.62 G, SMVA-Net 65.72 G (correct counter) at 256x256 / 256x64."""
     tmva = count_macs(create_model("tmvanet", preset="carrada"), (1, 5, 256, 64), (1, 5, 256, 256), (1, 5, 256, 64))
     smva = count_macs(create_model("smvanet", preset="carrada"), (1, 1, 256, 64), (1, 1, 256, 256), (1, 1, 256, 64))
     assert round(tmva.macs / 1e9, 2) == 95.62

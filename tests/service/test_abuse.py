@@ -1,4 +1,4 @@
-"""The service under abuse (issue 17), against real ``python -m service.server`` processes on loopback: slow
+"""The service under abuse, against real ``python -m service.server`` processes on loopback: slow
 uploaders, hostile heads and bodies, malformed HTTP, ambiguous credentials, the metrics' visibility, offline docs,
 a busy port, kill -9 mid-request, and a bounded schemathesis run. Counts and waits are bounded; nothing asserts a
 time."""
@@ -56,7 +56,7 @@ def server(tiny_checkpoints, tmp_path_factory) -> Iterator:
 
 def test_slow_uploads_hold_no_model_slot_and_are_cut_off_with_408(server, cube_body):
     """Twelve clients trickling 1 KB each half second while the single model slot serves normal requests; each
-    trickler is answered 408. Before issue 17 a request took its slot before its body arrived: 9 slow uploads
+    trickler is answered 408. before the fix a request took its slot before its body arrived: 9 slow uploads
     made every other request 503."""
     head = http_head("/v1/segment", {**NPY, **ACME, "content-length": str(len(cube_body))})
     slow: list[tuple[int, dict, bytes]] = []
@@ -81,7 +81,7 @@ def test_slow_uploads_hold_no_model_slot_and_are_cut_off_with_408(server, cube_b
 
 
 def test_truncated_chunked_body_is_answered_408(server, cube_body):
-    """A chunk announced as 4096 bytes, 300 sent, the connection left open: before issue 17 it got no answer."""
+    """A chunk announced as 4096 bytes, 300 sent, the connection left open: before the fix it got no answer."""
     head = http_head("/v1/segment", {**NPY, **ACME, "transfer-encoding": "chunked"})
     status, headers, body = raw_exchange(server.port, [head + b"1000\r\n" + cube_body[:300]])
     answer = json_error(status, headers, body, 408)
@@ -148,7 +148,7 @@ def test_hostile_http_is_answered_in_json_and_the_server_stays_up(server, case):
 
 
 def test_hostile_bodies_and_headers_are_4xx(server, cube_body, frame):
-    """The two 500s of issue 17 (a .npy header of 60,000 minus signs, an X-Cube-Schema of 4,000 nested brackets)
+    """The two former 500s (a .npy header of 60,000 minus signs, an X-Cube-Schema of 4,000 nested brackets)
     and their relatives, each a 400 naming the problem."""
     cases = [
         ({}, _npy_with_header_text("-" * 60000 + "1"), "oversized .npy header"),

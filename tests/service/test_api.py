@@ -171,7 +171,7 @@ def test_the_slimmed_twin_is_smaller_and_serves_the_same_preset():
     slim = [load_checkpoint(resolve_path(p)) for p in (twin.detector, twin.segmenter)]
     assert [c.preset for c in slim] == [c.preset for c in main] and slim[0].class_names == main[0].class_names
     params = [sum(count_params(c.build()) for c in pair) for pair in (main, slim)]
-    assert params[1] <= 0.65 * params[0]  # at least 35 % fewer parameters (issue 20)
+    assert params[1] <= 0.65 * params[0]  # at least 35 % fewer parameters
 
 
 def test_saturated_model_answers_503_with_retry_after(make_settings, client_for, cube_body):
@@ -203,7 +203,7 @@ def test_openapi_describes_every_error(client):
     assert set(segment["requestBody"]["content"]) == {"application/x-npy", "application/octet-stream"}
     assert "403" in spec["paths"]["/v1/usage"]["get"]["responses"]
     assert "503" in spec["paths"]["/readyz"]["get"]["responses"]
-    # what the service sends: parameter errors in the ErrorBody shape (issue 17: the document said otherwise)
+    # what the service sends: parameter errors in the ErrorBody shape (the document said otherwise)
     usage_422 = spec["paths"]["/v1/usage"]["get"]["responses"]["422"]["content"]["application/json"]["schema"]
     assert usage_422 == {"$ref": "#/components/schemas/ErrorBody"} and "HTTPValidationError" not in spec["components"]
     assert client.get("/v1/usage?days=0").json()["error"] == "invalid_parameters"
@@ -272,7 +272,7 @@ def test_a_cube_schema_mismatch_is_a_422_naming_the_difference(client, cube_body
 
 def test_a_pruned_model_serves_with_its_smaller_compute(make_settings, client_for, tiny_checkpoints, cube_body,
                                                          tmp_path):
-    """Issue 9: a checkpoint pruned by `radarseg prune` serves next to its parent; the response's compute
+    """a checkpoint pruned by `radarseg prune` serves next to its parent; the response's compute
     accounting shows its fewer params and detector MACs (the same cube, so the detector cost is comparable)."""
     from models.checkpoint import load_checkpoint, save_checkpoint
     from models.slimming import prune_checkpoint
@@ -298,7 +298,7 @@ def test_a_pruned_model_serves_with_its_smaller_compute(make_settings, client_fo
 
 def test_each_replica_runs_on_its_own_thread_with_the_configured_torch_threads(make_settings, client_for, monkeypatch,
                                                                                cube_body):
-    """Issue 16: inference on a pool thread with torch's defaults was 4x slower than in a plain process; each
+    """inference on a pool thread with torch's defaults was 4x slower than in a plain process; each
     replica's inference thread now sets its own torch threads (``torch_threads``, else OMP_NUM_THREADS)."""
     import threading
 
@@ -312,7 +312,7 @@ def test_each_replica_runs_on_its_own_thread_with_the_configured_torch_threads(m
     served = client.app.state.service.pool.get("tiny")
     seen = {served._executor.submit(lambda: (threading.current_thread().name, torch.get_num_threads())).result()
             for _ in range(4)}
-    # One set of inference threads for the whole process, shared by its models (issue 24).
+    # One set of inference threads for the whole process, shared by its models.
     assert {threads for _, threads in seen} == {3} and all(name.startswith("inference") for name, _ in seen)
     assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 200
 

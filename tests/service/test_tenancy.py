@@ -1,4 +1,4 @@
-"""The service between tenants (issue 27), against one real ``python -m service.server`` on loopback with small
+"""The service between tenants, against one real ``python -m service.server`` on loopback with small
 limits: a fast start, header and cube value bounds, security headers, fair uploads, quotas that one tenant's cubes
 or in-flight requests cannot turn against another, and connections that make no progress closed. Counts are small
 and waits bounded by the 1-2 s limits set here; nothing asserts a time."""
@@ -79,7 +79,7 @@ def server(started):
 
 
 def test_healthz_answers_while_the_service_loads(started):
-    """Issue 27 item 9: the port answers while the service imports and loads; /readyz says loading until ready."""
+    """the port answers while the service imports and loads; /readyz says loading until ready."""
     _, seen, _ = started
     answered = [s for s in seen if s[0]]
     assert answered and answered[-1][1] == 200, seen
@@ -90,7 +90,7 @@ def test_healthz_answers_while_the_service_loads(started):
 
 
 def test_every_header_parser_bounds_digits_depth_and_size(server, cube_body):
-    """Issue 27 item 5: an integer of 5,000 digits in X-Cube-Schema was a 500 (Python's digit limit)."""
+    """an integer of 5,000 digits in X-Cube-Schema was a 500 (Python's digit limit)."""
     cases = [
         ('{"shape": [' + "9" * 5000 + "]}", 400, "number of 5000 characters"),
         ('{"shape": [' + "9" * 9000 + "]}", 422, "8192"),  # past the header's length bound (FastAPI's check)
@@ -107,7 +107,7 @@ def test_every_header_parser_bounds_digits_depth_and_size(server, cube_body):
 
 
 def test_values_beyond_float32_are_refused_and_never_billed(server, frame):
-    """Issue 27 item 6: finite values too large for the float32 transform gave an empty 200, billed."""
+    """finite values too large for the float32 transform gave an empty 200, billed."""
     huge64 = frame.cube.copy()
     huge64[5, 5, 5] = 3e38 + 0j
     huge128 = frame.cube.astype(np.complex128)
@@ -125,7 +125,7 @@ def test_values_beyond_float32_are_refused_and_never_billed(server, frame):
 
 
 def test_security_headers_on_every_html_route_and_nosniff_everywhere(server):
-    """Issue 27 item 7: /docs and /redoc had no CSP and could be framed; JSON routes sent no nosniff."""
+    """/docs and /redoc had no CSP and could be framed; JSON routes sent no nosniff."""
     with httpx.Client(base_url=server.url, timeout=30) as http:
         for page in ("/docs", "/redoc", "/viewer"):
             r = http.get(page)
@@ -141,7 +141,7 @@ def test_security_headers_on_every_html_route_and_nosniff_everywhere(server):
 
 
 def test_quota_refusals_say_when_the_quota_frees_before_the_body_is_read(server, started, cube_body):
-    """Issue 27 item 4: a 429 caused by the tenant's own requests in flight said to wait until midnight. Leases and
+    """a 429 caused by the tenant's own requests in flight said to wait until midnight. Leases and
     billed MACs are written into the shared ledger as another process would; the 429s come without a body sent."""
     ledger = Ledger(f"sqlite:///{started[2]}")
     try:
@@ -163,7 +163,7 @@ def test_quota_refusals_say_when_the_quota_frees_before_the_body_is_read(server,
 
 
 def test_another_tenants_outlier_does_not_lock_a_tenant_out(server, cube_body):
-    """Issue 27 item 3: acme's 1e13-MAC cube (billed before the start) made every tenant's estimate 1.5e13, so
+    """acme's 1e13-MAC cube (billed before the start) made every tenant's estimate 1.5e13, so
     globex (quota 1e10) was refused every request."""
     with httpx.Client(base_url=server.url, timeout=60, headers={**NPY, **AUTH["globex"]}) as http:
         answers = [http.post("/v1/segment", content=cube_body) for _ in range(2)]
@@ -177,7 +177,7 @@ def _hold(port: int, tenant: str, declared: int, sent: bytes) -> socket.socket:
 
 
 def test_one_tenant_holding_uploads_leaves_another_served(server, cube_body):
-    """Issue 27 item 1: 8 empty uploads of one tenant made every other tenant's upload 503. A declared length no
+    """8 empty uploads of one tenant made every other tenant's upload 503. A declared length no
     cube of the model can have is 413 at once; beyond its own bounds (4 uploads, 15 MB) a tenant is refused,
     chunked bodies included; another tenant is served meanwhile."""
     # (under the default max_body_bytes the issue's 64 MiB + 64 KiB passes the global bound and is refused here)
@@ -229,7 +229,7 @@ def _closed_within(sock: socket.socket, seconds: float, trickle: bytes = b"") ->
 
 
 def test_connections_making_no_progress_are_closed_whatever_they_sent(server):
-    """Issue 27 item 2: GET /healthz announcing a megabyte, answered, then a byte now and then held the connection
+    """GET /healthz announcing a megabyte, answered, then a byte now and then held the connection
     forever (each byte cancelled the keep-alive timer); so did blank lines between requests."""
     with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
         sock.sendall(http_head("/healthz", {"content-length": "1000000"}, method="GET") + b"x" * 200)
@@ -247,7 +247,7 @@ def test_connections_making_no_progress_are_closed_whatever_they_sent(server):
 
 
 def test_the_connection_cap_closes_the_longest_waiting_socket_and_refusals_are_counted(server):
-    """Issue 27 items 2 and 8: 40 quiet sockets against a cap of 24 leave a new client served; the server layer's
+    """40 quiet sockets against a cap of 24 leave a new client served; the server layer's
     refusals (evictions, header timeouts, 431) appear in /metrics."""
     quiet = []
     try:

@@ -93,7 +93,7 @@ def test_quota_holds_under_concurrent_requests(make_settings, client_for, cube_b
 
 
 def test_first_reservation_covers_the_first_request(make_settings, client_for, cube_body):
-    """Issue 17 item 5: the estimate from the warm-up alone (no billed request yet) is not below a request's cost."""
+    """the estimate from the warm-up alone (no billed request yet) is not below a request's cost."""
     client = client_for(make_settings())
     state = client.app.state.service
     served = state.pool.get("tiny")
@@ -234,7 +234,7 @@ def _billing(tmp_path, **settings):
 
 
 def test_the_estimate_is_the_tenants_own_and_a_refusal_never_raises_it(tmp_path):
-    """Issue 27 item 3: the estimate was the maximum of every tenant's recent requests, and it rose with requests
+    """the estimate was the maximum of every tenant's recent requests, and it rose with requests
     refused at settlement."""
     billing, served = _billing(tmp_path)
     ledger = billing.ledger
@@ -249,7 +249,7 @@ def test_the_estimate_is_the_tenants_own_and_a_refusal_never_raises_it(tmp_path)
 
 
 def test_admission_counts_every_affordable_request_and_retry_after_names_the_lease_deadline(tmp_path):
-    """Issue 27 item 4: with quota for 6 requests in flight only 3 were admitted, and the 429 caused by the
+    """with quota for 6 requests in flight only 3 were admitted, and the 429 caused by the
     tenant's own leases said to wait until midnight."""
     from service.billing import quota_error, seconds_to_utc_midnight
 
@@ -274,7 +274,7 @@ def test_admission_counts_every_affordable_request_and_retry_after_names_the_lea
 
 
 def test_a_quota_hold_is_given_back_on_any_way_out_but_settlement(tmp_path):
-    """Issue 27: reserve on entering ``Billing.hold``, release on leaving it by an error or a cancellation."""
+    """reserve on entering ``Billing.hold``, release on leaving it by an error or a cancellation."""
     import asyncio
 
     billing, served = _billing(tmp_path, daily_mac_quota=10**6)

@@ -1,4 +1,4 @@
-"""The upload gate's bookkeeping (issue 27): bounds in total and per tenant, chunked bodies charged when their size
+"""The upload gate's bookkeeping: bounds in total and per tenant, chunked bodies charged when their size
 is known, and every place given back whatever happened to the upload."""
 
 from __future__ import annotations
