@@ -16,13 +16,10 @@ from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from service.error_types import ERROR_TYPES
+
 log = logging.getLogger(__name__)
 
-ERROR_TYPES = {
-    400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",
-    408: "request_timeout", 413: "content_too_large", 415: "unsupported_media_type", 422: "unprocessable",
-    429: "quota_exceeded", 431: "headers_too_large", 500: "internal_error", 503: "unavailable",
-}
 
 
 class ApiError(Exception):

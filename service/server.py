@@ -43,7 +43,7 @@ import httptools
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from service.errors import ERROR_TYPES
+from service.error_types import ERROR_TYPES
 from service.settings import Settings
 from service.starting_app import StartingApp
 
