@@ -141,7 +141,9 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
     train(TrainConfig(stage=role.value, model=load_checkpoint(pruned).model_name if role is Role.BASELINE else None,
                       store=cfg.store, out=str(run), init=str(pruned),
                       lr=cfg.lr_baseline if role is Role.BASELINE else cfg.lr_erasenet, epochs=10_000,
-                      batch_size=cfg.batch_size, max_steps=cfg.steps(kind), val_split=None, seed=cfg.seed,
+                      # the detector's deepest BatchNorm needs two frames (TrainConfig refuses batch 1 there)
+                      batch_size=max(2, cfg.batch_size) if role is Role.DETECTOR else cfg.batch_size,
+                      max_steps=cfg.steps(kind), val_split=None, seed=cfg.seed,
                       threads=cfg.threads, progress=False,
                       jitter_std=DEFAULT_JITTER_STD if role is Role.SEGMENTER else None))
     return run / "model.pt"  # without validation model.pt holds the latest weights

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from radar.input_kind import ACCEPTED_DTYPES, InputKindError, resolve_kind
+from radar.input_kind import check_values as check_kind_values
 from radar.io.errors import DataError
 from radar.io.npy import MAGIC, MAX_HEADER_LEN, NpyHeader, parse_npy_header
 from service.errors import ApiError
@@ -200,7 +201,7 @@ def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int 
 # float32 (max 3.4e38), squares the values and sums the power of up to 256 angle bins (RD view), and a log-power cube
 # is raised to 10**(dB/10); a finite value past these bounds would overflow to Inf there (3e38 or 1e300
 # gave an empty answer, billed). ADC samples are bounded lower: the FFT chain adds up to ~4e6 of them per bin.
-VALUE_BOUNDS = {InputKind.complex: 1e15, InputKind.adc: 1e9, InputKind.log_power: 300.0}
+VALUE_BOUNDS = {InputKind.complex: 1e15, InputKind.magnitude: 1e15, InputKind.adc: 1e9, InputKind.log_power: 300.0}
 
 
 def _largest_magnitude(cube: np.ndarray) -> float:
@@ -218,11 +219,16 @@ def _largest_magnitude(cube: np.ndarray) -> float:
 
 
 def check_values(cube: np.ndarray, expected: ExpectedCube) -> None:
-    """ApiError 422 for NaN/Inf, or for a finite value too large for the float32 transform (VALUE_BOUNDS)."""
+    """ApiError 422 for NaN/Inf, for values impossible for the declared kind (``radar.input_kind``), or for a
+    finite value too large for the float32 transform (VALUE_BOUNDS)."""
     largest = _largest_magnitude(cube)
     if not np.isfinite(largest):
         raise ApiError(422, f"cube contains NaN or Inf values: model {expected.model!r} expects finite values",
                        error="invalid_cube")
+    try:  # values impossible for the declared kind (linear magnitude as ?input=log_power, ...): radar.input_kind
+        check_kind_values(cube, expected.kind, flag="?input={}")
+    except InputKindError as exc:
+        raise ApiError(422, f"model {expected.model!r}: {exc}", error="invalid_cube") from None
     bound = VALUE_BOUNDS[expected.kind]
     if largest > bound:
         what = "dB values" if expected.kind is InputKind.log_power else "real and imaginary parts"

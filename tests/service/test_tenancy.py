@@ -114,13 +114,13 @@ def test_values_beyond_float32_are_refused_and_never_billed(server, frame):
     huge128[1, 2, 3] = 1e300
     log_power = np.full(frame.cube.shape, 40.0)
     log_power[0, 0, 0] = 1e300
-    cases = [("/v1/segment", huge64, "3e+38"), ("/v1/segment", huge128, "1e+300"),
-             ("/v1/segment?input=log_power", log_power, "dB values within [-300, 300]")]
+    cases = [("/v1/segment", huge64, ("3e+38", "float32")), ("/v1/segment", huge128, ("1e+300", "float32")),
+             ("/v1/segment?input=log_power", log_power, ("1e+300 dB", "at most 300 dB"))]
     with httpx.Client(base_url=server.url, timeout=60, headers={**NPY, **AUTH["umbrella"]}) as http:
-        for url, cube, message in cases:
+        for url, cube, messages in cases:
             r = http.post(url, content=npy_bytes(cube))
             answer = json_error(r.status_code, r.headers, r.content, 422)
-            assert message in answer["detail"] and "float32" in answer["detail"], answer
+            assert all(message in answer["detail"] for message in messages), answer
         assert http.get("/v1/usage").json()["tenants"][0]["today"]["requests"] == 0
 
 

@@ -52,5 +52,13 @@ def test_declared_lengths_and_values_beyond_the_model_are_refused():
             check_values(np.asfortranarray(bad) if np.isnan(value) else bad, expected)
         assert refused.value.status == 422
     log_power = ExpectedCube("tiny", (4, 4, 2), InputKind.log_power)
-    with pytest.raises(ApiError, match=r"dB values within \[-300, 300\]"):
+    # log power beyond the transform's range is refused by the input-kind rule first, naming the likely mistake
+    with pytest.raises(ApiError, match=r"log power down to -1e\+300 dB"):
         check_values(np.full((4, 4, 2), -1e300), log_power)
+    with pytest.raises(ApiError, match=r"linear magnitude or power\?"):
+        check_values(np.full((4, 4, 2), 1e300), log_power)
+    magnitude = ExpectedCube("tiny", (4, 4, 2), InputKind.magnitude)
+    peaks = np.full((4, 4, 2), 1.0)
+    peaks[0, 0, 0] = 1e300  # a plausible magnitude cube's shape, a value the float32 transform cannot square
+    with pytest.raises(ApiError, match=r"real and imaginary parts within \[-1e\+15, 1e\+15\]"):
+        check_values(peaks, magnitude)
