@@ -252,10 +252,16 @@ def run_stages(url: str, model: dict, frames: int) -> dict:
             "goal": {"client_p50_within_15pct_of_plain": client_p50 <= 1.15 * plain_total_s}}
 
 
+def _upload_head(length: int, key: str | None = None) -> bytes:
+    """The head of a ``POST /v1/segment`` announcing ``length`` bytes of .npy (with a key when given)."""
+    auth = f"Authorization: Bearer {key}\r\n" if key else ""
+    return (f"POST /v1/segment HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-npy\r\n{auth}"
+            f"Content-Length: {length}\r\n\r\n").encode()
+
+
 def _trickle(port: int, body: bytes, stop: threading.Event, rate: int, outcomes: list[int]) -> None:
     """One slow client: upload ``body`` at ``rate`` bytes/s, reconnecting whenever the server cuts it off."""
-    head = (f"POST /v1/segment HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-npy\r\n"
-            f"Content-Length: {len(body)}\r\n\r\n").encode()
+    head = _upload_head(len(body))
     while not stop.is_set():
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=30) as sock:
@@ -359,8 +365,7 @@ def run_startup(models: list[dict] | None, data_dir: Path, log: Path) -> dict:
 
 def _hold_uploads(port: int, key: str, declared: int, stop: threading.Event, outcomes: list[int]) -> None:
     """One attacker connection: announce ``declared`` bytes, send nothing, reopen when answered."""
-    head = (f"POST /v1/segment HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-npy\r\n"
-            f"Authorization: Bearer {key}\r\nContent-Length: {declared}\r\n\r\n").encode()
+    head = _upload_head(declared, key)
     while not stop.is_set():
         try:
             with socket.create_connection(("127.0.0.1", port), timeout=1) as sock:
