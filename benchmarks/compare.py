@@ -16,6 +16,8 @@ optimisations as ERASE-Net's detector (:class:`models.detector.inference.FrozenD
 channels_last, traced), so the ratios stay fair; each baseline's eager time is reported beside it.
 Latency: median over ``--repeats`` x ``--frames`` runs (baselines: ``--repeats``), after a warm-up; GMAC/s
 is the row's correct MACs over its median time. Figures are for comparing within one run only.
+ERASE-Net runs on both sparse engines, interleaved frame by frame (:mod:`models.sparse.native`): its row is
+the compiled engine's, the ratios are to it, and a second row gives the pure-PyTorch engine's time.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from models.compute import count_macs
 from models.detector.inference import fold_batch_norms
 from models.erasenet import EraseNet
 from models.registry import create_model
+from models.sparse import native
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -59,27 +62,38 @@ def build_erasenet(preset: str, first_log_power: np.ndarray) -> EraseNet:
                     std_db=float(first_log_power.std()), score_threshold=0.0)
 
 
+ENGINES = ("native", "torch")
+
+
 @torch.no_grad()
 def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
+    """ERASE-Net end to end on the compiled engine, with ``torch_engine``: the same on the pure-PyTorch one."""
     frames = list(simulate_sequence(preset, n_frames, seed=5))
     cubes = [frame.log_power() for frame in frames]
     net = build_erasenet(preset, cubes[0])
     random_weights = net.score_threshold == 0.0
-    net.segment(cubes[0], is_log_power=True)  # warm-up: the detector's meta copy for its MAC count, first maps
-    times, macs, macs_paper, executed = [], [], [], []
+    for engine in ENGINES:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
+        with native.using_engine(engine):
+            net.segment(cubes[0], is_log_power=True)
+    times, macs, macs_paper, executed = {engine: [] for engine in ENGINES}, [], [], []
     r, a, d = net.profile.shape
     detector = count_macs(net.detector, (1, d, r, a))
     for frame, cube in zip(frames, cubes, strict=True):
         if random_weights:  # top-K seeds: the ROI a trained detector would grow
             net.max_objects = max(1, sum(1 for o in frame.objects if o.n_voxels))
         for _ in range(repeats):
-            started = time.perf_counter()
-            result = net.segment(cube, is_log_power=True)
-            times.append(time.perf_counter() - started)
+            for engine in reversed(ENGINES):  # the compiled engine last: its result's MACs are kept below
+                with native.using_engine(engine):
+                    started = time.perf_counter()
+                    result = net.segment(cube, is_log_power=True)
+                    times[engine].append(time.perf_counter() - started)
         macs.append(result.compute.macs_total)
         executed.append(result.compute.executed_macs_total)
         macs_paper.append(result.compute.macs_total + detector.macs_paper - detector.macs)
-    return {"median_s": statistics.median(times), "min_s": min(times), "runs": len(times),
+    engine = "native" if native.available() else "torch (the compiled engine did not build)"
+    return {"median_s": statistics.median(times["native"]), "min_s": min(times["native"]),
+            "runs": len(times["native"]), "sparse_engine": engine,
+            "torch_engine": {"median_s": statistics.median(times["torch"]), "min_s": min(times["torch"])},
             "macs": float(np.mean(macs)), "macs_paper": float(np.mean(macs_paper)),
             "executed_macs": float(np.mean(executed)),
             "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute.roi_voxels),
@@ -140,7 +154,12 @@ def main() -> None:
     for row in rows.values():
         row["gmacs_per_s_ratio_to_erasenet"] = reference["gmacs_per_s"] / row["gmacs_per_s"]
     names = {"erasenet": "ERASE-Net (end to end)", **ROWS, "unet_pair": "U-Net RD + RA"}
-    print(f"{args.preset}, {args.threads} torch thread(s)")
+    torch_engine = reference["torch_engine"]
+    torch_engine["latency_ratio"] = torch_engine["median_s"] / reference["median_s"]
+    torch_engine["gmacs_per_s"] = reference["macs"] / torch_engine["median_s"] / 1e9
+    print(f"{args.preset}, {args.threads} torch thread(s), sparse engine {reference['sparse_engine']} "
+          f"(pure-PyTorch engine: {torch_engine['median_s'] * 1e3:.1f} ms/frame, {torch_engine['latency_ratio']:.2f}x; "
+          f"TMVA-Net {rows['tmvanet']['median_s'] / torch_engine['median_s']:.1f}x it)")
     print(f"{'model':24} {'params':>11} {'GMACs':>8} {'[paper]':>8} {'ms/frame':>9} {'(eager)':>8} "
           f"{'x ERASE-Net':>12} {'x MACs':>8} {'GMAC/s':>7}")
     for key, row in rows.items():
@@ -156,6 +175,7 @@ def main() -> None:
         "ratios": "latency_ratio and macs_ratio are the row's figure over ERASE-Net's, measured in this run; "
                   "gmacs_per_s_ratio_to_erasenet is ERASE-Net's GMAC/s over the row's",
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "threads": args.threads,
+                    "cpu_flags": [f for f in native.cpu_flags().split() if f.startswith(("avx", "fma", "sse4"))],
                     "torch": torch.__version__, "load_average_before": load_before,
                     "load_average_after": os.getloadavg(),
                     "note": "shared 2-core CPU, other jobs running beside the benchmark"},

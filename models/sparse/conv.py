@@ -253,7 +253,7 @@ class _NativeConv(torch.autograd.Function):
     def forward(ctx, feats, weight, kernel_map):  # noqa: D102
         ctx.save_for_backward(feats, weight)
         ctx.kernel_map = kernel_map
-        return native.neighbour_conv(feats, kernel_map.neighbours, weight)
+        return native.neighbour_conv(feats, kernel_map.neighbours, weight, kernel_map.out_order)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
@@ -262,11 +262,12 @@ class _NativeConv(torch.autograd.Function):
         kernel_map = ctx.kernel_map
         grad_feats = grad_weight = None
         if ctx.needs_input_grad[1]:
-            grad_weight = native.neighbour_weight_grad(feats, kernel_map.neighbours, grad_out)
+            grad_weight = native.neighbour_weight_grad(feats, kernel_map.neighbours, grad_out, kernel_map.out_order)
         if ctx.needs_input_grad[0]:
             weight_t = weight.transpose(1, 2)  # (K, C_out, C_in)
             if kernel_map.identity_offset is not None:
-                grad_feats = native.neighbour_conv(grad_out, kernel_map.neighbours, weight_t.flip(0))
+                grad_feats = native.neighbour_conv(grad_out, kernel_map.neighbours, weight_t.flip(0),
+                                                   kernel_map.out_order)
             else:
                 grad_feats = native.scatter_conv(grad_out, kernel_map.neighbours, weight_t, kernel_map.num_in)
         return grad_feats, grad_weight, None

@@ -129,6 +129,9 @@ class KernelMap:
         num_out: output voxel count.
         kernel_size: voxels per axis.
         stride: the conv stride the map was built for.
+        out_order: (N_out,) int64 output rows sorted by coordinates (batch, x, y, z), or None when they
+            already are: the order in which the compiled engine visits them, so that neighbouring outputs,
+            which gather the same inputs, run one after the other (set on submanifold maps only).
     """
 
     neighbours: Tensor
@@ -138,6 +141,7 @@ class KernelMap:
     num_out: int
     kernel_size: int
     stride: int
+    out_order: Tensor | None = None
 
     @property
     def num_pairs(self) -> int:
@@ -336,6 +340,11 @@ def build_kernel_map(
     offsets = kernel_offsets(kernel_size, stride, out_coords.device)  # (K, 3)
     neighbours = index.neighbour_table(out_coords, offsets, stride)  # (N_out, K)
     pair_counts = (neighbours != index.num_voxels).sum(dim=0).tolist()
+    out_order = None
+    if same_coords and index.num_voxels > 1:
+        order = index.sorted_keys()[1]
+        if not bool((order[1:] > order[:-1]).all()):  # sorted already (coarse strides are): keep None
+            out_order = order
     return KernelMap(
         neighbours=neighbours,
         pair_counts=tuple(pair_counts),
@@ -344,6 +353,7 @@ def build_kernel_map(
         num_out=out_coords.shape[0],
         kernel_size=kernel_size,
         stride=stride,
+        out_order=out_order,
     )
 
 

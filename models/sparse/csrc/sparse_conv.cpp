@@ -3,13 +3,13 @@
 // Three primitives over a kernel map's neighbour table `neighbours` (M, K) int64, where
 // `neighbours[j, k]` is a row of the gathered side or `src.size(0)` where there is none:
 //
-//   neighbour_conv(src (N, C), neighbours (M, K), weight (K, C, D)) -> (M, D)
+//   neighbour_conv(src (N, C), neighbours (M, K), weight (K, C, D), order) -> (M, D)
 //       out[j] = sum_k src[neighbours[j, k]] @ weight[k]          (submanifold / strided forward,
 //                                                                   input gradients through a map's transpose)
 //   scatter_conv(src (M, C), neighbours (M, K), weight (K, C, D), num_out) -> (num_out, D)
 //       out[neighbours[j, k]] = src[j] @ weight[k]                 (each output row reached exactly once:
 //                                                                   transposed forward, strided input gradient)
-//   neighbour_weight_grad(src (N, A), neighbours (M, K), dense (M, B)) -> (K, A, B)
+//   neighbour_weight_grad(src (N, A), neighbours (M, K), dense (M, B), order) -> (K, A, B)
 //       grad[k] = sum_j src[neighbours[j, k]]^T dense[j]          (weight gradients)
 //
 // Design: output-stationary blocks of `kBlockRows` rows. Within a block, for each offset k the rows that
@@ -18,10 +18,16 @@
 // missing neighbours cost nothing. Blocks run in parallel through at::parallel_for; the forward writes
 // disjoint rows (no atomics), the weight gradient keeps one accumulator per thread and sums them.
 // Output columns are padded to a multiple of 8 floats inside the kernels so every vector op is full.
+// `order` (M,) int64, or empty for 0..M-1, is the order in which output rows are visited: spatially sorted
+// rows make the neighbours gathered by one block lie close together, so they are reused from cache.
 
-#include <torch/extension.h>
-
+// ATen's tensor and pybind's casters only, not <torch/extension.h> (all of libtorch's C++ API): the first
+// build on a machine compiles about 2.5x fewer header lines.
 #include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
 #include <cstdint>
@@ -130,7 +136,7 @@ inline void outer_products_any(int rows, const float* const* src, const float* c
 }
 
 // (K, C, D) -> (K, C, Dp) with zero columns, contiguous.
-std::vector<float> pad_weight(const torch::Tensor& weight, int64_t Dp) {
+std::vector<float> pad_weight(const at::Tensor& weight, int64_t Dp) {
   const int64_t K = weight.size(0), C = weight.size(1), D = weight.size(2);
   std::vector<float> out(static_cast<size_t>(K * C * Dp), 0.0f);
   const float* w = weight.data_ptr<float>();
@@ -138,16 +144,16 @@ std::vector<float> pad_weight(const torch::Tensor& weight, int64_t Dp) {
   return out;
 }
 
-void check_inputs(const torch::Tensor& src, const torch::Tensor& neighbours, const char* what) {
+void check_inputs(const at::Tensor& src, const at::Tensor& neighbours, const char* what) {
   TORCH_CHECK(src.device().is_cpu() && neighbours.device().is_cpu(), what, ": CPU tensors expected");
-  TORCH_CHECK(src.scalar_type() == torch::kFloat32, what, ": float32 features expected, got ", src.scalar_type());
-  TORCH_CHECK(neighbours.scalar_type() == torch::kInt64, what, ": int64 neighbours expected");
+  TORCH_CHECK(src.scalar_type() == at::kFloat, what, ": float32 features expected, got ", src.scalar_type());
+  TORCH_CHECK(neighbours.scalar_type() == at::kLong, what, ": int64 neighbours expected");
   TORCH_CHECK(src.dim() == 2 && neighbours.dim() == 2, what, ": 2-D features and neighbours expected");
   TORCH_CHECK(src.is_contiguous() && neighbours.is_contiguous(), what, ": contiguous tensors expected");
 }
 
-void check_weight(const torch::Tensor& weight, int64_t K, int64_t C, const char* what) {
-  TORCH_CHECK(weight.scalar_type() == torch::kFloat32 && weight.is_contiguous() && weight.dim() == 3, what,
+void check_weight(const at::Tensor& weight, int64_t K, int64_t C, const char* what) {
+  TORCH_CHECK(weight.scalar_type() == at::kFloat && weight.is_contiguous() && weight.dim() == 3, what,
               ": contiguous float32 weight (K, C_in, C_out) expected");
   TORCH_CHECK(weight.size(0) == K && weight.size(1) == C, what, ": weight shape ", weight.sizes(),
               " does not match K = ", K, ", C_in = ", C);
@@ -155,30 +161,40 @@ void check_weight(const torch::Tensor& weight, int64_t K, int64_t C, const char*
 
 }  // namespace
 
-torch::Tensor neighbour_conv(torch::Tensor src, torch::Tensor neighbours, torch::Tensor weight) {
+const int64_t* row_order(const at::Tensor& order, int64_t M, const char* what) {
+  if (order.numel() == 0) return nullptr;
+  TORCH_CHECK(order.scalar_type() == at::kLong && order.is_contiguous() && order.numel() == M, what,
+              ": order must be a contiguous int64 permutation of the ", M, " rows");
+  return order.data_ptr<int64_t>();
+}
+
+at::Tensor neighbour_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weight, at::Tensor order) {
   check_inputs(src, neighbours, "neighbour_conv");
   const int64_t N = src.size(0), C = src.size(1), M = neighbours.size(0), K = neighbours.size(1);
   check_weight(weight, K, C, "neighbour_conv");
   const int64_t D = weight.size(2), Dp = padded(D);
-  auto out = torch::empty({M, D}, src.options());
+  auto out = at::empty({M, D}, src.options());
   if (M == 0) return out;
   const std::vector<float> w = pad_weight(weight, Dp);
   const float* feats = src.data_ptr<float>();
   const int64_t* nbr = neighbours.data_ptr<int64_t>();
+  const int64_t* ord = row_order(order, M, "neighbour_conv");
   float* dst = out.data_ptr<float>();
   const int64_t blocks = (M + kBlockRows - 1) / kBlockRows;
   at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
     std::vector<float> acc(static_cast<size_t>(kBlockRows * Dp));
+    int64_t rows_of[kBlockRows];
     const float* srcs[kBlockRows];
     float* dsts[kBlockRows];
     for (int64_t block = begin; block < end; ++block) {
       const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
       std::fill(acc.begin(), acc.end(), 0.0f);
+      for (int64_t r = 0; r < rows; ++r) rows_of[r] = ord ? ord[j0 + r] : j0 + r;
       for (int64_t k = 0; k < K; ++k) {
         int count = 0;
         for (int64_t r = 0; r < rows; ++r) {
           // Branch-free listing: about half the slots are empty in ROIs, a branch would mispredict often.
-          const int64_t n = nbr[(j0 + r) * K + k];
+          const int64_t n = nbr[rows_of[r] * K + k];
           srcs[count] = feats + n * C;
           dsts[count] = acc.data() + r * Dp;
           count += n < N;
@@ -187,19 +203,19 @@ torch::Tensor neighbour_conv(torch::Tensor src, torch::Tensor neighbours, torch:
         for (int p = 0; p < count; p += kMaxRows)
           rows_times_weight_any(std::min(kMaxRows, count - p), srcs + p, wk, C, Dp, dsts + p);
       }
-      for (int64_t r = 0; r < rows; ++r) std::memcpy(dst + (j0 + r) * D, acc.data() + r * Dp, D * sizeof(float));
+      for (int64_t r = 0; r < rows; ++r) std::memcpy(dst + rows_of[r] * D, acc.data() + r * Dp, D * sizeof(float));
     }
   });
   return out;
 }
 
-torch::Tensor scatter_conv(torch::Tensor src, torch::Tensor neighbours, torch::Tensor weight, int64_t num_out) {
+at::Tensor scatter_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weight, int64_t num_out) {
   check_inputs(src, neighbours, "scatter_conv");
   const int64_t M = src.size(0), C = src.size(1), K = neighbours.size(1);
   TORCH_CHECK(neighbours.size(0) == M, "scatter_conv: one neighbour row per source row expected");
   check_weight(weight, K, C, "scatter_conv");
   const int64_t D = weight.size(2), Dp = padded(D);
-  auto out = torch::zeros({num_out, D}, src.options());
+  auto out = at::zeros({num_out, D}, src.options());
   if (M == 0 || num_out == 0) return out;
   const std::vector<float> w = pad_weight(weight, Dp);
   const float* feats = src.data_ptr<float>();
@@ -236,9 +252,9 @@ torch::Tensor scatter_conv(torch::Tensor src, torch::Tensor neighbours, torch::T
   return out;
 }
 
-torch::Tensor neighbour_weight_grad(torch::Tensor src, torch::Tensor neighbours, torch::Tensor dense) {
+at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tensor dense, at::Tensor order) {
   check_inputs(src, neighbours, "neighbour_weight_grad");
-  TORCH_CHECK(dense.scalar_type() == torch::kFloat32 && dense.is_contiguous() && dense.dim() == 2 &&
+  TORCH_CHECK(dense.scalar_type() == at::kFloat && dense.is_contiguous() && dense.dim() == 2 &&
                   dense.size(0) == neighbours.size(0),
               "neighbour_weight_grad: contiguous float32 (M, B) rows expected");
   const int64_t N = src.size(0), A = src.size(1), M = neighbours.size(0), K = neighbours.size(1);
@@ -246,6 +262,7 @@ torch::Tensor neighbour_weight_grad(torch::Tensor src, torch::Tensor neighbours,
   const float* feats = src.data_ptr<float>();
   const int64_t* nbr = neighbours.data_ptr<int64_t>();
   const float* rows_b = dense.data_ptr<float>();
+  const int64_t* ord = row_order(order, M, "neighbour_weight_grad");
   const int64_t blocks = (M + kBlockRows - 1) / kBlockRows;
   const int threads = std::max<int>(1, at::get_num_threads());
   std::vector<std::vector<float>> partial(static_cast<size_t>(threads));
@@ -256,14 +273,17 @@ torch::Tensor neighbour_weight_grad(torch::Tensor src, torch::Tensor neighbours,
       std::vector<float> dense_block(static_cast<size_t>(kBlockRows * Bp), 0.0f);
       const float* srcs[kBlockRows];
       const float* denses[kBlockRows];
+      int64_t rows_of[kBlockRows];
       for (int64_t block = begin; block < end; ++block) {
         const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
-        for (int64_t r = 0; r < rows; ++r)
-          std::memcpy(dense_block.data() + r * Bp, rows_b + (j0 + r) * B, B * sizeof(float));
+        for (int64_t r = 0; r < rows; ++r) {
+          rows_of[r] = ord ? ord[j0 + r] : j0 + r;
+          std::memcpy(dense_block.data() + r * Bp, rows_b + rows_of[r] * B, B * sizeof(float));
+        }
         for (int64_t k = 0; k < K; ++k) {
           int count = 0;
           for (int64_t r = 0; r < rows; ++r) {
-            const int64_t n = nbr[(j0 + r) * K + k];
+            const int64_t n = nbr[rows_of[r] * K + k];
             srcs[count] = feats + n * A;
             denses[count] = dense_block.data() + r * Bp;
             count += n < N;
@@ -275,7 +295,7 @@ torch::Tensor neighbour_weight_grad(torch::Tensor src, torch::Tensor neighbours,
       }
     });
   }
-  auto out = torch::zeros({K, A, B}, src.options());
+  auto out = at::zeros({K, A, B}, src.options());
   float* dst = out.data_ptr<float>();
   for (const auto& grad : partial) {
     if (grad.empty()) continue;
