@@ -50,7 +50,7 @@ def assert_close_relative(native_value: torch.Tensor, reference: torch.Tensor, w
     assert error <= RELATIVE * max(scale, 1e-12), f"{what}: max error {error:.3g} against max |value| {scale:.3g}"
 
 
-def compare_engines(conv: torch.nn.Module, x: SparseTensor, seed: int) -> None:
+def check_engines_agree(conv: torch.nn.Module, x: SparseTensor, seed: int) -> None:
     compiled, reference = run("native", conv, x, seed), run("torch", conv, x, seed)
     for name, a, b in zip(("output", "feature gradient", "weight gradient"), compiled[:3], reference[:3],
                           strict=True):
@@ -75,7 +75,7 @@ def test_submanifold_engines_agree(case, c_in, c_out, kernel_size):
     generator = torch.Generator().manual_seed(c_in * 31 + kernel_size)
     coords = random_coords(generator, *case)
     x = SparseTensor(coords, torch.randn(len(coords), c_in, generator=generator))
-    compare_engines(SubmanifoldConv3d(c_in, c_out, kernel_size), x, seed=c_out)
+    check_engines_agree(SubmanifoldConv3d(c_in, c_out, kernel_size), x, seed=c_out)
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -87,11 +87,11 @@ def test_strided_and_transposed_engines_agree(case, c_in, c_out, tensor_stride):
     x = SparseTensor(coords * tensor_stride * torch.tensor([0, 1, 1, 1]) + coords * torch.tensor([1, 0, 0, 0]),
                      torch.randn(len(coords), c_in, generator=generator), tensor_stride)
     down = StridedConv3d(c_in, c_out)
-    compare_engines(down, x, seed=1)
+    check_engines_agree(down, x, seed=1)
     with native.using_engine("torch"):
         coarse = down(x)
     coarse = coarse.replace_feats(torch.randn(len(coarse), c_out, generator=generator))
-    compare_engines(TransposedConv3d(c_out, c_in), coarse, seed=2)
+    check_engines_agree(TransposedConv3d(c_out, c_in), coarse, seed=2)
 
 
 def test_a_small_network_trains_the_same_on_both_engines():
