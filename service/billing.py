@@ -141,11 +141,18 @@ class Billing:
         return outcome
 
     @asynccontextmanager
-    async def hold(self, tenant: str, served: ServedModel) -> AsyncIterator[QuotaHold]:
+    async def hold(self, tenant: str, served: ServedModel, *,
+                   on_refused: Callable[[], None] | None = None) -> AsyncIterator[QuotaHold]:
         """``async with billing.hold(tenant, served) as quota``: reserve on entering (ApiError 429 when it does not
         fit), ``await quota.settle(...)`` inside; leaving without settling (an error, a cancelled request) gives
         the reservation back."""
-        held = QuotaHold(self, tenant, await self.reserve(tenant, served))
+        try:
+            lease = await self.reserve(tenant, served)
+        except BaseException:
+            if on_refused is not None:  # e.g. give back the model slot taken before the quota was touched
+                on_refused()
+            raise
+        held = QuotaHold(self, tenant, lease)
         try:
             yield held
         finally:

@@ -205,7 +205,7 @@ async def segment(
 
     A declared length no cube of the model can have is refused at once (413), and so is a tenant whose quota
     cannot cover the request (429), before the body is read. The body is read next (a slow upload holds no model
-    slot), then the request takes a lease on the tenant's quota and a model slot, runs, and is billed; the lease is
+    slot), then the request takes a model slot and a lease on the tenant's quota, runs, and is billed; the lease is
     given back on any other way out."""
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
@@ -222,8 +222,9 @@ async def segment(
     await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
     cube, decode_s = await _read_body(request, state, caller.tenant, expected, content_length)
 
-    async with state.billing.hold(caller.tenant, served) as quota:  # reserved; given back unless settled
-        _take_slot(served, state)  # 503 when every slot of the model is taken
+    _take_slot(served, state)  # a saturated model answers 503 before the quota is touched (no ledger round trips)
+    # reserved (the slot given back if refused); the lease is given back unless settled
+    async with state.billing.hold(caller.tenant, served, on_refused=served.release) as quota:
         result = await _infer(served, cube, input_kind, tdm_compensation, state)
         views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
                                          tdm_compensation=tdm_compensation) if "views" in chosen else None)
