@@ -65,7 +65,9 @@ CASES = [  # (voxels per sample, extent, batch size): sparse, dense, single voxe
     (1, 4, 1),
     (0, 4, 1),
 ]
-CHANNELS = [(1, 3), (8, 8), (13, 35), (32, 24)]
+# Output widths that reach every column chunk of the micro-kernels on AVX2 (8 lanes) and AVX-512 (16 lanes):
+# 8 (a half vector), 24 (16 + 8 on AVX-512), 40, 56 (three wide vectors and a half), 64 (two + two).
+CHANNELS = [(1, 3), (8, 8), (13, 35), (32, 24), (20, 56), (48, 64)]
 
 
 @pytest.mark.parametrize("case", CASES)
@@ -153,3 +155,32 @@ def test_a_failed_build_falls_back_with_one_warning_under_auto_and_raises_under_
     assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1
     with native.using_engine("native"), pytest.raises(RuntimeError, match="did not build"):
         conv(x)
+
+
+def test_the_avx2_kernels_agree_with_the_avx512_ones_where_the_cpu_has_both():
+    """On an AVX-512 machine the engine runs 16-lane micro-kernels; the 8-lane AVX2 ones that other machines
+    run are built here too and must give the same sums (every kernel, every column chunk, ragged row groups)."""
+    if "avx512f" not in native.cpu_flags().split():
+        pytest.skip("this CPU has no AVX-512: the engine under test above is the AVX2 build")
+    wide, narrow = native.load(), native.build("avx2")
+    generator = torch.Generator().manual_seed(5)
+    n, k = 300, 27
+    neighbours = torch.randint(0, n, (n, k), generator=generator)
+    neighbours[torch.rand(n, k, generator=generator) < 0.5] = n
+    order = torch.randperm(n, generator=generator)
+    for c_in, c_out in [(8, 8), (24, 24), (13, 40), (20, 56), (48, 64)]:
+        src = torch.randn(n, c_in, generator=generator)
+        weight = torch.randn(k, c_in, c_out, generator=generator)
+        dense = torch.randn(n, c_out, generator=generator)
+        for kernel, args in (("neighbour_conv", (src, neighbours, weight, order)),
+                             ("neighbour_weight_grad", (src, neighbours, dense, order))):
+            assert_close_relative(getattr(wide, kernel)(*args), getattr(narrow, kernel)(*args),
+                                  f"{kernel} {c_in}x{c_out}")
+        # A down-sampling map read backwards reaches each output row once: half of a permutation's slots
+        # name an output row, the other half are missing (= num_out).
+        num_out = n * 4
+        slots = torch.randperm(n * 8, generator=generator).reshape(n, 8)
+        targets = torch.where(slots < num_out, slots, torch.full_like(slots, num_out))
+        weight8 = torch.randn(8, c_in, c_out, generator=generator)
+        assert_close_relative(wide.scatter_conv(src, targets, weight8, num_out),
+                              narrow.scatter_conv(src, targets, weight8, num_out), f"scatter_conv {c_in}x{c_out}")
