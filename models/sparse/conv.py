@@ -242,17 +242,22 @@ class _PickProducts(torch.autograd.Function):
 
 
 class _NativeConv(torch.autograd.Function):
-    """A submanifold or down-sampling conv by the compiled engine (`native.neighbour_conv`), exact MACs.
+    """A sparse conv by the compiled engine over a kernel map, exact MACs, either way round:
 
-    Backward: the weight gradient per offset (`native.neighbour_weight_grad`); the input gradient through
-    the map's transpose: a submanifold map is its own transpose with offsets mirrored (`k <-> K-1-k`), and
-    a down-sampling map gives each input exactly one (output, offset) slot (`native.scatter_conv`).
+    - gathering (submanifold or down-sampling conv; `transposed` False): `native.neighbour_conv`. Backward:
+      the weight gradient per offset (`native.neighbour_weight_grad`); the input gradient through the map's
+      transpose: a submanifold map is its own transpose with offsets mirrored (`k <-> K-1-k`), and a
+      down-sampling map gives each input exactly one (output, offset) slot (`native.scatter_conv`).
+    - scattering (the transposed, up-sampling conv over a down-sampling map; `transposed` True): every fine
+      voxel is written once from its coarse parent (`native.scatter_conv`); the backward gathers.
     """
 
     @staticmethod
-    def forward(ctx, feats, weight, kernel_map):  # noqa: D102
+    def forward(ctx, feats, weight, kernel_map, transposed):  # noqa: D102
         ctx.save_for_backward(feats, weight)
-        ctx.kernel_map = kernel_map
+        ctx.kernel_map, ctx.transposed = kernel_map, transposed
+        if transposed:
+            return native.scatter_conv(feats, kernel_map.neighbours, weight, kernel_map.num_in)
         return native.neighbour_conv(feats, kernel_map.neighbours, weight, kernel_map.out_order)
 
     @staticmethod
@@ -260,40 +265,24 @@ class _NativeConv(torch.autograd.Function):
     def backward(ctx, grad_out):  # noqa: D102
         feats, weight = ctx.saved_tensors
         kernel_map = ctx.kernel_map
+        neighbours = kernel_map.neighbours
+        need_feats, need_weight = ctx.needs_input_grad[:2]
         grad_feats = grad_weight = None
-        if ctx.needs_input_grad[1]:
-            grad_weight = native.neighbour_weight_grad(feats, kernel_map.neighbours, grad_out, kernel_map.out_order)
-        if ctx.needs_input_grad[0]:
+        if ctx.transposed:  # neighbours (N_coarse, K) are fine rows
+            if need_feats:
+                grad_feats = native.neighbour_conv(grad_out, neighbours, weight.transpose(1, 2))
+            if need_weight:
+                grad_weight = native.neighbour_weight_grad(grad_out, neighbours, feats).transpose(1, 2)
+            return grad_feats, grad_weight, None, None
+        if need_weight:
+            grad_weight = native.neighbour_weight_grad(feats, neighbours, grad_out, kernel_map.out_order)
+        if need_feats:
             weight_t = weight.transpose(1, 2)  # (K, C_out, C_in)
             if kernel_map.identity_offset is not None:
-                grad_feats = native.neighbour_conv(grad_out, kernel_map.neighbours, weight_t.flip(0),
-                                                   kernel_map.out_order)
+                grad_feats = native.neighbour_conv(grad_out, neighbours, weight_t.flip(0), kernel_map.out_order)
             else:
-                grad_feats = native.scatter_conv(grad_out, kernel_map.neighbours, weight_t, kernel_map.num_in)
-        return grad_feats, grad_weight, None
-
-
-class _NativeTransposedConv(torch.autograd.Function):
-    """The transposed (up-sampling) conv over a down-sampling map by the compiled engine: every fine voxel
-    is written once from its coarse parent (`native.scatter_conv`), exact MACs; the backward gathers."""
-
-    @staticmethod
-    def forward(ctx, feats, weight, kernel_map):  # noqa: D102
-        ctx.save_for_backward(feats, weight)
-        ctx.kernel_map = kernel_map
-        return native.scatter_conv(feats, kernel_map.neighbours, weight, kernel_map.num_in)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad_out):  # noqa: D102
-        feats, weight = ctx.saved_tensors
-        neighbours = ctx.kernel_map.neighbours  # (N_coarse, K) fine rows
-        grad_feats = grad_weight = None
-        if ctx.needs_input_grad[0]:
-            grad_feats = native.neighbour_conv(grad_out, neighbours, weight.transpose(1, 2))
-        if ctx.needs_input_grad[1]:
-            grad_weight = native.neighbour_weight_grad(grad_out, neighbours, feats).transpose(1, 2)
-        return grad_feats, grad_weight, None
+                grad_feats = native.scatter_conv(grad_out, neighbours, weight_t, kernel_map.num_in)
+        return grad_feats, grad_weight, None, None
 
 
 def native_applies(kernel_map: KernelMap, feats: Tensor, weight: Tensor) -> bool:
@@ -371,7 +360,7 @@ def apply_kernel_map(feats: Tensor, weight: Tensor, kernel_map: KernelMap, *, tr
     c_in, c_out = weight.shape[1], weight.shape[2]
     useful = kernel_map.num_pairs * c_in * c_out
     if native_applies(kernel_map, feats, weight):
-        out = (_NativeTransposedConv if transposed else _NativeConv).apply(feats, weight, kernel_map)
+        out = _NativeConv.apply(feats, weight, kernel_map, transposed)
         return out, useful, useful
     if path == "auto":
         path = choose_path(kernel_map, c_in, c_out, transposed=transposed)

@@ -193,6 +193,22 @@ inline void outer_products_any(int rows, const float* const* src, const float* c
   });
 }
 
+// The rows of a block (`rows_of`, `rows` of them) that have a neighbour at offset k, listed branch-free (about
+// half the slots are empty in ROIs, a branch would mispredict often): each one's gathered row of `gathered`
+// (row width `width`) in `srcs`, its row of the block buffer `block` (row width `Dp`) in `block_rows`.
+inline int list_present(const int64_t* nbr, const int64_t* rows_of, int64_t rows, int64_t K, int64_t k, int64_t N,
+                        const float* gathered, int64_t width, float* block, int64_t Dp, const float** srcs,
+                        float** block_rows) {
+  int count = 0;
+  for (int64_t r = 0; r < rows; ++r) {
+    const int64_t n = nbr[rows_of[r] * K + k];
+    srcs[count] = gathered + n * width;
+    block_rows[count] = block + r * Dp;
+    count += n < N;
+  }
+  return count;
+}
+
 // (K, C, D) -> (K, C, Dp) with zero columns, contiguous.
 std::vector<float> pad_weight(const at::Tensor& weight, int64_t Dp) {
   const int64_t K = weight.size(0), C = weight.size(1), D = weight.size(2);
@@ -249,14 +265,7 @@ at::Tensor neighbour_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weig
       std::fill(acc.begin(), acc.end(), 0.0f);
       for (int64_t r = 0; r < rows; ++r) rows_of[r] = ord ? ord[j0 + r] : j0 + r;
       for (int64_t k = 0; k < K; ++k) {
-        int count = 0;
-        for (int64_t r = 0; r < rows; ++r) {
-          // Branch-free listing: about half the slots are empty in ROIs, a branch would mispredict often.
-          const int64_t n = nbr[rows_of[r] * K + k];
-          srcs[count] = feats + n * C;
-          dsts[count] = acc.data() + r * Dp;
-          count += n < N;
-        }
+        const int count = list_present(nbr, rows_of, rows, K, k, N, feats, C, acc.data(), Dp, srcs, dsts);
         const float* wk = w.data() + k * C * Dp;
         for (int p = 0; p < count; p += kMaxRows)
           rows_times_weight_any(std::min(kMaxRows, count - p), srcs + p, wk, C, Dp, dsts + p);
@@ -330,7 +339,7 @@ at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tens
       if (grad.empty()) grad.assign(static_cast<size_t>(K * A * Bp), 0.0f);
       std::vector<float> dense_block(static_cast<size_t>(kBlockRows * Bp), 0.0f);
       const float* srcs[kBlockRows];
-      const float* denses[kBlockRows];
+      float* denses[kBlockRows];
       int64_t rows_of[kBlockRows];
       for (int64_t block = begin; block < end; ++block) {
         const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
@@ -339,13 +348,7 @@ at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tens
           std::memcpy(dense_block.data() + r * Bp, rows_b + rows_of[r] * B, B * sizeof(float));
         }
         for (int64_t k = 0; k < K; ++k) {
-          int count = 0;
-          for (int64_t r = 0; r < rows; ++r) {
-            const int64_t n = nbr[rows_of[r] * K + k];
-            srcs[count] = feats + n * A;
-            denses[count] = dense_block.data() + r * Bp;
-            count += n < N;
-          }
+          const int count = list_present(nbr, rows_of, rows, K, k, N, feats, A, dense_block.data(), Bp, srcs, denses);
           float* gk = grad.data() + k * A * Bp;
           for (int p = 0; p < count; p += kMaxRows)
             outer_products_any(std::min(kMaxRows, count - p), srcs + p, denses + p, A, Bp, gk);
