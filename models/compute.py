@@ -195,8 +195,17 @@ class MacRecorder:
     times are counted each time; modules with ``last_macs`` are read right after each of their calls.
     """
 
-    def __init__(self, model: nn.Module) -> None:
+    def __init__(self, model: nn.Module, *, layers: list[tuple[str, nn.Module]] | None = None,
+                 params: int | None = None) -> None:
+        """Args:
+            model: the model whose forwards are counted.
+            layers: `counted_layers(model)` computed once by a caller that records every frame (walking the
+                model and finding the counted layers costs more than the hooks themselves).
+            params: `count_params(model)`, likewise.
+        """
         self.model = model
+        self._layers = layers
+        self._params = params
         self.macs = 0
         self.macs_paper = 0
         self.dynamic_macs = 0
@@ -230,9 +239,8 @@ class MacRecorder:
 
     def __enter__(self) -> MacRecorder:
         self._handles.append(self.model.register_forward_pre_hook(self._record_inputs))
-        for name, module in _counted_modules(self.model):
-            if hasattr(module, "last_macs") or layer_macs_applies(module):
-                self._handles.append(module.register_forward_hook(self._hook(name)))
+        for name, module in counted_layers(self.model) if self._layers is None else self._layers:
+            self._handles.append(module.register_forward_hook(self._hook(name)))
         return self
 
     def __exit__(self, *exc_info: object) -> None:
@@ -242,7 +250,7 @@ class MacRecorder:
 
     def report(self) -> ComputeReport:
         return ComputeReport(
-            params=count_params(self.model),
+            params=count_params(self.model) if self._params is None else self._params,
             macs=self.macs,
             macs_paper=self.macs_paper,
             dynamic_macs=self.dynamic_macs,
@@ -250,6 +258,12 @@ class MacRecorder:
             input_shapes=self.input_shapes,
             executed_macs=self.executed_macs,
         )
+
+
+def counted_layers(model: nn.Module) -> list[tuple[str, nn.Module]]:
+    """The (name, module) pairs whose forwards :class:`MacRecorder` counts."""
+    return [(name, module) for name, module in _counted_modules(model)
+            if hasattr(module, "last_macs") or layer_macs_applies(module)]
 
 
 def layer_macs_applies(module: nn.Module) -> bool:

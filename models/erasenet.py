@@ -19,7 +19,7 @@ import torch
 from torch import nn
 
 from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_checkpoint
-from models.compute import ComputeCounter, MacRecorder, count_params
+from models.compute import ComputeCounter, MacRecorder, count_params, counted_layers
 from models.compute_report import STAGES, FrameCompute
 from models.detection import MAX_OBJECTS, decode_centres, normalise_log_power
 from models.detector.inference import FrozenDetector
@@ -112,6 +112,7 @@ class EraseNet:
         self._detector_counter = None if self.detector is None else ComputeCounter(self.detector)
         self.params = {"detector": 0 if self.detector is None else count_params(self.detector),
                        "segmenter": count_params(self.segmenter)}
+        self._segmenter_layers = counted_layers(self.segmenter)  # hooked for each frame's MAC count
 
     @classmethod
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
@@ -223,7 +224,7 @@ class EraseNet:
         feats = torch.from_numpy(points.features).to(self.device)
         coords = torch.from_numpy(points.coords).to(self.device)
         batch = torch.zeros(len(coords), dtype=torch.int64, device=self.device)
-        with MacRecorder(self.segmenter) as recorder:
+        with MacRecorder(self.segmenter, layers=self._segmenter_layers, params=self.params["segmenter"]) as recorder:
             logits = self.segmenter(self.segmenter.make_input(torch.cat([batch[:, None], coords], dim=1), feats))
         classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
         report = recorder.report()
