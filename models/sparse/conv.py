@@ -244,45 +244,60 @@ class _PickProducts(torch.autograd.Function):
 class _NativeConv(torch.autograd.Function):
     """A sparse conv by the compiled engine over a kernel map, exact MACs, either way round:
 
-    - gathering (submanifold or down-sampling conv; `transposed` False): `native.neighbour_conv`. Backward:
-      the weight gradient per offset (`native.neighbour_weight_grad`); the input gradient through the map's
-      transpose: a submanifold map is its own transpose with offsets mirrored (`k <-> K-1-k`), and a
-      down-sampling map gives each input exactly one (output, offset) slot (`native.scatter_conv`).
+    - gathering (submanifold or down-sampling conv; `transposed` False): `native.neighbour_conv`, on features
+      in coordinate order (`KernelMap.in_coordinate_order`: permuted in and out where the rows are not).
+      Backward: the weight gradient per offset (`native.neighbour_weight_grad`); the input gradient through
+      the map's transpose: a submanifold map is its own transpose with offsets mirrored (`k <-> K-1-k`), and
+      a down-sampling map gives each input exactly one (output, offset) slot (`native.scatter_conv`).
     - scattering (the transposed, up-sampling conv over a down-sampling map; `transposed` True): every fine
       voxel is written once from its coarse parent (`native.scatter_conv`); the backward gathers.
     """
 
     @staticmethod
     def forward(ctx, feats, weight, kernel_map, transposed):  # noqa: D102
-        ctx.save_for_backward(feats, weight)
         ctx.kernel_map, ctx.transposed = kernel_map, transposed
         if transposed:
+            ctx.save_for_backward(feats, weight)
             return native.scatter_conv(feats, kernel_map.neighbours, weight, kernel_map.num_in)
-        return native.neighbour_conv(feats, kernel_map.neighbours, weight, kernel_map.out_order)
+        neighbours, order = kernel_map.in_coordinate_order
+        if order is not None:
+            feats = feats.index_select(0, order)
+        ctx.save_for_backward(feats, weight)  # in coordinate order
+        return _rows_back(native.neighbour_conv(feats, neighbours, weight), order)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out):  # noqa: D102
         feats, weight = ctx.saved_tensors
         kernel_map = ctx.kernel_map
-        neighbours = kernel_map.neighbours
         need_feats, need_weight = ctx.needs_input_grad[:2]
         grad_feats = grad_weight = None
         if ctx.transposed:  # neighbours (N_coarse, K) are fine rows
+            neighbours = kernel_map.neighbours
             if need_feats:
                 grad_feats = native.neighbour_conv(grad_out, neighbours, weight.transpose(1, 2))
             if need_weight:
                 grad_weight = native.neighbour_weight_grad(grad_out, neighbours, feats).transpose(1, 2)
             return grad_feats, grad_weight, None, None
+        neighbours, order = kernel_map.in_coordinate_order
+        if order is not None:
+            grad_out = grad_out.index_select(0, order)
         if need_weight:
-            grad_weight = native.neighbour_weight_grad(feats, neighbours, grad_out, kernel_map.out_order)
+            grad_weight = native.neighbour_weight_grad(feats, neighbours, grad_out)
         if need_feats:
             weight_t = weight.transpose(1, 2)  # (K, C_out, C_in)
             if kernel_map.identity_offset is not None:
-                grad_feats = native.neighbour_conv(grad_out, neighbours, weight_t.flip(0), kernel_map.out_order)
+                grad_feats = _rows_back(native.neighbour_conv(grad_out, neighbours, weight_t.flip(0)), order)
             else:
                 grad_feats = native.scatter_conv(grad_out, neighbours, weight_t, kernel_map.num_in)
         return grad_feats, grad_weight, None, None
+
+
+def _rows_back(rows: Tensor, order: Tensor | None) -> Tensor:
+    """Rows computed in coordinate order (`order[i]` is the original row of row i) back in the original order."""
+    if order is None:
+        return rows
+    return torch.empty_like(rows).index_copy_(0, order, rows)
 
 
 def native_applies(kernel_map: KernelMap, feats: Tensor, weight: Tensor) -> bool:
