@@ -27,6 +27,8 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from models.sparse import native
+
 COORD_BITS = 16
 """Bits per spatial coordinate in a packed key."""
 BATCH_BITS = 63 - 3 * COORD_BITS
@@ -211,6 +213,8 @@ def sort_keys(coords: Tensor) -> tuple[Tensor, Tensor]:
         ValueError: duplicate coordinates (a sparse tensor holds each voxel once).
     """
     keys = pack_keys(coords[:, 0], coords[:, 1:])
+    if keys.numel() > 1 and bool((keys[1:] > keys[:-1]).all()):  # in order and unique already (ROIs, coarse levels)
+        return keys, torch.arange(keys.numel(), device=keys.device)
     sorted_keys, perm = torch.sort(keys)
     if sorted_keys.numel() > 1 and bool((sorted_keys[1:] == sorted_keys[:-1]).any()):
         raise ValueError("sparse tensor coordinates contain duplicate (batch, x, y, z) rows")
@@ -320,6 +324,8 @@ class VoxelIndex:
             if inside:
                 delta = (offsets * self.steps[1:]).sum(dim=1)  # (K,)
                 flat = (position * self.steps).sum(dim=1)  # (M,)
+                if native.enabled_on(self.device):  # the compiled engine reads it in one pass
+                    return native.grid_neighbours(self.grid, flat, delta)
                 return self.grid[flat[:, None] + delta[None, :]].long()
         # Hashing: packing is additive while every biased field stays inside its 16 bits (guaranteed by
         # the coordinate range check), so key(b, s*q + d) = key(b, s*q) + key of the offset d alone.

@@ -206,11 +206,21 @@ def use_native(*tensors: Tensor) -> bool:
     Raises:
         RuntimeError: the setting is `native` and the kernels did not build.
     """
+    if not all(t.dtype == torch.float32 for t in tensors):
+        return False
+    return enabled_on(*(t.device for t in tensors))
+
+
+def enabled_on(*devices: torch.device) -> bool:
+    """Whether the native engine runs work on these devices under the current setting (CPU only; under `auto`
+    a failed build warns once and answers False).
+
+    Raises:
+        RuntimeError: the setting is `native` and the kernels did not build.
+    """
     global _warned
     engine = get_engine()
-    if engine == "torch":
-        return False
-    if not all(t.device.type == "cpu" and t.dtype == torch.float32 for t in tensors):
+    if engine == "torch" or not all(device.type == "cpu" for device in devices):
         return False
     if engine == "native":
         load()
@@ -275,3 +285,18 @@ def neighbour_weight_grad(src: Tensor, neighbours: Tensor, dense: Tensor, order:
     """
     order = NO_ORDER if order is None else order.contiguous()
     return load().neighbour_weight_grad(src.contiguous(), neighbours.contiguous(), dense.contiguous(), order)
+
+
+def grid_neighbours(grid: Tensor, flat: Tensor, delta: Tensor) -> Tensor:
+    """`out[j, k] = grid[flat[j] + delta[k]]` as int64: a kernel map's neighbour table read from a dense index grid
+    in one pass (`models.sparse.kernel_map.VoxelIndex`).
+
+    Args:
+        grid: (cells,) int32 row of each cell.
+        flat: (M,) int64 cell of each output.
+        delta: (K,) int64 cell offset of each kernel offset; every `flat[j] + delta[k]` must lie in the grid.
+
+    Returns:
+        (M, K) int64.
+    """
+    return load().grid_neighbours(grid.contiguous(), flat.contiguous(), delta.contiguous())

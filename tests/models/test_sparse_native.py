@@ -184,3 +184,20 @@ def test_the_avx2_kernels_agree_with_the_avx512_ones_where_the_cpu_has_both():
         weight8 = torch.randn(8, c_in, c_out, generator=generator)
         assert_close_relative(wide.scatter_conv(src, targets, weight8, num_out),
                               narrow.scatter_conv(src, targets, weight8, num_out), f"scatter_conv {c_in}x{c_out}")
+
+
+@pytest.mark.parametrize(("kernel_size", "stride"), [(3, 1), (5, 1), (2, 2)])
+def test_kernel_maps_read_from_the_grid_agree_on_both_engines(kernel_size, stride):
+    """The compiled engine reads a map's neighbour table from the index grid in one pass (`grid_neighbours`)."""
+    coords = random_coords(torch.Generator().manual_seed(kernel_size), 400, 12, 2)
+    tables = {}
+    for engine in ("native", "torch"):
+        with native.using_engine(engine):
+            cache = SparseTensor(coords, torch.zeros(len(coords), 1)).cache
+            tables[engine] = cache.kernel_map(1, kernel_size, stride)
+        assert cache.index(1).uses_grid
+    assert tables["native"].neighbours.dtype == torch.int64
+    assert torch.equal(tables["native"].neighbours, tables["torch"].neighbours)
+    assert tables["native"].pair_counts == tables["torch"].pair_counts
+    with pytest.raises(RuntimeError, match="outside the grid"):
+        native.grid_neighbours(torch.zeros(10, dtype=torch.int32), torch.tensor([9]), torch.tensor([0, 1]))

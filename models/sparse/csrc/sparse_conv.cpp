@@ -366,8 +366,34 @@ at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tens
   return out;
 }
 
+at::Tensor grid_neighbours(at::Tensor grid, at::Tensor flat, at::Tensor delta) {
+  TORCH_CHECK(grid.device().is_cpu() && flat.device().is_cpu() && delta.device().is_cpu(),
+              "grid_neighbours: CPU tensors expected");
+  TORCH_CHECK(grid.scalar_type() == at::kInt && grid.is_contiguous() && grid.dim() == 1,
+              "grid_neighbours: a contiguous int32 grid expected");
+  TORCH_CHECK(flat.scalar_type() == at::kLong && delta.scalar_type() == at::kLong && flat.dim() == 1 &&
+                  delta.dim() == 1 && flat.is_contiguous() && delta.is_contiguous(),
+              "grid_neighbours: contiguous int64 cells and offsets expected");
+  const int64_t M = flat.size(0), K = delta.size(0), cells = grid.size(0);
+  auto out = at::empty({M, K}, flat.options());
+  const int32_t* g = grid.data_ptr<int32_t>();
+  const int64_t* f = flat.data_ptr<int64_t>();
+  const int64_t* d = delta.data_ptr<int64_t>();
+  int64_t* o = out.data_ptr<int64_t>();
+  if (M == 0 || K == 0) return out;
+  const auto [f_lo, f_hi] = std::minmax_element(f, f + M);
+  const auto [d_lo, d_hi] = std::minmax_element(d, d + K);
+  TORCH_CHECK(*f_lo + *d_lo >= 0 && *f_hi + *d_hi < cells, "grid_neighbours: a cell outside the grid");
+  at::parallel_for(0, M, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t j = begin; j < end; ++j)
+      for (int64_t k = 0; k < K; ++k) o[j * K + k] = g[f[j] + d[k]];
+  });
+  return out;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("neighbour_conv", &neighbour_conv, "out[j] = sum_k src[nbr[j, k]] @ weight[k]");
   m.def("scatter_conv", &scatter_conv, "out[nbr[j, k]] = src[j] @ weight[k]");
   m.def("neighbour_weight_grad", &neighbour_weight_grad, "grad[k] = sum_j src[nbr[j, k]]^T dense[j]");
+  m.def("grid_neighbours", &grid_neighbours, "out[j, k] = grid[flat[j] + delta[k]] as int64");
 }
