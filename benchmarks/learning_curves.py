@@ -2,7 +2,8 @@
 
 Reads each run's ``curve.jsonl`` (``radarseg train segmenter --curve-every STEPS``: a validation before the first
 step, every STEPS steps and at each epoch's end, with the training CPU seconds spent to reach it, validation
-excluded) and writes the curves into one JSON file and one picture (four panels). Runs are named ``NAME=RUN_DIR``.
+excluded) and writes the curves into one JSON file and one picture (four panels). Runs are named ``NAME=RUN_DIR``;
+``NAME=RUN_DIR@MINUTES`` starts a run's curve at MINUTES (a run that continued another's checkpoint, drawn after it).
 
     .venv/bin/python -m benchmarks.learning_curves "CE=runs/lc/ft-ce" "CE+Lovasz=runs/lc/ft-ce-lovasz" \\
         --out reports/learning_curves
@@ -22,14 +23,15 @@ KEPT = ("epoch", "step", "cpu_s", "elapsed_s", "val_mIoU", "val_roi_recall") + t
     "val_RA_iou_cyclist", "val_RD_iou_cyclist", "val_RA_iou_car", "val_RD_iou_car")
 
 
-def read_curve(run_dir: Path) -> dict[str, Any]:
-    """One run's points (the figures of :data:`KEPT`), its resolved configuration and its command's options."""
+def read_curve(run_dir: Path, start_minutes: float = 0.0) -> dict[str, Any]:
+    """One run's points (the figures of :data:`KEPT`), its resolved configuration and its command's options;
+    ``start_minutes`` is where its x axis starts (the CPU minutes of the run it continued)."""
     path = run_dir / "curve.jsonl"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no learning curve (train with --curve-every STEPS)")
     points = [json.loads(line) for line in path.read_text().splitlines() if line]
     config = json.loads((run_dir / "config.json").read_text())
-    return {"run": str(run_dir), "config": config,
+    return {"run": str(run_dir), "config": config, "start_cpu_minutes": start_minutes,
             "points": [{key: point.get(key) for key in KEPT} for point in points]}
 
 
@@ -42,7 +44,7 @@ def plot(curves: dict[str, dict[str, Any]], path: Path) -> Path:
     figure, axes = plt.subplots(2, 2, figsize=(10, 7), sharex=True)
     for axis, (key, title) in zip(axes.ravel(), PANELS, strict=True):
         for name, curve in curves.items():
-            minutes = [p["cpu_s"] / 60 for p in curve["points"]]
+            minutes = [curve["start_cpu_minutes"] + p["cpu_s"] / 60 for p in curve["points"]]
             axis.plot(minutes, [100 * p[key] for p in curve["points"]], marker="o", markersize=3, label=name)
         axis.set_title(title)
         axis.set_ylabel("% (validation)")
@@ -64,9 +66,14 @@ def main() -> None:
     curves = {}
     for item in args.runs:
         name, sep, run = item.partition("=")
+        run, at, start = run.partition("@")
         if not sep or not name or not run:
-            parser.error(f"runs are NAME=RUN_DIR, got {item!r}")
-        curves[name] = read_curve(Path(run))
+            parser.error(f"runs are NAME=RUN_DIR or NAME=RUN_DIR@MINUTES, got {item!r}")
+        try:
+            start_minutes = float(start) if at else 0.0
+        except ValueError:
+            parser.error(f"the start after @ must be CPU minutes, got {start!r} in {item!r}")
+        curves[name] = read_curve(Path(run), start_minutes)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     result = {"load_average": os.getloadavg(), "curves": curves}
