@@ -36,6 +36,7 @@ import torch
 from models.checkpoint import load_checkpoint
 from models.detection import detect_centres
 from models.erasenet import EraseNet
+from models.process_heap import freeze_loaded_heap
 from pipelines.jobs import run_module
 from pipelines.progress import progress
 from pipelines.scoring import DetectionScorer, ViewConfusion
@@ -129,6 +130,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
     net = EraseNet.from_checkpoints(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
+    freeze_loaded_heap()  # no full garbage collection over torch and the models every few frames
     root, frames = _frames(cfg, net.profile)
     split_name = cfg.split or "all"
     arrays = {name: root[name] for name in ("input", "instances", "ra_mask", "rd_mask", "objects", "n_objects")}

@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 
 from models.engines import ENGINES
+from models.process_heap import freeze_loaded_heap
 from pipelines import shard_frames, sharded_job
 from pipelines.jobs import run_module
 from pipelines.predictions_store import (
@@ -261,6 +262,7 @@ class ShardSegmenter:
         # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
         # not count against the first shard.
         self.net.segment(np.zeros(self.net.profile.shape, np.float32), is_log_power=True)
+        freeze_loaded_heap()  # no full garbage collection over torch and the model every few frames
         self.model_loads = 1
         self.load_seconds = time.perf_counter() - started
         self.calls = 0

@@ -21,6 +21,7 @@ from fastapi import Depends, FastAPI
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
+from models.process_heap import freeze_loaded_heap
 from service.billing import Billing
 from service.deps import ServiceState
 from service.errors import DeclaredBodyLimit, install_error_handlers
@@ -61,6 +62,7 @@ def _load(state: ServiceState) -> None:
     log.info("opening the usage ledger (%s)", state.ledger.dialect)
     _open_ledger(state)
     state.pool.load()
+    freeze_loaded_heap()  # a full garbage collection over torch and the models stalled a request every ~9 frames
     for name, model in state.pool.models.items():
         state.metrics.ready.labels(name).set(1 if model.ready else 0)
     log.info("ready: %s", "every model loaded" if state.pool.ready else f"not all loaded: {state.pool.errors()}")

@@ -1,0 +1,123 @@
+"""Where one `small` frame's time goes with the shipped model: stages, the segmenter's parts, each sparse layer.
+
+One process, one thread, simulated frames with objects (seed 5), after two warm-up frames:
+
+- ``stages``: milliseconds per frame of each stage of :meth:`models.erasenet.EraseNet.segment`;
+- ``segment_parts``: inside the segment stage, the compiled engine's convolution kernels, the kernel maps (index
+  grids, neighbour tables, coarser voxel sets) and the rest (BatchNorm, ReLU, residual sums, module calls, hooks,
+  input features, argmax);
+- ``layers``: every sparse convolution shape (kernel voxels, C_in, C_out) with its calls, milliseconds per frame and
+  useful GMAC/s (present neighbour pairs x C_in x C_out over its time).
+
+Prints a table and writes benchmarks/results/frame_profile.json with the CPU flags and load average. Never asserts.
+
+    .venv/bin/python -m benchmarks.frame_profile [--frames 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import time
+from pathlib import Path
+
+import torch
+
+import models.sparse.tensor as sparse_tensor
+from models.erasenet import EraseNet
+from models.process_heap import freeze_loaded_heap
+from models.sparse import native
+from radar.simulate import simulate_sequence
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "benchmarks" / "results" / "frame_profile.json"
+
+
+class _Clock:
+    """Seconds spent in wrapped functions, by part; per-layer seconds and useful MACs of the kernels."""
+
+    def __init__(self) -> None:
+        self.parts: collections.Counter[str] = collections.Counter()
+        self.layers: dict[tuple[str, int, int, int], list[float]] = collections.defaultdict(lambda: [0, 0.0, 0.0])
+
+    def wrap(self, owner: object, name: str, part: str) -> None:
+        original = getattr(owner, name)
+
+        def timed(*args, **kwargs):
+            started = time.perf_counter()
+            result = original(*args, **kwargs)
+            self.parts[part] += time.perf_counter() - started
+            return result
+
+        setattr(owner, name, timed)
+
+    def wrap_kernel(self, name: str) -> None:
+        original = getattr(native, name)
+
+        def timed(src, neighbours, weight, *rest):
+            started = time.perf_counter()
+            out = original(src, neighbours, weight, *rest)
+            seconds = time.perf_counter() - started
+            missing = src.shape[0] if name == "neighbour_conv" else rest[0]
+            pairs = int((neighbours < missing).sum())
+            row = self.layers[(name, weight.shape[0], weight.shape[1], weight.shape[2])]
+            row[0] += 1
+            row[1] += seconds
+            row[2] += pairs * weight.shape[1] * weight.shape[2]
+            self.parts["conv kernels"] += seconds
+            return out
+
+        setattr(native, name, timed)
+
+
+def main() -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=10, help="timed frames (after 2 warm-up frames)")
+    parser.add_argument("--output", default=str(RESULTS))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    model = EraseNet.from_checkpoints(REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt")
+    cubes = [frame.log_power() for frame in simulate_sequence("small", args.frames + 2, seed=5)]
+    clock = _Clock()
+    clock.wrap_kernel("neighbour_conv")
+    clock.wrap_kernel("scatter_conv")
+    for name in ("build_kernel_map", "VoxelIndex", "downsample_coords"):
+        clock.wrap(sparse_tensor, name, f"kernel maps: {name}")
+    load_before = os.getloadavg()
+    for cube in cubes[:2]:
+        model.segment(cube, is_log_power=True)
+    freeze_loaded_heap()  # as the service and the batch jobs do: no full garbage collection over torch and the model
+    clock.parts.clear()
+    clock.layers.clear()
+    stages: collections.Counter[str] = collections.Counter()
+    for cube in cubes[2:]:
+        for stage, seconds in model.segment(cube, is_log_power=True).compute.seconds.items():
+            stages[stage] += seconds
+    n = args.frames
+    per_frame = {stage: 1e3 * seconds / n for stage, seconds in stages.items()}
+    parts = {part: 1e3 * seconds / n for part, seconds in clock.parts.items()}
+    parts["rest"] = per_frame["segment"] - sum(parts.values())
+    layers = [{"kernel": name, "offsets": k, "c_in": c_in, "c_out": c_out, "calls_per_frame": calls / n,
+               "ms_per_frame": 1e3 * seconds / n, "useful_gmacs_per_s": macs / seconds / 1e9 if seconds else 0.0}
+              for (name, k, c_in, c_out), (calls, seconds, macs)
+              in sorted(clock.layers.items(), key=lambda kv: -kv[1][1])]
+    result = {"frames": n, "engine": model.engine, "ms_per_frame": per_frame, "segment_parts_ms": parts,
+              "layers": layers, "cpu_flags": [f for f in native.cpu_flags().split() if f.startswith(("avx", "fma"))],
+              "load_average_before": load_before, "load_average_after": os.getloadavg()}
+    print("ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in per_frame.items())
+          + f" (total {sum(per_frame.values()):.1f})")
+    print("segment stage: " + ", ".join(f"{k} {v:.1f}" for k, v in parts.items()))
+    print(f"{'kernel':15s} {'K':>3s} {'C_in':>5s} {'C_out':>5s} {'calls':>6s} {'ms/frame':>9s} {'GMAC/s':>7s}")
+    for row in layers:
+        print(f"{row['kernel']:15s} {row['offsets']:3d} {row['c_in']:5d} {row['c_out']:5d} "
+              f"{row['calls_per_frame']:6.1f} {row['ms_per_frame']:9.2f} {row['useful_gmacs_per_s']:7.1f}")
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(json.dumps(result, indent=1))
+    print(f"written to {args.output}; load average {load_before} -> {result['load_average_after']}")
+    return result
+
+
+if __name__ == "__main__":
+    main()
