@@ -132,8 +132,8 @@ class KernelMap:
         kernel_size: voxels per axis.
         stride: the conv stride the map was built for.
         out_order: (N_out,) int64 output rows sorted by coordinates (batch, x, y, z), or None when they
-            already are: the order in which the compiled engine visits them, so that neighbouring outputs,
-            which gather the same inputs, run one after the other (set on submanifold maps only).
+            already are (set on submanifold maps only): the compiled engine runs such a conv in that order
+            (`in_coordinate_order`).
     """
 
     neighbours: Tensor

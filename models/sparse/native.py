@@ -235,24 +235,19 @@ def enabled_on(*devices: torch.device) -> bool:
     return True
 
 
-NO_ORDER = torch.empty(0, dtype=torch.int64)
 
-
-def neighbour_conv(src: Tensor, neighbours: Tensor, weight: Tensor, order: Tensor | None = None) -> Tensor:
+def neighbour_conv(src: Tensor, neighbours: Tensor, weight: Tensor) -> Tensor:
     """`out[j] = sum_k src[neighbours[j, k]] @ weight[k]`, missing neighbours (= len(src)) skipped.
 
     Args:
         src: (N, C) float32.
         neighbours: (M, K) int64 rows of `src`, N where missing.
         weight: (K, C, D).
-        order: (M,) int64 permutation: the order output rows are computed in (spatially sorted rows reuse
-            their gathered neighbours from cache); None for 0..M-1.
 
     Returns:
         (M, D).
     """
-    order = NO_ORDER if order is None else order.contiguous()
-    return load().neighbour_conv(src.contiguous(), neighbours.contiguous(), weight.contiguous(), order)
+    return load().neighbour_conv(src.contiguous(), neighbours.contiguous(), weight.contiguous())
 
 
 def scatter_conv(src: Tensor, neighbours: Tensor, weight: Tensor, num_out: int) -> Tensor:
@@ -271,20 +266,18 @@ def scatter_conv(src: Tensor, neighbours: Tensor, weight: Tensor, num_out: int) 
     return load().scatter_conv(src.contiguous(), neighbours.contiguous(), weight.contiguous(), num_out)
 
 
-def neighbour_weight_grad(src: Tensor, neighbours: Tensor, dense: Tensor, order: Tensor | None = None) -> Tensor:
+def neighbour_weight_grad(src: Tensor, neighbours: Tensor, dense: Tensor) -> Tensor:
     """`grad[k] = sum_j src[neighbours[j, k]]^T dense[j]` over present neighbours.
 
     Args:
         src: (N, A) float32.
         neighbours: (M, K) int64 rows of `src`, N where missing.
         dense: (M, B).
-        order: as for `neighbour_conv`.
 
     Returns:
         (K, A, B).
     """
-    order = NO_ORDER if order is None else order.contiguous()
-    return load().neighbour_weight_grad(src.contiguous(), neighbours.contiguous(), dense.contiguous(), order)
+    return load().neighbour_weight_grad(src.contiguous(), neighbours.contiguous(), dense.contiguous())
 
 
 def grid_neighbours(grid: Tensor, flat: Tensor, delta: Tensor) -> Tensor:

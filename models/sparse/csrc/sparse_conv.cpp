@@ -3,13 +3,13 @@
 // Three primitives over a kernel map's neighbour table `neighbours` (M, K) int64, where
 // `neighbours[j, k]` is a row of the gathered side or `src.size(0)` where there is none:
 //
-//   neighbour_conv(src (N, C), neighbours (M, K), weight (K, C, D), order) -> (M, D)
+//   neighbour_conv(src (N, C), neighbours (M, K), weight (K, C, D)) -> (M, D)
 //       out[j] = sum_k src[neighbours[j, k]] @ weight[k]          (submanifold / strided forward,
 //                                                                   input gradients through a map's transpose)
 //   scatter_conv(src (M, C), neighbours (M, K), weight (K, C, D), num_out) -> (num_out, D)
 //       out[neighbours[j, k]] = src[j] @ weight[k]                 (each output row reached exactly once:
 //                                                                   transposed forward, strided input gradient)
-//   neighbour_weight_grad(src (N, A), neighbours (M, K), dense (M, B), order) -> (K, A, B)
+//   neighbour_weight_grad(src (N, A), neighbours (M, K), dense (M, B)) -> (K, A, B)
 //       grad[k] = sum_j src[neighbours[j, k]]^T dense[j]          (weight gradients)
 //
 // Design: output-stationary blocks of `kBlockRows` rows. Within a block, for each offset k the rows that
@@ -18,8 +18,6 @@
 // missing neighbours cost nothing. Blocks run in parallel through at::parallel_for; the forward writes
 // disjoint rows (no atomics), the weight gradient keeps one accumulator per thread and sums them.
 // Output columns are padded to a multiple of 8 floats inside the kernels so every vector op is full.
-// `order` (M,) int64, or empty for 0..M-1, is the order in which output rows are visited: spatially sorted
-// rows make the neighbours gathered by one block lie close together, so they are reused from cache.
 
 // ATen's tensor and pybind's casters only, not <torch/extension.h> (all of libtorch's C++ API): the first
 // build on a machine compiles about 2.5x fewer header lines.
@@ -193,15 +191,15 @@ inline void outer_products_any(int rows, const float* const* src, const float* c
   });
 }
 
-// The rows of a block (`rows_of`, `rows` of them) that have a neighbour at offset k, listed branch-free (about
+// The rows of a block (`rows` of them from row `j0`) that have a neighbour at offset k, listed branch-free (about
 // half the slots are empty in ROIs, a branch would mispredict often): each one's gathered row of `gathered`
 // (row width `width`) in `srcs`, its row of the block buffer `block` (row width `Dp`) in `block_rows`.
-inline int list_present(const int64_t* nbr, const int64_t* rows_of, int64_t rows, int64_t K, int64_t k, int64_t N,
+inline int list_present(const int64_t* nbr, int64_t j0, int64_t rows, int64_t K, int64_t k, int64_t N,
                         const float* gathered, int64_t width, float* block, int64_t Dp, const float** srcs,
                         float** block_rows) {
   int count = 0;
   for (int64_t r = 0; r < rows; ++r) {
-    const int64_t n = nbr[rows_of[r] * K + k];
+    const int64_t n = nbr[(j0 + r) * K + k];
     srcs[count] = gathered + n * width;
     block_rows[count] = block + r * Dp;
     count += n < N;
@@ -235,14 +233,7 @@ void check_weight(const at::Tensor& weight, int64_t K, int64_t C, const char* wh
 
 }  // namespace
 
-const int64_t* row_order(const at::Tensor& order, int64_t M, const char* what) {
-  if (order.numel() == 0) return nullptr;
-  TORCH_CHECK(order.scalar_type() == at::kLong && order.is_contiguous() && order.numel() == M, what,
-              ": order must be a contiguous int64 permutation of the ", M, " rows");
-  return order.data_ptr<int64_t>();
-}
-
-at::Tensor neighbour_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weight, at::Tensor order) {
+at::Tensor neighbour_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weight) {
   check_inputs(src, neighbours, "neighbour_conv");
   const int64_t N = src.size(0), C = src.size(1), M = neighbours.size(0), K = neighbours.size(1);
   check_weight(weight, K, C, "neighbour_conv");
@@ -252,25 +243,22 @@ at::Tensor neighbour_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weig
   const std::vector<float> w = pad_weight(weight, Dp);
   const float* feats = src.data_ptr<float>();
   const int64_t* nbr = neighbours.data_ptr<int64_t>();
-  const int64_t* ord = row_order(order, M, "neighbour_conv");
   float* dst = out.data_ptr<float>();
   const int64_t blocks = (M + kBlockRows - 1) / kBlockRows;
   at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
     std::vector<float> acc(static_cast<size_t>(kBlockRows * Dp));
-    int64_t rows_of[kBlockRows];
     const float* srcs[kBlockRows];
     float* dsts[kBlockRows];
     for (int64_t block = begin; block < end; ++block) {
       const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
       std::fill(acc.begin(), acc.end(), 0.0f);
-      for (int64_t r = 0; r < rows; ++r) rows_of[r] = ord ? ord[j0 + r] : j0 + r;
       for (int64_t k = 0; k < K; ++k) {
-        const int count = list_present(nbr, rows_of, rows, K, k, N, feats, C, acc.data(), Dp, srcs, dsts);
+        const int count = list_present(nbr, j0, rows, K, k, N, feats, C, acc.data(), Dp, srcs, dsts);
         const float* wk = w.data() + k * C * Dp;
         for (int p = 0; p < count; p += kMaxRows)
           rows_times_weight_any(std::min(kMaxRows, count - p), srcs + p, wk, C, Dp, dsts + p);
       }
-      for (int64_t r = 0; r < rows; ++r) std::memcpy(dst + rows_of[r] * D, acc.data() + r * Dp, D * sizeof(float));
+      for (int64_t r = 0; r < rows; ++r) std::memcpy(dst + (j0 + r) * D, acc.data() + r * Dp, D * sizeof(float));
     }
   });
   return out;
@@ -319,7 +307,7 @@ at::Tensor scatter_conv(at::Tensor src, at::Tensor neighbours, at::Tensor weight
   return out;
 }
 
-at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tensor dense, at::Tensor order) {
+at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tensor dense) {
   check_inputs(src, neighbours, "neighbour_weight_grad");
   TORCH_CHECK(dense.scalar_type() == at::kFloat && dense.is_contiguous() && dense.dim() == 2 &&
                   dense.size(0) == neighbours.size(0),
@@ -329,7 +317,6 @@ at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tens
   const float* feats = src.data_ptr<float>();
   const int64_t* nbr = neighbours.data_ptr<int64_t>();
   const float* rows_b = dense.data_ptr<float>();
-  const int64_t* ord = row_order(order, M, "neighbour_weight_grad");
   const int64_t blocks = (M + kBlockRows - 1) / kBlockRows;
   const int threads = std::max<int>(1, at::get_num_threads());
   std::vector<std::vector<float>> partial(static_cast<size_t>(threads));
@@ -340,15 +327,13 @@ at::Tensor neighbour_weight_grad(at::Tensor src, at::Tensor neighbours, at::Tens
       std::vector<float> dense_block(static_cast<size_t>(kBlockRows * Bp), 0.0f);
       const float* srcs[kBlockRows];
       float* denses[kBlockRows];
-      int64_t rows_of[kBlockRows];
       for (int64_t block = begin; block < end; ++block) {
         const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
         for (int64_t r = 0; r < rows; ++r) {
-          rows_of[r] = ord ? ord[j0 + r] : j0 + r;
-          std::memcpy(dense_block.data() + r * Bp, rows_b + rows_of[r] * B, B * sizeof(float));
+          std::memcpy(dense_block.data() + r * Bp, rows_b + (j0 + r) * B, B * sizeof(float));
         }
         for (int64_t k = 0; k < K; ++k) {
-          const int count = list_present(nbr, rows_of, rows, K, k, N, feats, A, dense_block.data(), Bp, srcs, denses);
+          const int count = list_present(nbr, j0, rows, K, k, N, feats, A, dense_block.data(), Bp, srcs, denses);
           float* gk = grad.data() + k * A * Bp;
           for (int p = 0; p < count; p += kMaxRows)
             outer_products_any(std::min(kMaxRows, count - p), srcs + p, denses + p, A, Bp, gk);
