@@ -235,7 +235,6 @@ def enabled_on(*devices: torch.device) -> bool:
     return True
 
 
-
 def neighbour_conv(src: Tensor, neighbours: Tensor, weight: Tensor) -> Tensor:
     """`out[j] = sum_k src[neighbours[j, k]] @ weight[k]`, missing neighbours (= len(src)) skipped.
 
