@@ -31,7 +31,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	@$(BIN)/python -c "import torch; print(f'set-up done: torch {torch.__version__}, CUDA available: {torch.cuda.is_available()}')"
 	@# the compiled sparse engine, built now for this CPU rather than by the first test, job or service start
-	@$(BIN)/python -c "from models.sparse import native; native.load(); print('set-up: compiled sparse engine ready')" \
+	@$(BIN)/python -c "from models.sparse import compiled; compiled.load(); print('set-up: compiled sparse engine ready')" \
 		|| echo "set-up: the compiled sparse engine did not build; the pure-PyTorch engine will run (README)"
 	touch $(STAMP)
 

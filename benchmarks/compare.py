@@ -3,7 +3,7 @@ side, as ratios to ERASE-Net. Prints a table and writes benchmarks/results/compa
 
     .venv/bin/python -m benchmarks.compare [--preset small|carrada] [--frames 8] [--repeats 3] [--threads 1]
 
-ERASE-Net runs end to end (:meth:`models.erasenet.EraseNet.segment` on a simulated frame's log-power cube:
+ERASE-Net runs end to end (:meth:`models.erasenet.model.EraseNet.segment` on a simulated frame's log-power cube:
 normalisation, detector, decoding, region growing, sparse segmenter, projections). At ``small`` it is the
 shipped model (checkpoints/detector.pt, checkpoints/segmenter.pt); at ``carrada`` the same architectures
 with random weights and the detector's top-K seeds (K = true objects, threshold 0, as
@@ -16,7 +16,7 @@ optimisations as ERASE-Net's detector (:class:`models.detector.inference.FrozenD
 channels_last, traced), so the ratios stay fair; each baseline's eager time is reported beside it.
 Latency: median over ``--repeats`` x ``--frames`` runs (baselines: ``--repeats``), after a warm-up; GMAC/s
 is the row's correct MACs over its median time. Figures are for comparing within one run only.
-ERASE-Net runs on both sparse engines, interleaved frame by frame (:mod:`models.sparse.native`): its row is
+ERASE-Net runs on both sparse engines, interleaved frame by frame (:mod:`models.sparse.compiled`): its row is
 the compiled engine's, the ratios are to it, and a second row gives the pure-PyTorch engine's time.
 """
 
@@ -40,9 +40,9 @@ from benchmarks.timing import time_call
 from models.checkpoint import load_checkpoint
 from models.compute import count_macs
 from models.detector.inference import fold_batch_norms
-from models.erasenet import EraseNet
+from models.erasenet.model import EraseNet
 from models.registry import create_model
-from models.sparse import native
+from models.sparse import compiled
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -73,7 +73,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
     net = build_erasenet(preset, cubes[0])
     random_weights = net.score_threshold == 0.0
     for engine in ENGINES:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
-        with native.using_engine(engine):
+        with compiled.using_engine(engine):
             net.segment(cubes[0], is_log_power=True)
     times, macs, macs_paper, executed = {engine: [] for engine in ENGINES}, [], [], []
     r, a, d = net.profile.shape
@@ -83,14 +83,14 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
             net.max_objects = max(1, sum(1 for o in frame.objects if o.n_voxels))
         for _ in range(repeats):
             for engine in reversed(ENGINES):  # the compiled engine last: its result's MACs are kept below
-                with native.using_engine(engine):
+                with compiled.using_engine(engine):
                     started = time.perf_counter()
                     result = net.segment(cube, is_log_power=True)
                     times[engine].append(time.perf_counter() - started)
         macs.append(result.compute.macs_total)
         executed.append(result.compute.executed_macs_total)
         macs_paper.append(result.compute.macs_total + detector.macs_paper - detector.macs)
-    engine = "native" if native.available() else "torch (the compiled engine did not build)"
+    engine = "native" if compiled.available() else "torch (the compiled engine did not build)"
     return {"median_s": statistics.median(times["native"]), "min_s": min(times["native"]),
             "runs": len(times["native"]), "sparse_engine": engine,
             "torch_engine": {"median_s": statistics.median(times["torch"]), "min_s": min(times["torch"])},
@@ -175,7 +175,7 @@ def main() -> None:
         "ratios": "latency_ratio and macs_ratio are the row's figure over ERASE-Net's, measured in this run; "
                   "gmacs_per_s_ratio_to_erasenet is ERASE-Net's GMAC/s over the row's",
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "threads": args.threads,
-                    "cpu_flags": [f for f in native.cpu_flags().split() if f.startswith(("avx", "fma", "sse4"))],
+                    "cpu_flags": [f for f in compiled.cpu_flags().split() if f.startswith(("avx", "fma", "sse4"))],
                     "torch": torch.__version__, "load_average_before": load_before,
                     "load_average_after": os.getloadavg(),
                     "note": "shared 2-core CPU, other jobs running beside the benchmark"},

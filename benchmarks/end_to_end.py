@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from models.erasenet import STAGES, EraseNet
+from models.erasenet.model import STEPS, EraseNet
 from models.registry import create_model
 from radar.detections import Centres
 from radar.simulate import simulate_sequence
@@ -45,7 +45,7 @@ def run(preset: str, segmenter: str, n_frames: int) -> dict:
     out = {}
     for mode, computes in rows.items():
         out[mode] = {
-            "seconds": {s: float(np.mean([c["seconds"][s] for c in computes])) for s in (*STAGES, "total")},
+            "seconds": {s: float(np.mean([c["seconds"][s] for c in computes])) for s in (*STEPS, "total")},
             "macs": {s: float(np.mean([c["macs"][s] for c in computes])) for s in ("detect", "segment", "total")},
             "roi_voxels": float(np.mean([c["roi_voxels"] for c in computes])),
             "visited_points": float(np.mean([c["visited_points"] for c in computes])),
@@ -64,7 +64,7 @@ def main() -> None:
     # the machine may be shared: the load average is recorded beside the figures
     results = {"threads": args.threads, "load_average_before": os.getloadavg(), "runs": {}}
     print(f"{'preset':8} {'segmenter':9} {'seeds':9} {'roi':>7} {'det G':>6} {'seg G':>6} "
-          + " ".join(f"{s[:7]:>8}" for s in (*STAGES, "total")) + "   (ms)")
+          + " ".join(f"{s[:7]:>8}" for s in (*STEPS, "total")) + "   (ms)")
     for preset in ("small", "carrada"):
         for segmenter in ("minkunet", "spvcnn"):
             r = run(preset, segmenter, args.frames)
@@ -73,7 +73,7 @@ def main() -> None:
                 m = r[mode]
                 print(f"{preset:8} {segmenter:9} {mode.split('_')[0]:9} {m['roi_voxels']:7.0f} "
                       f"{m['macs']['detect'] / 1e9:6.2f} {m['macs']['segment'] / 1e9:6.2f} "
-                      + " ".join(f"{m['seconds'][s] * 1e3:8.1f}" for s in (*STAGES, "total")))
+                      + " ".join(f"{m['seconds'][s] * 1e3:8.1f}" for s in (*STEPS, "total")))
     results["load_average_after"] = os.getloadavg()
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(results, indent=2))

@@ -2,7 +2,7 @@
 
     nice -n 10 .venv/bin/python benchmarks/export.py [--frames 3] [--repeats 3] [--presets small carrada]
 
-Per preset, each frame runs through the PyTorch engine (:class:`models.erasenet.EraseNet`: traced detector,
+Per preset, each frame runs through the PyTorch engine (:class:`models.erasenet.model.EraseNet`: traced detector,
 the sparse engine of ``models.sparse``) and the ONNX engine (:class:`models.export.onnx_engine.OnnxEraseNet`),
 interleaved (the order alternating per repeat), in two modes: the detector's own seeds (end to end) and
 seeds at the true object centres (the ROI a trained detector grows: the segment stage at a realistic
@@ -34,7 +34,7 @@ import numpy as np
 import torch
 
 from models.checkpoint import Checkpoint, load_checkpoint
-from models.erasenet import STAGES, EraseNet
+from models.erasenet.model import STEPS, EraseNet
 from models.export.onnx_engine import OnnxEraseNet, exported_dir
 from models.registry import create_model
 from models.sparse import SparseTensor
@@ -114,7 +114,7 @@ def bench_preset(preset: str, n_frames: int, repeats: int, cache: Path) -> dict[
                     results[name] = engines[name].segment(frame.cube, centres=centres)
                     times[name].append(results[name].compute.seconds_by_stage())
             for name in engines:  # this frame's best time of every stage
-                best[mode][name].append({s: min(t[s] for t in times[name]) for s in (*STAGES, "total")})
+                best[mode][name].append({s: min(t[s] for t in times[name]) for s in (*STEPS, "total")})
             roi = tuple(results["torch"].regions.voxels.T)
             roi_voxels[mode].append(len(results["torch"].regions))
             if len(results["torch"].regions):
@@ -125,7 +125,7 @@ def bench_preset(preset: str, n_frames: int, repeats: int, cache: Path) -> dict[
                               "executed_macs_last_frame": macs}
     for mode, per_engine in best.items():
         stages = {}
-        for stage in (*STAGES, "total"):
+        for stage in (*STEPS, "total"):
             torch_s = statistics.median(frame[stage] for frame in per_engine["torch"])
             onnx_s = statistics.median(frame[stage] for frame in per_engine["onnx"])
             # the median of per-frame ratios: each frame's two engines ran interleaved, under the same load

@@ -2,7 +2,7 @@
 
 One process, one thread, simulated frames with objects (seed 5), after two warm-up frames:
 
-- ``stages``: milliseconds per frame of each stage of :meth:`models.erasenet.EraseNet.segment`;
+- ``stages``: milliseconds per frame of each stage of :meth:`models.erasenet.model.EraseNet.segment`;
 - ``segment_parts``: inside the segment stage, the compiled engine's convolution kernels, the kernel maps (index
   grids, neighbour tables, coarser voxel sets) and the rest (BatchNorm, ReLU, residual sums, module calls, hooks,
   input features, argmax);
@@ -26,9 +26,9 @@ from pathlib import Path
 import torch
 
 import models.sparse.tensor as sparse_tensor
-from models.erasenet import EraseNet
-from models.process_heap import freeze_loaded_heap
-from models.sparse import native
+from models.erasenet.model import EraseNet
+from models.sparse import compiled
+from process.heap import freeze_loaded_heap
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,7 +54,7 @@ class _Clock:
         setattr(owner, name, timed)
 
     def wrap_kernel(self, name: str) -> None:
-        original = getattr(native, name)
+        original = getattr(compiled, name)
 
         def timed(src, neighbours, weight, *rest):
             started = time.perf_counter()
@@ -69,7 +69,7 @@ class _Clock:
             self.parts["conv kernels"] += seconds
             return out
 
-        setattr(native, name, timed)
+        setattr(compiled, name, timed)
 
 
 def main() -> dict:
@@ -104,7 +104,7 @@ def main() -> dict:
               for (name, k, c_in, c_out), (calls, seconds, macs)
               in sorted(clock.layers.items(), key=lambda kv: -kv[1][1])]
     result = {"frames": n, "engine": model.engine, "ms_per_frame": per_frame, "segment_parts_ms": parts,
-              "layers": layers, "cpu_flags": [f for f in native.cpu_flags().split() if f.startswith(("avx", "fma"))],
+              "layers": layers, "cpu_flags": [f for f in compiled.cpu_flags().split() if f.startswith(("avx", "fma"))],
               "load_average_before": load_before, "load_average_after": os.getloadavg()}
     print("ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in per_frame.items())
           + f" (total {sum(per_frame.values()):.1f})")

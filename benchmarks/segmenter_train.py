@@ -1,5 +1,5 @@
 """Segmenter training steps per second on real ROIs: simulated frames, regions grown from jittered true
-centres (as `pipelines.train`'s ROI dataset does), MinkUNet at the shipped ratio (0.25) and the paper's (0.37).
+centres (as `pipelines.training.train`'s ROI dataset does), MinkUNet at the shipped ratio (0.25) and the paper's (0.37).
 
 One step = forward, weighted cross-entropy, backward and an SGD (Nesterov) update on a batch of ROIs, kernel
 maps built inside the step as in training. Batches are prepared before timing, so only the model's work is
@@ -7,7 +7,7 @@ measured. Prints the figures and merges them under ``--label`` into benchmarks/r
 (one label per code version, e.g. ``before`` and ``after``); never asserts a time.
 
     .venv/bin/python -m benchmarks.segmenter_train --label after [--frames 8] [--batch-size 2] [--repeats 3]
-        [--engine auto|native|torch] [--smoke]
+        [--engine auto|compiled|reference] [--smoke]
     .venv/bin/python -m benchmarks.segmenter_train --against 18f7d7f --rounds 3   # before/after, interleaved
 
 ``--against REF`` exports that commit's tree (``git archive``) to a temporary folder and runs this benchmark
@@ -37,14 +37,14 @@ import torch
 from torch import nn
 
 from models.registry import create_model
-from models.sparse import SparseTensor, native
+from models.sparse import SparseTensor, compiled
 from pipelines.training.config import DEFAULT_JITTER_STD
 from radar.region_growing import grow_regions
 from radar.roi import roi_points
 from radar.simulate import simulate_sequence
 
 RESULTS = Path(__file__).parent / "results" / "segmenter_train.json"
-JITTER_STD_BINS = DEFAULT_JITTER_STD  # pipelines.train's default seed errors (range, angle, Doppler bins)
+JITTER_STD_BINS = DEFAULT_JITTER_STD  # pipelines.training.train's default seed errors (range, angle, Doppler bins)
 
 
 @dataclass(frozen=True)
@@ -56,7 +56,7 @@ class BenchConfig:
     ratios: tuple[float, ...] = (0.25, 0.37)
     threads: int = 1
     seed: int = 0
-    engine: str = "auto"  # the sparse engine (models.sparse.native): auto, native or torch
+    engine: str = "auto"  # the sparse engine (models.sparse.compiled): auto, compiled or reference
 
 
 def roi_samples(preset: str, n_frames: int, seed: int) -> list[dict[str, torch.Tensor]]:
@@ -112,8 +112,8 @@ def bench_ratio(ratio: float, batches: list, cfg: BenchConfig) -> dict:
 
 def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     torch.set_num_threads(cfg.threads)
-    native.set_engine(cfg.engine)
-    engine = "native" if cfg.engine != "torch" and native.available() else "torch"
+    compiled.set_engine(cfg.engine)
+    engine = "compiled" if cfg.engine != "reference" and compiled.available() else "reference"
     samples = roi_samples(cfg.preset, cfg.frames, cfg.seed)
     batches = [collate(samples[i:i + cfg.batch_size]) for i in range(0, len(samples) - cfg.batch_size + 1,
                                                                        cfg.batch_size)]
@@ -152,8 +152,8 @@ def against(ref: str, rounds: int, cfg: BenchConfig, output: Path) -> dict:
         old_tree = Path(tmp) / "tree"
         with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
             tar.extractall(old_tree, filter="data")
-        versions = (("before", old_tree, []), ("after", repo, ["--engine", "native"]),
-                    ("after_torch", repo, ["--engine", "torch"]))
+        versions = (("before", old_tree, []), ("after", repo, ["--engine", "compiled"]),
+                    ("after_torch", repo, ["--engine", "reference"]))
         for _ in range(rounds):
             for label, tree, extra in versions:
                 out = Path(tmp) / f"{label}.json"
@@ -173,7 +173,8 @@ def against(ref: str, rounds: int, cfg: BenchConfig, output: Path) -> dict:
               f"{after * 1e3:.0f} ms/step ({1 / after:.2f} steps/s): {before / after:.2f}x; after on the torch "
               f"engine {after_torch * 1e3:.0f} ms/step: {before / after_torch:.2f}x")
     result = {"config": asdict(cfg), "ref": ref, "rounds": rounds, "rows": rows,
-              "machine": {"cpu_flags": [f for f in native.cpu_flags().split() if f.startswith(("avx", "fma", "sse4"))],
+              "machine": {"cpu_flags": [f for f in compiled.cpu_flags().split()
+                                        if f.startswith(("avx", "fma", "sse4"))],
                           "load_average_before": load_before, "load_average_after": os.getloadavg()}}
     merged = json.loads(output.read_text()) if output.is_file() else {}
     merged[f"{ref}..HEAD"] = result
@@ -189,7 +190,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path, s
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--engine", default="auto", choices=native.ENGINES, help="sparse engine (default auto)")
+    parser.add_argument("--engine", default="auto", choices=compiled.ENGINES, help="sparse engine (default auto)")
     parser.add_argument("--smoke", action="store_true", help="two frames, one repeat, the shipped ratio only")
     parser.add_argument("--output", default=str(RESULTS))
     parser.add_argument("--against", help="git commit to compare with, interleaved (see the docstring)")

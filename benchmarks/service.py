@@ -52,12 +52,12 @@ if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
 import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pipelines.serve_process import free_port, stop_process, wait_ready  # noqa: E402
+from pipelines.demo.serve_process import free_port, stop_process, wait_ready  # noqa: E402
 from service.server import server_command  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "service.json"
-STAGES = ("transform", "detect", "grow", "segment", "project")
+STEPS = ("transform", "detect", "grow", "segment", "project")
 CLASSES = ("background", "pedestrian", "cyclist", "car")
 SHIPPED = ("checkpoints/detector.pt", "checkpoints/segmenter.pt")
 PAUSE_S = 0.25  # between the interleaved runs of the stages part
@@ -128,7 +128,7 @@ def _one(http: httpx.Client, url: str, model: str, body: bytes) -> dict:
         return {"status": r.status_code, "latency_s": latency}
     timing = _server_timing(r.headers["server-timing"])
     return {"status": 200, "latency_s": latency, "receive_decode_s": timing["decode"], "encode_s": timing["encode"],
-            "model_s": sum(timing[s] for s in STAGES), "macs": int(r.headers["x-compute-macs"]),
+            "model_s": sum(timing[s] for s in STEPS), "macs": int(r.headers["x-compute-macs"]),
             "response_bytes": len(r.content)}
 
 
@@ -201,7 +201,7 @@ def run_stages(url: str, model: dict, frames: int) -> dict:
 
     import torch
 
-    from models.erasenet import EraseNet
+    from models.erasenet.model import EraseNet
     from radar.simulate import simulate_sequence
     from service.inference import set_torch_threads
     from service.settings import Settings, resolve_path
@@ -216,7 +216,7 @@ def run_stages(url: str, model: dict, frames: int) -> dict:
     net.segment(cubes[0])  # warm both threads, as the service warms its replicas
     inference_thread.submit(net.segment, cubes[0]).result()
     columns = ("plain_main_thread", "plain_inference_thread", "service")
-    seconds: dict[str, dict[str, list[float]]] = {c: {s: [] for s in (*STAGES, "total")} for c in columns}
+    seconds: dict[str, dict[str, list[float]]] = {c: {s: [] for s in (*STEPS, "total")} for c in columns}
     client = []
     with httpx.Client(timeout=600) as http:
         _one(http, url, "small", _npy(cubes[0]))
@@ -235,12 +235,12 @@ def run_stages(url: str, model: dict, frames: int) -> dict:
             timings["service"] = _server_timing(r.headers["server-timing"])
             time.sleep(PAUSE_S)
             for column, timing in timings.items():
-                for stage in STAGES:
+                for stage in STEPS:
                     seconds[column][stage].append(timing[stage])
-                seconds[column]["total"].append(sum(timing[s] for s in STAGES))
+                seconds[column]["total"].append(sum(timing[s] for s in STEPS))
     inference_thread.shutdown()
     rows = {stage: {f"{c}_ms": 1e3 * float(np.median(seconds[c][stage])) for c in columns}
-            for stage in (*STAGES, "total")}
+            for stage in (*STEPS, "total")}
     for stage, row in rows.items():
         print(f"stage {stage:9s}  " + "  ".join(f"{c} {row[f'{c}_ms']:8.1f} ms" for c in columns), flush=True)
     client_p50 = float(np.median(client))

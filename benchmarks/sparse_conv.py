@@ -42,8 +42,8 @@ from models.sparse import (
     VoxelIndex,
     build_kernel_map,
     choose_path,
+    compiled,
     last_forward_macs,
-    native,
 )
 
 RESULTS = Path(__file__).parent / "results" / "sparse_conv.json"
@@ -53,7 +53,7 @@ SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512_vnn
 
 def machine_info() -> dict:
     """CPU model, SIMD flags, cores, torch threads and load: what every figure is recorded with."""
-    flags = set(native.cpu_flags().split())
+    flags = set(compiled.cpu_flags().split())
     model = next((line.split(":", 1)[1].strip() for line in _cpuinfo_lines() if line.startswith("model name")),
                  platform.processor())
     return {"cpu": model, "simd_flags": [f for f in SIMD_FLAGS if f in flags], "cpus": os.cpu_count(),
@@ -70,7 +70,7 @@ def _cpuinfo_lines() -> list[str]:
 def engine_build() -> dict:
     """Whether the native engine loads, and the seconds its load took (a first build, or the cache)."""
     started = time.perf_counter()
-    ok = native.available()
+    ok = compiled.available()
     return {"native_available": ok, "load_s": time.perf_counter() - started}
 
 
@@ -154,7 +154,7 @@ def interleaved(fn: Callable[[], object], repeats: int, device: torch.device) ->
     times: dict[str, list[float]] = {engine: [] for engine in ENGINES}
     for round_ in range(repeats + 1):
         for engine in ENGINES:
-            with native.using_engine(engine):
+            with compiled.using_engine(engine):
                 start = time.perf_counter()
                 fn()
                 if device.type == "cuda":
@@ -272,7 +272,7 @@ def bench_paths(cfg: BenchConfig, device: torch.device) -> dict:
         for _ in range(cfg.repeats):
             for path in times:
                 conv.path = "auto" if path == "native" else path
-                with native.using_engine("native" if path == "native" else "torch"):
+                with compiled.using_engine("compiled" if path == "native" else "torch"):
                     start = time.perf_counter()
                     conv(x).feats.sum().backward()
                     times[path].append(time.perf_counter() - start)

@@ -4,7 +4,7 @@
 
 ``ONNX_DIR`` is what ``radarseg export onnx`` wrote; ``CUBE.npy`` a complex RAD cube (R, A, D) of the export's
 preset. Writes the label cube (R, A, D) uint8 and prints the seeds. The steps are those of
-``models.erasenet.EraseNet.segment``: log power -> detector graph -> centres -> Doppler refinement -> region
+``models.erasenet.model.EraseNet.segment``: log power -> detector graph -> centres -> Doppler refinement -> region
 growing -> ROI features and kernel maps -> segmenter graph -> labels. ``radar/`` (numpy, scipy, scikit-image)
 does the radar steps; ``models/export/kernel_maps_numpy.py`` and ``centres_numpy.py`` (numpy only) are loaded by
 file path, as a deployment that copies them would.

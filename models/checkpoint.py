@@ -23,6 +23,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from models.capabilities import Stage
 from models.registry import create_model
 from radar.errors import UserError
 
@@ -32,9 +33,8 @@ VERSION = 1
 
 # The stage of each architecture (registry name without its ``_tiny`` suffix): for checkpoints that predate
 # the ``stage`` field and carry no ``extra["stage"]``.
-STAGE_OF_ARCHITECTURE = {"centre_detector": "detector", "minkunet": "segmenter", "spvcnn": "segmenter",
-                         "unet": "baseline", "tmvanet": "baseline", "smvanet": "baseline"}
-STAGES = ("detector", "segmenter", "baseline")
+STAGE_OF_ARCHITECTURE = {"centre_detector": Stage.DETECTOR, "minkunet": Stage.SEGMENTER, "spvcnn": Stage.SEGMENTER,
+                         "unet": Stage.BASELINE, "tmvanet": Stage.BASELINE, "smvanet": Stage.BASELINE}
 INPUT_KIND = "log_power_db"  # what every model we train takes (normalised with the checkpoint's statistics)
 
 
@@ -42,7 +42,7 @@ class CheckpointError(UserError):
     """A checkpoint file that is missing, unreadable, not a radarseg checkpoint, or not the one expected."""
 
 
-def architecture_stage(model_name: str) -> str | None:
+def architecture_stage(model_name: str) -> Stage | None:
     """The stage of a registry name (``centre_detector_tiny`` -> ``detector``); None for an unknown one."""
     return STAGE_OF_ARCHITECTURE.get(model_name.removesuffix("_tiny"))
 
@@ -61,9 +61,10 @@ class Checkpoint:
     source: str | None = field(default=None, compare=False)  # the file it was loaded from (not saved)
 
     @property
-    def stage(self) -> str | None:
+    def stage(self) -> Stage | None:
         """detector, segmenter or baseline (stored, or derived from the architecture for older files)."""
-        return self.extra.get("stage") or architecture_stage(self.model_name)
+        stored = self.extra.get("stage")
+        return Stage(stored) if stored in tuple(Stage) else architecture_stage(self.model_name)
 
     @property
     def input_kind(self) -> str:
@@ -86,7 +87,7 @@ class Checkpoint:
             "state_dict": self.state_dict, "preset": self.preset, "class_names": list(self.class_names),
             "normalisation": dict(self.normalisation), "extra": dict(self.extra),
             # what the file is, readable without the registry (older readers ignore these keys)
-            "stage": self.stage, "input_kind": self.input_kind,
+            "stage": None if self.stage is None else str(self.stage), "input_kind": self.input_kind,
         }
 
 
@@ -105,7 +106,7 @@ def load_checkpoint(path: str | Path, *, stage: str | None = None, role: str | N
     ``role`` names the option it was given as (``--detector``) in the message."""
     path = Path(path)
     what = f"{role} {path}" if role else str(path)
-    kind = stage or (role if role in STAGES else "model")
+    kind = stage or (role if role in tuple(Stage) else "model")
     expected = f"expected a radarseg {kind} checkpoint (.pt written by radarseg train)"
     if not path.is_file():
         raise CheckpointError(f"{what}: no such checkpoint file; {expected}")
@@ -134,8 +135,8 @@ def load_checkpoint(path: str | Path, *, stage: str | None = None, role: str | N
 
 def expect_stage(checkpoint: Checkpoint, stage: str, *, role: str | None = None) -> None:
     """CheckpointError unless ``checkpoint`` is of ``stage``, naming what was given and what was expected."""
-    if stage not in STAGES:
-        raise ValueError(f"stage must be one of {STAGES}, got {stage!r}")
+    if stage not in tuple(Stage):
+        raise ValueError(f"stage must be one of {[str(s) for s in Stage]}, got {stage!r}")
     if checkpoint.stage != stage:
         where = " ".join(part for part in (role, checkpoint.source) if part) or "checkpoint"
         raise CheckpointError(f"{where}: {checkpoint.describe()}, expected a {stage} checkpoint")

@@ -9,29 +9,32 @@ import sys
 import time
 from typing import Any
 
-from models.engines import ENGINES
+from models.erasenet.engines import ENGINES
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
+from radar.detections import SCORE_THRESHOLD
 from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS
 
 # The jobs (pipelines.jobs' contract): command -> (module, help). A job module loads only when its command runs.
 JOBS: dict[str, tuple[str, str]] = {
-    "preprocess": ("pipelines.preprocess", "Ray job: cubes into the zarr store of inputs and targets"),
-    "segment-batch": ("pipelines.segment_batch", "Ray job: segment a store split or a recording into a "
+    "preprocess": ("pipelines.data.preprocess", "Ray job: cubes into the zarr store of inputs and targets"),
+    "segment-batch": ("pipelines.inference.segment_batch", "Ray job: segment a store split or a recording into a "
                                                  "predictions store"),
-    "train": ("pipelines.train", "train the detector or the segmenter from a store, or export a checkpoint"),
-    "train-baseline": ("pipelines.train_baselines", "train a 2-D baseline (unet, tmvanet, smvanet) from a store"),
-    "evaluate": ("pipelines.evaluate", "evaluate both stages on a split of a store: metrics.json, report.md, "
+    "train": ("pipelines.training.train", "train the detector or the segmenter from a store, or export a checkpoint"),
+    "train-baseline": ("pipelines.training.train_baselines",
+                       "train a 2-D baseline (unet, tmvanet, smvanet) from a store"),
+    "evaluate": ("pipelines.evaluation.evaluate",
+                 "evaluate both stages on a split of a store: metrics.json, report.md, "
                                        "pictures"),
-    "compare": ("pipelines.compare", "ERASE-Net and the 2-D baselines on the same frames: compare.json, "
+    "compare": ("pipelines.evaluation.compare", "ERASE-Net and the 2-D baselines on the same frames: compare.json, "
                                      "compare.md, compare_frames.png"),
-    "slim-sweep": ("pipelines.slim_sweep", "compression sweep: prune (and fine-tune) at several ratios, "
+    "slim-sweep": ("pipelines.training.slim_sweep", "compression sweep: prune (and fine-tune) at several ratios, "
                                            "reports/slimming.md and .png"),
 }
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from pipelines.record import simulate_recording
+    from pipelines.data.record import simulate_recording
 
     out = simulate_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
                              seed=args.seed, out=args.out, adc=args.adc)
@@ -44,7 +47,7 @@ def _say(line: str) -> None:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from pipelines.demo import run_demo
+    from pipelines.demo.demo import run_demo
     from pipelines.jobs import smoke_mode
 
     # RADARSEG_SMOKE: the same steps on 3 sequences of 2 frames, preprocessed in process, one frame segmented
@@ -55,7 +58,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     for path in result["pictures"]:
         print(f"  {path}")
     if "store" in result:
-        from pipelines.store import format_summary, summarise
+        from pipelines.data.store import format_summary, summarise
 
         how = "in process" if result.get("preprocessed_in_process") else "with embedded Ray"
         print(f"preprocessed {how} into {result['store']} (radarseg store info {result['store']}):")
@@ -63,7 +66,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if "segmentation" in result:
         print(_format_demo_scores(result["segmentation"]))
     if "service" in result:
-        from pipelines.demo_service import format_service_answer
+        from pipelines.demo.demo_service import format_service_answer
 
         print("the service, started on loopback and stopped again:")
         print(format_service_answer(result["service"]))
@@ -91,7 +94,7 @@ def _is_predictions_store(path: str) -> bool:
     """Whether ``path`` holds batch segmentation's predictions (format attribute), not a preprocessed store."""
     from pathlib import Path
 
-    from pipelines.predictions_store import FORMAT
+    from pipelines.inference.predictions_store import FORMAT
 
     meta = Path(path) / "zarr.json"
     try:
@@ -101,10 +104,10 @@ def _is_predictions_store(path: str) -> bool:
 
 
 def _cmd_store_info(args: argparse.Namespace) -> int:
-    from pipelines.store import format_summary, summarise
+    from pipelines.data.store import format_summary, summarise
 
     if _is_predictions_store(args.store):
-        from pipelines.predictions_report import format_predictions, summarise_predictions
+        from pipelines.inference.predictions_report import format_predictions, summarise_predictions
 
         format_summary, summary = format_predictions, summarise_predictions(args.store)
     else:
@@ -115,7 +118,7 @@ def _cmd_store_info(args: argparse.Namespace) -> int:
 
 def _cmd_prune(args: argparse.Namespace) -> int:
     from models.checkpoint import load_checkpoint, save_checkpoint, stored_as, stores_float16
-    from models.slimming import prune_checkpoint
+    from models.slimming.prune import prune_checkpoint
 
     source = load_checkpoint(args.checkpoint)
     pruned, report = prune_checkpoint(source, ratio=args.ratio, params=args.params, macs=args.macs,
@@ -134,7 +137,7 @@ def _cmd_prune(args: argparse.Namespace) -> int:
 def _cmd_segment(args: argparse.Namespace) -> int:
     import json
 
-    from pipelines.segment import segment_file
+    from pipelines.inference.segment import segment_file
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
                           input_kind=args.input, png=args.png, score_threshold=args.score_threshold,
@@ -172,7 +175,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 def _cmd_models_summary(args: argparse.Namespace) -> int:
     import json
 
-    from pipelines.summary import SHIPPED, format_summary, models_summary
+    from pipelines.evaluation.summary import SHIPPED, format_summary, models_summary
 
     rows = models_summary(tuple(args.preset or ()), tuple(args.checkpoint or SHIPPED))
     print(json.dumps(rows, indent=2) if args.json else format_summary(rows))
@@ -194,8 +197,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 
 def _cmd_radar_show(args: argparse.Namespace) -> int:
-    from radar.profile_files import describe
     from radar.profiles import get_profile
+    from radar.profiles.files import describe
 
     rows = describe(get_profile(args.profile))
     width = max(len(k) for k, _ in rows)
@@ -303,7 +306,7 @@ def _add_frame_commands(sub: Any) -> None:
                           "real-valued one must say it (docs/design.md section 2)")
     seg.add_argument("--log-power", dest="input", action="store_const", const=InputKind.log_power.value,
                      help="the same as --input log_power")
-    seg.add_argument("--score-threshold", type=float, default=0.3, help="detector score threshold")
+    seg.add_argument("--score-threshold", type=float, default=SCORE_THRESHOLD, help="detector score threshold")
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
     seg.add_argument("--engine", choices=ENGINES, default="torch",
                      help="torch, or onnx: the exported graphs in onnxruntime, exported on first use "
@@ -346,7 +349,7 @@ def _add_model_commands(sub: Any) -> None:
     """upload-check, models, serve, demo."""
     upload = sub.add_parser("upload-check", help="what `ray job submit --working-dir DIR` would upload; a one-line "
                                                  "error over Ray's limit (HTTP 413) naming the largest files")
-    from pipelines import upload_check
+    from pipelines.data import upload_check
 
     upload_check.add_arguments(upload)
     upload.set_defaults(func=upload_check.run)

@@ -103,7 +103,7 @@ def plot_frame_views(frame: RadarFrame, path: str | Path, *, title: str | None =
 def plot_prediction(log_power: np.ndarray, profile: RadarProfile, ra_mask: np.ndarray, rd_mask: np.ndarray,
                     objects: list, path: str | Path, *, title: str = "prediction") -> Path:
     """Write a PNG with the RA and RD views of a cube and a prediction's masks and objects drawn over them
-    (``objects`` carry ``class_name, score, x, y, velocity_mps``, as :class:`models.erasenet.SegmentedObject`)."""
+    (``objects`` carry ``class_name, score, x, y, velocity_mps``, as :class:`models.erasenet.model.SegmentedObject`)."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 5.2), gridspec_kw={"width_ratios": [1.3, 1]})
     annotations = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in objects]
     draw_views(axes, log_power, profile, ra_mask, rd_mask, annotations, empty_note="no detections")

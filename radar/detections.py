@@ -7,6 +7,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# The seed defaults, one home for every caller (EraseNet, evaluation, segment, segment-batch, the service, the
+# ONNX graphs' numpy decoding, the stores' object tables):
+SCORE_THRESHOLD = 0.3
+"""A decoded centre is a seed when its heatmap score is at least this."""
+MAX_OBJECTS = 32
+"""Centres decoded per frame (top-k), and the rows of every per-frame object table."""
+
 
 @dataclass(frozen=True)
 class Centres:

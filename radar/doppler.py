@@ -84,4 +84,4 @@ def refine_doppler(log_power: np.ndarray, centres: Centres, config: DopplerRefin
     return Centres(centres.score, centres.range_bin, centres.angle_bin, np.mod(doppler, n_doppler))
 
 
-DOPPLER_REFINEMENT = DopplerRefinement()  # the default applied by models.erasenet.EraseNet and the AP scorers
+DOPPLER_REFINEMENT = DopplerRefinement()  # the default applied by models.erasenet.model.EraseNet and the AP scorers

@@ -291,6 +291,13 @@ def grow_regions(log_power: np.ndarray, seeds: Centres | np.ndarray, profile: Ra
         seen = examined[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
         n_visited += int(np.count_nonzero(near)) - int(np.count_nonzero(near & seen))
         seen |= near
+    return _regions_in_cube_order(members, owners, seed_voxels, n_visited, shape)
+
+
+def _regions_in_cube_order(members: list, owners: list, seed_voxels: np.ndarray, n_visited: int,
+                           shape: tuple[int, int, int]) -> Regions:
+    """The seeds' member runs ((flat, range, angle, Doppler) per seed) merged into one voxel list in flat cube
+    order, each voxel with the index of the seed that claimed it."""
     if not members:
         return Regions(np.zeros((0, 3), np.int64), np.zeros(0, np.int64), seed_voxels, 0, shape)
     flat, *coordinates = (np.concatenate(parts) for parts in zip(*members, strict=True))

@@ -25,7 +25,7 @@ from typing import Any, TypeVar
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
-from models.compute_report import FrameCompute
+from models.erasenet.compute_report import FrameCompute
 from service.errors import ApiError
 from service.inference import ServedModel
 from service.ledger import DayTotals, Lease, Ledger, QuotaExceeded

@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from models.checkpoint import CheckpointError
-from models.engines import load_erasenet
-from models.erasenet import EraseNet, SegmentationResult
+from models.erasenet.engines import load_erasenet
+from models.erasenet.model import EraseNet, SegmentationResult
 from radar.adc import process_adc
 from service.settings import ModelSpec, Settings, resolve_path
 

@@ -20,6 +20,8 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
+
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 TABLE_PREFIX_PATTERN = re.compile(r"^[a-z][a-z0-9_]{0,30}$")
@@ -50,9 +52,10 @@ class ModelSpec(BaseModel):
     name: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_.-]{0,63}$")]
     detector: Path
     segmenter: Path
-    score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = 0.3
-    max_objects: Annotated[int, Field(ge=1, le=256)] = 32
-    # torch: the sparse engine; onnx: the exported graphs in onnxruntime (models.engines), exported on first load
+    score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = SCORE_THRESHOLD
+    max_objects: Annotated[int, Field(ge=1, le=256)] = MAX_OBJECTS
+    # torch: the sparse engine; onnx: the exported graphs in onnxruntime (models.erasenet.engines), exported on
+    # first load
     # into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)
     engine: Literal["torch", "onnx"] = "torch"
 

@@ -12,7 +12,7 @@ os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 @pytest.fixture(scope="session")
 def small_recording(tmp_path_factory):
     """A tiny simulated recording (small preset, 2 sequences x 3 frames) shared by reader tests."""
-    from pipelines.record import simulate_recording
+    from pipelines.data.record import simulate_recording
 
     out = tmp_path_factory.mktemp("rec") / "small"
     return simulate_recording(preset="small", sequences=2, frames=3, seed=11, out=out, progress=False)
@@ -43,8 +43,8 @@ def save_tiny_checkpoints(store, root, kinds=tuple(KINDS), *, mixed_labels: bool
 
     normalisation, stats = dict(UNTRAINED_NORMALISATION), None
     if store is not None:
-        from pipelines.store import open_store
-        from pipelines.views import ViewStats
+        from pipelines.data.store import open_store
+        from pipelines.data.views import ViewStats
 
         attrs = open_store(store).attrs
         normalisation = {"mean": float(attrs["normalisation"]["mean"]), "std": float(attrs["normalisation"]["std"])}

@@ -1,5 +1,7 @@
-"""The import graph flows one way (radar <- models <- pipelines; service <- models + radar) with no cycle,
-counting imports inside functions too: read from the source with ast, so nothing is imported to check."""
+"""The import graph flows one way (radar <- models <- pipelines; service <- models + radar; ``process``, the
+process-level concerns, below them all) with no cycle, and the wings of ``pipelines/`` import downward only
+(data <- inference <- evaluation <- training <- demo; the top-level modules other than the CLI below every
+wing), counting imports inside functions too: read from the source with ast, so nothing is imported to check."""
 
 from __future__ import annotations
 
@@ -7,13 +9,16 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-PACKAGES = ("radar", "models", "pipelines", "service")
+PACKAGES = ("process", "radar", "models", "pipelines", "service")
 ALLOWED = {  # package -> the packages of ours it may import
+    "process": {"process"},
     "radar": {"radar"},
-    "models": {"radar", "models"},
-    "pipelines": {"radar", "models", "pipelines"},
-    "service": {"radar", "models", "service"},
+    "models": {"process", "radar", "models"},
+    "pipelines": {"process", "radar", "models", "pipelines"},
+    "service": {"process", "radar", "models", "service"},
 }
+WINGS = ("data", "inference", "evaluation", "training", "demo")  # pipelines' wings, lowest first
+TOP_OF_PIPELINES = "pipelines.cli"  # the one top-level module above the wings
 
 
 def _module_name(path: Path) -> str:
@@ -79,8 +84,35 @@ def test_imports_flow_one_way_between_packages():
     assert not wrong, wrong
 
 
+def pipelines_level(module: str) -> int:
+    """0 for a top-level module of ``pipelines`` (jobs, progress, figures), 1 + the wing's index inside a wing,
+    one above the highest wing for the CLI."""
+    parts = module.split(".")
+    if module == TOP_OF_PIPELINES:
+        return len(WINGS) + 1
+    return 1 + WINGS.index(parts[1]) if len(parts) > 2 and parts[1] in WINGS else 0
+
+
+def wrong_way_wing_imports(graph: dict[str, set[str]]) -> list[str]:
+    return sorted(f"{module} imports {target}" for module, targets in graph.items() if module.startswith("pipelines")
+                  for target in targets if target.startswith("pipelines.")
+                  and pipelines_level(target) > pipelines_level(module))
+
+
+def test_wings_of_pipelines_import_downward_only():
+    wrong = wrong_way_wing_imports(import_graph())
+    assert not wrong, wrong
+
+
+def test_the_wing_checker_sees_an_upward_import():
+    graph = {"pipelines.evaluation.compare": {"pipelines.training.baselines", "pipelines.data.store"},
+             "pipelines.jobs": {"pipelines.cli"}, "pipelines.cli": {"pipelines.demo.demo"}}
+    assert wrong_way_wing_imports(graph) == ["pipelines.evaluation.compare imports pipelines.training.baselines",
+                                             "pipelines.jobs imports pipelines.cli"]
+
+
 def test_the_checker_sees_a_cycle_and_a_function_level_import(tmp_path):
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None
     graph = import_graph()
-    assert "models.channel_surgery" in graph["models.detector.centre_detector"]
+    assert "models.slimming.channel_surgery" in graph["models.detector.centre_detector"]

@@ -164,7 +164,7 @@ class Runner:
         return None if code == 0 else f"exit {code}"
 
     def _serve(self, words: list[str]) -> str | None:
-        from pipelines.serve_process import wait_ready
+        from pipelines.demo.serve_process import wait_ready
 
         port = int(words[words.index("--port") + 1]) if "--port" in words else 8000
         self._stop(port)
@@ -182,7 +182,7 @@ class Runner:
         return None
 
     def _stop(self, port: int) -> None:
-        from pipelines.serve_process import stop_process
+        from pipelines.demo.serve_process import stop_process
 
         server = self.servers.pop(port, None)
         if server is not None:

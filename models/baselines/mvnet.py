@@ -41,7 +41,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.baselines.blocks import ConvBnLeaky, TemporalDoubleConv, double_conv_leaky
-from models.capabilities import InputShapes, Role
+from models.capabilities import InputShapes, Stage
 
 MVRSS_WIDTH = 128
 TEMPORAL_FRAMES = 5  # two unpadded 3x3x3 convs consume exactly five frames
@@ -133,7 +133,7 @@ class MultiViewNet(nn.Module):
     Inputs ``(B, T, H, W)`` as in the module docstring; R and A must be multiples of 4.
     """
 
-    role: ClassVar[Role] = Role.BASELINE
+    stage: ClassVar[Stage] = Stage.BASELINE
     channel_tracer: ClassVar[str] = "multiview"
 
     def dense_input_shapes(self, profile: Any) -> InputShapes:

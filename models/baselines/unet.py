@@ -17,7 +17,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.baselines.blocks import ConvBnReLU
-from models.capabilities import InputShapes, Role
+from models.capabilities import InputShapes, Stage
 
 CLASSIC_WIDTHS = (64, 128, 256, 512, 1024)
 UNET_VIEWS = ("ra", "rd")
@@ -53,7 +53,7 @@ class UNet(nn.Module):
     U-Net like one branch of the multi-view networks.
     """
 
-    role: ClassVar[Role] = Role.BASELINE
+    stage: ClassVar[Stage] = Stage.BASELINE
     channel_tracer: ClassVar[str] = "unet"
 
     def dense_input_shapes(self, profile: Any) -> InputShapes:

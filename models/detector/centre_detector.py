@@ -31,8 +31,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from models.capabilities import InputShapes, Role
-from models.channel_surgery import apply_channel_table
+from models.capabilities import InputShapes, Stage
 from models.detector.bifpn import BiFPNNeck
 from models.detector.centernet import CentreNetHead
 from models.detector.efficientnet import (
@@ -44,6 +43,7 @@ from models.detector.efficientnet import (
 )
 from models.detector.targets import CentreTargets
 from models.registry import register_model
+from models.slimming.channel_surgery import apply_channel_table
 from radar.profiles import RadarProfile, get_profile
 
 COMPRESSED_DOPPLER_CHANNELS = 3
@@ -109,7 +109,7 @@ class CentreDetector(nn.Module):
     channel). Train with batches of 2 or more there.
     """
 
-    role: ClassVar[Role] = Role.DETECTOR
+    stage: ClassVar[Stage] = Stage.DETECTOR
     channel_tracer: ClassVar[str] = "detector"
 
     def dense_input_shapes(self, profile: RadarProfile) -> InputShapes:
@@ -214,7 +214,7 @@ def _resolve_grid(
 @register_model("centre_detector")
 def build_centre_detector(
     *,
-    preset: str | RadarProfile = "carrada",
+    preset: str | RadarProfile = "small",
     variant: str = SMALLER_VARIANT,
     width_mult: float = 1.0,
     depth_mult: float = 1.0,
@@ -231,7 +231,7 @@ def build_centre_detector(
     ``variant`` picks the stage table and head conv type from :data:`VARIANTS`; ``stages`` and
     ``separable_heads`` override them. ``cartesian`` (x, y metres, each (R, A)) defaults to the
     preset's RA grid. ``channels``: the per-layer widths of a slimmed detector
-    (:func:`models.slimming.apply_channel_table`), None for the full widths.
+    (:func:`models.slimming.channel_surgery.apply_channel_table`), None for the full widths.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {sorted(VARIANTS)}, got {variant!r}")

@@ -24,6 +24,8 @@ from typing import TypedDict
 import numpy as np
 import torch
 
+from radar.detections import MAX_OBJECTS
+
 OUTPUT_STRIDE = 4
 GAUSSIAN_RADIUS = 1  # cells
 GAUSSIAN_SIGMA = (1 / 3, 1 / 2)  # cells, (range, angle)
@@ -110,7 +112,7 @@ def build_centre_targets(
     grid_shape: tuple[int, int],
     *,
     output_stride: int = OUTPUT_STRIDE,
-    max_objects: int = 32,
+    max_objects: int = MAX_OBJECTS,
     sigma: tuple[float, float] = GAUSSIAN_SIGMA,
     radius: int = GAUSSIAN_RADIUS,
 ) -> CentreTargets:

@@ -11,8 +11,8 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 
-def decode_centres(heatmap: np.ndarray, offset: np.ndarray, doppler: np.ndarray, *, k: int = 32,
-                   score_threshold: float = 0.3, output_stride: int = 4) -> dict[str, np.ndarray]:
+def decode_centres(heatmap: np.ndarray, offset: np.ndarray, doppler: np.ndarray, *, k: int, score_threshold: float,
+                   output_stride: int = 4) -> dict[str, np.ndarray]:
     """Centres of one frame, best first.
 
     Args:

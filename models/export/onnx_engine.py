@@ -1,4 +1,4 @@
-"""ERASE-Net on onnxruntime: the exported graphs behind :meth:`models.erasenet.EraseNet.segment`'s contract.
+"""ERASE-Net on onnxruntime: the exported graphs behind :meth:`models.erasenet.model.EraseNet.segment`'s contract.
 
 The same stages as the PyTorch engine (transform, detect, grow, segment, project) and the same result
 and compute report (``compute.engine == "onnx"``): the detector graph replaces the traced detector
@@ -27,7 +27,7 @@ import torch
 from torch import nn
 
 from models.checkpoint import Checkpoint, load_checkpoint
-from models.erasenet import EraseNet
+from models.erasenet.model import EraseNet
 from models.export.kernel_maps_numpy import kernel_maps, segmenter_macs
 from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
 from radar.profiles import RadarProfile

@@ -2,17 +2,17 @@
 
 The number of classes comes from the radar preset (background included); widths come from a ratio of
 the paper's base widths unless given explicitly; a slimmed network also stores its per-layer ``channels``
-table (:mod:`models.slimming`).
+table (:mod:`models.slimming.prune`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-from models.channel_surgery import apply_channel_table
 from models.registry import register_model
 from models.segmenter.minkunet import MinkUNet, scaled_widths
 from models.segmenter.spvcnn import SPVCNN
+from models.slimming.channel_surgery import apply_channel_table
 from radar.profiles import RadarProfile, get_profile
 from radar.roi import N_FEATURES
 
@@ -26,7 +26,7 @@ def _build(cls: type[MinkUNet], preset: str | RadarProfile, ratio: float, widths
     model = cls(in_channels=N_FEATURES, num_classes=profile.num_classes,
                 widths=tuple(widths) if widths is not None else scaled_widths(ratio),
                 blocks_per_stage=blocks_per_stage)
-    if channels:  # per-layer widths of a slimmed network (models.slimming)
+    if channels:  # per-layer widths of a slimmed network (models.slimming.prune)
         apply_channel_table(model, channels)
     return model
 

@@ -13,7 +13,7 @@ from typing import Any, ClassVar, Self
 
 from torch import Tensor, nn
 
-from models.capabilities import InputShapes, Role
+from models.capabilities import InputShapes, Stage
 from models.segmenter.blocks import DownBlock, UpBlock, submanifold_bn_relu
 from models.sparse import PointwiseConv, SparseTensor
 
@@ -43,7 +43,7 @@ class MinkUNet(nn.Module):
     (N, num_classes), row `i` for voxel `x.coords[i]`.
     """
 
-    role: ClassVar[Role] = Role.SEGMENTER
+    stage: ClassVar[Stage] = Stage.SEGMENTER
     channel_tracer: ClassVar[str] = "sparse_unet"
 
     def make_input(self, coords: Tensor, feats: Tensor) -> SparseTensor:

@@ -1,4 +1,5 @@
-"""Pure-PyTorch sparse convolution: sparse tensors, kernel maps (dense index grids or hashing), conv layers.
+"""Sparse convolution: sparse tensors, kernel maps (dense index grids or hashing), conv layers, and the engines
+that run them (`compiled`: C++ kernels; `paths`: the pure-PyTorch reference and the choice between them).
 
 No sparse-convolution library trains on CPU here (docs/design.md section 7), so the project owns this one.
 """
@@ -11,12 +12,11 @@ from models.sparse.conv import (
     StridedConv3d,
     SubmanifoldConv3d,
     TransposedConv3d,
-    apply_kernel_map,
-    choose_path,
     last_forward_executed_macs,
     last_forward_macs,
 )
 from models.sparse.kernel_map import KernelMap, VoxelIndex, build_kernel_map, downsample_coords, kernel_offsets
+from models.sparse.paths import apply_kernel_map, choose_path
 from models.sparse.tensor import KernelMapCache, SparseTensor, cat_features
 
 __all__ = [

@@ -27,7 +27,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
-from models.sparse import native
+from models.sparse import compiled
 
 COORD_BITS = 16
 """Bits per spatial coordinate in a packed key."""
@@ -324,8 +324,8 @@ class VoxelIndex:
             if inside:
                 delta = (offsets * self.steps[1:]).sum(dim=1)  # (K,)
                 flat = (position * self.steps).sum(dim=1)  # (M,)
-                if native.enabled_on(self.device):  # the compiled engine reads it in one pass
-                    return native.grid_neighbours(self.grid, flat, delta)
+                if compiled.enabled_on(self.device):  # the compiled engine reads it in one pass
+                    return compiled.grid_neighbours(self.grid, flat, delta)
                 return self.grid[flat[:, None] + delta[None, :]].long()
         # Hashing: packing is additive while every biased field stays inside its 16 bits (guaranteed by
         # the coordinate range check), so key(b, s*q + d) = key(b, s*q) + key of the offset d alone.

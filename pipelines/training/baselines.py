@@ -1,6 +1,6 @@
 """The 2-D baselines' stage (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9).
 
-Data: :class:`pipelines.views.ViewDataset` (RD/RA/AD views scaled by the train split's min/max; TMVA-Net
+Data: :class:`pipelines.data.views.ViewDataset` (RD/RA/AD views scaled by the train split's min/max; TMVA-Net
 reads the target frame and the 4 before it in its sequence, so the first 4 frames of each sequence
 are not used, as in the reference). Loss: :class:`models.baselines.losses.MultiViewLoss` (per view
 0.5 x weighted CE + 5 x soft Dice, plus 5 x coherence for the two-view networks), class weights the
@@ -12,7 +12,6 @@ frame count and views are in its ``extra``. Validation: mIoU, mean over the pred
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -20,25 +19,21 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from models.baselines.losses import MultiViewLoss, class_weights_from_counts
-from models.checkpoint import Checkpoint, load_checkpoint
-from pipelines.scoring import predicted_views, score_baseline
+from models.capabilities import Stage
+from pipelines.data.views import (
+    ViewDataset,
+    ViewStats,
+    collate_views,
+    masks_of,
+    model_inputs,
+    view_class_counts,
+)
+from pipelines.evaluation.scoring import predicted_views, score_baseline
 from pipelines.training.task import Task
-from pipelines.views import ViewDataset, ViewStats, collate_views, masks_of, model_inputs, view_class_counts
-from radar.errors import UserError
-
-STAGE = "baseline"
-
-
-def load_baseline(path: str | Path, *, device: str | torch.device = "cpu") -> tuple[nn.Module, Checkpoint, ViewStats]:
-    """A trained baseline (eval mode), its checkpoint and the view scaling it was trained with."""
-    checkpoint = load_checkpoint(path)
-    if checkpoint.stage != STAGE:
-        raise UserError(f"{path}: not a baseline checkpoint ({checkpoint.describe()} given)")
-    return checkpoint.build(device=device), checkpoint, ViewStats.from_dict(checkpoint.normalisation)
 
 
 class BaselineTask(Task):
-    stage = STAGE
+    stage = Stage.BASELINE
     monitor = "val_mIoU"
     views: tuple[str, ...]
     stats: ViewStats

@@ -14,9 +14,9 @@ import inspect
 from dataclasses import dataclass
 from typing import Any
 
+from models.capabilities import Stage
 from models.registry import get_builder
 
-STAGES = ("detector", "segmenter", "baseline")
 OPTIMIZERS = ("adam", "sgd")
 SCHEDULES = ("step", "cosine")  # step: per epoch (step_every or milestones); cosine: per optimiser step
 
@@ -107,8 +107,8 @@ class TrainConfig:
     curve_every: int = 0  # validate every this many steps too, into curve.jsonl (learning curves; 0 = off)
 
     def __post_init__(self) -> None:
-        if self.stage not in STAGES:
-            raise ValueError(f"stage must be one of {STAGES}, got {self.stage!r}")
+        if self.stage not in tuple(Stage):
+            raise ValueError(f"stage must be one of {[str(s) for s in Stage]}, got {self.stage!r}")
         if self.profile not in PROFILES[self.stage]:
             raise ValueError(f"profile must be one of {sorted(PROFILES[self.stage])}, got {self.profile!r}")
         for name in ("epochs", "batch_size", "max_steps"):

@@ -11,14 +11,15 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from models.capabilities import Stage
 from models.detector.targets import build_centre_targets
-from pipelines.scoring import frame_centres, score_detector
-from pipelines.store import StoreDataset
+from pipelines.data.store import StoreDataset
+from pipelines.evaluation.scoring import frame_centres, score_detector
 from pipelines.training.task import Task, unwrap
 
 
 class DetectorTask(Task):
-    stage = "detector"
+    stage = Stage.DETECTOR
     monitor = "val_mAP"
 
     def train_dataset(self) -> Dataset:
@@ -28,7 +29,7 @@ class DetectorTask(Task):
 
     def collate(self, samples: list[dict[str, Any]]) -> dict[str, Any]:
         """Input ``(B, D, R, A)`` normalised with the store's global mean and std (dB), exactly what
-        :class:`models.erasenet.EraseNet` does at inference, and the centre targets."""
+        :class:`models.erasenet.model.EraseNet` does at inference, and the centre targets."""
         grid = (self.store.profile.n_range, self.store.profile.n_angle)
         log_power = torch.stack([s["input"] for s in samples])
         stats = self.store.normalisation

@@ -12,11 +12,12 @@ import numpy as np
 import torch
 
 from models.checkpoint import load_checkpoint
-from models.detection import detect_centres
-from pipelines.scoring import frame_centres
-from pipelines.spread import subset
-from pipelines.store import StoreDataset
+from models.erasenet.detection import detect_centres
+from pipelines.data.spread import subset
+from pipelines.data.store import StoreDataset
+from pipelines.evaluation.scoring import frame_centres
 from pipelines.training.config import DEFAULT_JITTER_STD
+from radar.detections import SCORE_THRESHOLD
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
 from radar.profiles import get_profile
@@ -72,7 +73,7 @@ def _match(pred: np.ndarray, truth: np.ndarray, profile) -> tuple[list[np.ndarra
 
 @torch.no_grad()
 def measure_detector_errors(detector_path: str | Path, store: str | Path, split: str = "val", *,
-                            score_threshold: float = 0.3, max_frames: int = 0,
+                            score_threshold: float = SCORE_THRESHOLD, max_frames: int = 0,
                             device: torch.device | str = "cpu",
                             doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT) -> SeedJitter:
     """Errors of a trained detector on a split: for each ground-truth object, the nearest detection

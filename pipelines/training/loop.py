@@ -29,11 +29,11 @@ from torch import nn
 from torch.utils.data import DataLoader, DistributedSampler
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from models.slimming import slimming_penalty
+from models.slimming.penalty import slimming_penalty
+from pipelines.data.ray_runtime import init_ray
+from pipelines.data.store import frames_of_split, open_store
+from pipelines.data.store_info import StoreInfo
 from pipelines.progress import progress
-from pipelines.ray_runtime import init_ray
-from pipelines.store import frames_of_split, open_store
-from pipelines.store_info import StoreInfo
 from pipelines.training.config import TrainConfig
 from pipelines.training.optim import make_optimizer, make_scheduler, resolve_device
 from pipelines.training.task import Task, unwrap

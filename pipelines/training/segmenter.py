@@ -18,11 +18,12 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from models.capabilities import Stage
 from models.segmenter.lovasz import lovasz_softmax
-from pipelines.scoring import ViewConfusion, frame_centres
-from pipelines.spread import subset
-from pipelines.store import StoreDataset, open_store
-from pipelines.store_info import StoreInfo
+from pipelines.data.spread import subset
+from pipelines.data.store import StoreDataset, open_store
+from pipelines.data.store_info import StoreInfo
+from pipelines.evaluation.scoring import ViewConfusion, frame_centres
 from pipelines.training.jitter import SeedJitter, measure_detector_errors
 from pipelines.training.task import Task, unwrap
 from radar.metrics import iou_per_class
@@ -100,7 +101,7 @@ def collate_roi(samples: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 class SegmenterTask(Task):
-    stage = "segmenter"
+    stage = Stage.SEGMENTER
     monitor = "val_mIoU"
     jitter: SeedJitter
     class_weights: torch.Tensor

@@ -14,7 +14,7 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from models.registry import create_model
-from pipelines.store_info import StoreInfo
+from pipelines.data.store_info import StoreInfo
 from pipelines.training.config import Hyper, TrainConfig
 from radar.errors import UserError
 

@@ -1,4 +1,4 @@
-"""The task of each stage, by the stage's name (:data:`pipelines.training.config.STAGES`)."""
+"""The task of each stage, by the stage's name (:class:`models.capabilities.Stage`)."""
 
 from __future__ import annotations
 

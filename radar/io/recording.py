@@ -32,8 +32,8 @@ from radar.adc import adc_shape, process_adc
 from radar.frame import ObjectRecord, RadarFrame
 from radar.io.errors import DataError
 from radar.io.npy import check_array, load_npy
-from radar.profile_files import ProfileError, profile_to_dict
 from radar.profiles import RadarProfile, UnknownPresetError, resolve_profile
+from radar.profiles.files import ProfileError, profile_to_dict
 from radar.schema import SchemaMismatch, check_schema, cube_schema
 
 FORMAT = "radarseg.recording"

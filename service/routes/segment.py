@@ -11,8 +11,8 @@ from fastapi import APIRouter, Header, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
-from models.compute_report import FrameCompute
-from models.erasenet import SegmentationResult
+from models.erasenet.compute_report import FrameCompute
+from models.erasenet.model import SegmentationResult
 from radar.adc import adc_shape
 from radar.input_kind import SCHEMA_CONTENT
 from radar.schema import SchemaMismatch, check_schema

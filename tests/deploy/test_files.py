@@ -301,16 +301,16 @@ def test_serve_application_builder_checks_its_arguments():
 def test_every_module_the_deploy_docs_name_imports():
     """Modules run by the compose file, the Serve config and deploy/README.md exist."""
     text = "\n".join(p.read_text() for p in (DEPLOY / "README.md", COMPOSE, DEPLOY / "serve.yaml"))
-    modules = set(re.findall(r"python -m ((?:pipelines|service)\.\w+)", text))
+    modules = set(re.findall(r"python -m ((?:pipelines|service)(?:\.\w+)+)", text))
     modules |= {m.split(":")[0] for m in re.findall(r"\b(service\.\w+:\w+)", text)}
-    assert {"pipelines.preprocess", "pipelines.segment_batch", "service.serve_app"} <= modules
+    assert {"pipelines.data.preprocess", "pipelines.inference.segment_batch", "service.serve_app"} <= modules
     for name in modules:
         assert importlib.util.find_spec(name) is not None, name
     parser = argparse.ArgumentParser()
-    from pipelines.segment_batch import add_arguments
+    from pipelines.inference.segment_batch import add_arguments
 
     add_arguments(parser)
-    for line in re.findall(r"python -m pipelines\.segment_batch ([^\n`]+)", text):
+    for line in re.findall(r"python -m pipelines\.inference\.segment_batch ([^\n`]+)", text):
         options = {tok for tok in line.split() if tok.startswith("--")}
         known = {o for a in parser._actions for o in a.option_strings}
         assert options <= known, options - known

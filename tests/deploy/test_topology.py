@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines.predictions_store import COMPUTE_FIELDS, open_predictions
-from pipelines.store import open_store
+from pipelines.data.store import open_store
+from pipelines.inference.predictions_store import COMPUTE_FIELDS, open_predictions
 from service.ledger import Ledger
 from tests.deploy.conftest import radarseg_serve_command, submit_job, uvicorn_command
 from tests.pipelines.conftest import BIN, REPO, free_port, ray_env
@@ -47,7 +47,7 @@ def test_cluster_runs_both_jobs_and_two_apis_share_the_ledger(cluster, tiny_chec
 
     # 1. preprocessing submitted to the head: 4 one-frame shards as Ray tasks over both nodes
     store = tmp_path / "store.zarr"
-    pre = submit_job(cluster, "pipelines.preprocess", "--source", "sim", "--preset", "small", "--sequences", "2",
+    pre = submit_job(cluster, "pipelines.data.preprocess", "--source", "sim", "--preset", "small", "--sequences", "2",
                      "--frames", "2", "--seed", "3", "--shard-frames", "1", "--split-fractions", "0.5", "0.5", "0",
                      "--no-progress", "--json", "--out", str(store))
     assert pre["written"] == 4 and pre["shards_run"] == 4, pre
@@ -55,7 +55,8 @@ def test_cluster_runs_both_jobs_and_two_apis_share_the_ledger(cluster, tiny_chec
 
     # 2. batch segmentation submitted to the head: one segmenter actor per node, each loading the model once
     predictions = tmp_path / "predictions.zarr"
-    job = ["pipelines.segment_batch", "--source", f"store:{store}", "--detector", str(det), "--segmenter", str(seg),
+    job = ["pipelines.inference.segment_batch", "--source", f"store:{store}", "--detector", str(det),
+           "--segmenter", str(seg),
            "--out", str(predictions), "--workers", "2", "--shard-frames", "1", "--score-threshold", "0",
            "--max-objects", "2", "--no-progress", "--json"]
     result = submit_job(cluster, *job)

@@ -1,7 +1,7 @@
 import json
 
 from pipelines.cli import main
-from pipelines.demo import run_demo
+from pipelines.demo.demo import run_demo
 
 
 def test_simulate_writes_the_documented_layout(tmp_path, capsys):

@@ -126,8 +126,8 @@ def test_corrupt_labels_and_objects_name_the_file(recording_copy):
 
 
 def test_a_recording_of_a_radar_described_by_a_file_reads_back(tmp_path):
-    from radar.profile_files import profile_from_dict
-    from tests.radar.test_profile_files import CUSTOM
+    from radar.profiles.files import profile_from_dict
+    from tests.radar.profiles.test_files import CUSTOM
 
     profile = profile_from_dict(CUSTOM)
     frames = list(simulate_sequence(profile, 2, seed=1))
@@ -140,7 +140,7 @@ def test_a_recording_of_a_radar_described_by_a_file_reads_back(tmp_path):
 
 
 def test_adc_recordings_are_processed_on_read_into_the_same_cubes(tmp_path):
-    from pipelines.record import simulate_recording
+    from pipelines.data.record import simulate_recording
 
     out = simulate_recording(preset="small", sequences=1, frames=2, seed=11, out=tmp_path / "adc", progress=False,
                              adc=True)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipelines.serve_process import free_port, serve_command, stop_process, wait_ready
+from pipelines.demo.serve_process import free_port, serve_command, stop_process, wait_ready
 from radar.simulate import simulate_sequence
 from service.settings import ModelSpec, Settings
 

@@ -275,7 +275,7 @@ def test_a_pruned_model_serves_with_its_smaller_compute(make_settings, client_fo
     """a checkpoint pruned by `radarseg prune` serves next to its parent; the response's compute
     accounting shows its fewer params and detector MACs (the same cube, so the detector cost is comparable)."""
     from models.checkpoint import load_checkpoint, save_checkpoint
-    from models.slimming import prune_checkpoint
+    from models.slimming.prune import prune_checkpoint
     from service.settings import ModelSpec
 
     det, seg = tiny_checkpoints

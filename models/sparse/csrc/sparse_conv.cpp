@@ -1,4 +1,4 @@
-// Compiled CPU kernels of the sparse convolutions (models/sparse/native.py builds and loads this file).
+// Compiled CPU kernels of the sparse convolutions (models/sparse/compiled.py builds and loads this file).
 //
 // Three primitives over a kernel map's neighbour table `neighbours` (M, K) int64, where
 // `neighbours[j, k]` is a row of the gathered side or `src.size(0)` where there is none:

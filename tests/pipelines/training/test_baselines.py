@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 
 from models.checkpoint import load_checkpoint
-from pipelines.scoring import score_baseline
-from pipelines.training.baselines import load_baseline
+from pipelines.data.views import ViewDataset, load_baseline
+from pipelines.evaluation.scoring import score_baseline
 from pipelines.training.config import TrainConfig
 from pipelines.training.loop import train_loop
-from pipelines.views import ViewDataset
 
 
 def baseline_config(**kw) -> TrainConfig:

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 import pipelines.training.jitter as jitter
-from pipelines.scoring import frame_centres
-from pipelines.spread import subset
-from pipelines.store import StoreDataset
+from pipelines.data.spread import subset
+from pipelines.data.store import StoreDataset
+from pipelines.evaluation.scoring import frame_centres
 
 
 class OffsetTruthDecoder:

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from models.checkpoint import export_checkpoint, load_checkpoint
-from pipelines import train as train_job
+from pipelines.data.store_info import StoreInfo
 from pipelines.jobs import parse_config
-from pipelines.store_info import StoreInfo
+from pipelines.training import train as train_job
 from pipelines.training.config import PROFILES, TrainConfig
 from pipelines.training.jitter import SeedJitter
 from pipelines.training.loop import Budget, train, train_loop

@@ -1,0 +1,36 @@
+"""Which code runs ERASE-Net: the PyTorch engine (``models.erasenet.model``) or the ONNX one (``models.export``).
+
+Both give the same :class:`models.erasenet.model.EraseNet` interface and result; the compute report's
+``engine`` says which ran.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:  # importing torch takes seconds: the CLI reads ENGINES before it knows what runs
+    from models.checkpoint import Checkpoint
+    from models.erasenet.model import EraseNet
+
+ENGINES = ("torch", "onnx")
+"""torch: the sparse engine of ``models.sparse`` and the traced detector; onnx: the exported graphs in
+onnxruntime (exported on first use into the cache of ``models.export.onnx_engine``)."""
+
+
+def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *, engine: str = "torch",
+                  **kwargs: Any) -> EraseNet:
+    """``EraseNet.from_checkpoints`` on the chosen engine (keyword arguments as there).
+
+    Raises:
+        ValueError: an engine not in :data:`ENGINES`.
+    """
+    if engine == "torch":
+        from models.erasenet.model import EraseNet
+
+        return EraseNet.from_checkpoints(detector, segmenter, **kwargs)
+    if engine == "onnx":
+        from models.export.onnx_engine import OnnxEraseNet
+
+        return OnnxEraseNet.from_checkpoints(detector, segmenter, **kwargs)
+    raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")

@@ -1,0 +1,253 @@
+"""End-to-end ERASE-Net inference with its compute report (docs/design.md sections 5-8, 10).
+
+cube -> log transform -> normalised detector input -> detector -> decode -> region growing ->
+ROI points -> sparse segmenter -> RAD label cube (background outside the ROI) -> RA / RD masks ->
+objects. Every stage is timed; MACs are exact: the detector's from the analytic counter (cached per
+input shape), the segmenter's from the pairs its sparse convs actually processed.
+"""
+
+from __future__ import annotations
+
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_checkpoint
+from models.compute import ComputeCounter, MacRecorder, count_params, counted_layers
+from models.detector.inference import FrozenDetector
+from models.erasenet.compute_report import STEPS, FrameCompute
+from models.erasenet.detection import MAX_OBJECTS, SCORE_THRESHOLD, decode_centres, normalise_log_power
+from radar import transforms
+from radar.detections import Centres
+from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
+from radar.errors import UserError
+from radar.profiles import RadarProfile, get_profile, resolve_profile
+from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
+from radar.roi import roi_points
+from radar.schema import check_schema, cube_schema
+
+
+@dataclass(frozen=True)
+class SegmentedObject:
+    """One object found in a frame: the majority class of its segmented voxels and their centre."""
+
+    class_id: int
+    class_name: str
+    score: float  # detector score of the seed it grew from
+    range_m: float
+    angle_deg: float
+    velocity_mps: float  # radial, positive receding
+    x: float
+    y: float
+    n_voxels: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass
+class SegmentationResult:
+    """Prediction for one frame. ``labels`` (R, A, D) uint8; masks (R, A) and (R, D) uint8."""
+
+    labels: np.ndarray
+    ra_mask: np.ndarray
+    rd_mask: np.ndarray
+    objects: list[SegmentedObject]
+    centres: Centres
+    regions: Regions
+    compute: FrameCompute
+
+
+@contextmanager
+def _stage(seconds: dict[str, float], name: str):
+    start = time.perf_counter()
+    yield
+    seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - start
+
+
+class EraseNet:
+    """The two-stage segmenter. Thread-safe for concurrent ``segment`` calls only if the caller
+    serialises them (the segmenter's per-layer MAC counters are per call)."""
+
+    engine = "torch"
+    """What runs the networks, reported in the compute report (``models.export.onnx_engine``: "onnx")."""
+
+    def __init__(self, detector: nn.Module | None, segmenter: nn.Module, profile: RadarProfile | str, *,
+                 class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
+                 score_threshold: float = SCORE_THRESHOLD, max_objects: int = MAX_OBJECTS,
+                 doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
+                 region_config: RegionGrowingConfig | None = None, device: str | torch.device = "cpu",
+                 frozen_detector: bool = True):
+        """``frozen_detector``: run a detector that has a ``decode`` through
+        :class:`models.detector.inference.FrozenDetector` (traced for this preset's input, BatchNorms folded,
+        channels_last; a copy of its weights taken now). ``self.detector`` stays the eager module (its
+        parameters and MACs are the ones reported). ``detector`` None: the seeds always come from the
+        caller (``segment(..., centres=...)``, e.g. CFAR); the detector then counts 0 parameters."""
+        self.profile = get_profile(profile)
+        self.class_names = tuple(class_names or self.profile.all_class_names)
+        if len(self.class_names) != self.profile.num_classes:
+            raise ValueError(f"{len(self.class_names)} class names for a {self.profile.num_classes}-class preset")
+        if std_db <= 0:
+            raise ValueError(f"std_db must be > 0, got {std_db}")
+        self.device = torch.device(device)
+        self.detector = None if detector is None else detector.to(self.device).eval()
+        self.segmenter = segmenter.to(self.device).eval()
+        self.mean_db, self.std_db = float(mean_db), float(std_db)
+        self.score_threshold = score_threshold
+        self.max_objects = max_objects
+        self.region_config = region_config or RegionGrowingConfig.for_profile(self.profile)
+        # The detector's Doppler passes a 1x1 compression of D bins to 3 channels: refine it from the cube
+        # (radar.doppler; None keeps the detector's own estimate).
+        self.doppler_refinement = doppler_refinement
+        n_range, n_angle, n_doppler = self.profile.shape
+        self._run_detector: nn.Module | None = self.detector
+        if frozen_detector and callable(getattr(self.detector, "decode", None)):
+            self._run_detector = FrozenDetector(self.detector, (1, n_doppler, n_range, n_angle), self.device)
+        self._detector_counter = None if self.detector is None else ComputeCounter(self.detector)
+        self.params = {"detector": 0 if self.detector is None else count_params(self.detector),
+                       "segmenter": count_params(self.segmenter)}
+        self._segmenter_layers = counted_layers(self.segmenter)  # hooked for each frame's MAC count
+
+    @classmethod
+    def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
+                         device: str | torch.device = "cpu", **kwargs: Any) -> EraseNet:
+        """Both stages from checkpoints that carry their own architecture; the detector's checkpoint
+        gives the preset, class names and input normalisation. A swapped pair, the same file twice or a
+        checkpoint of another stage raises CheckpointError naming what was given and what was expected."""
+        det, seg = cls.load_pair(detector, segmenter)
+        if det.preset != seg.preset:
+            raise UserError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
+        # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
+        profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
+        for ckpt, what in ((det, "detector"), (seg, "segmenter")):
+            if "schema" in ckpt.extra:
+                check_schema(cube_schema(profile), ckpt.extra["schema"], what=f"{what} checkpoint")
+        return cls(det.build(), seg.build(), profile, class_names=det.class_names,
+                   mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
+                   device=device, **kwargs)
+
+    @staticmethod
+    def load_pair(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint
+                  ) -> tuple[Checkpoint, Checkpoint]:
+        """The two checkpoints, checked to be a detector and a segmenter (CheckpointError naming a swapped pair,
+        the same file twice, or a checkpoint of another stage). Cheap: nothing is built."""
+        if not isinstance(detector, Checkpoint) and not isinstance(segmenter, Checkpoint):
+            if Path(detector).resolve() == Path(segmenter).resolve():
+                raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
+                                      f"detector checkpoint and a segmenter checkpoint")
+        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, role="detector")
+        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, role="segmenter")
+        if det.stage == "segmenter" and seg.stage == "detector":
+            raise CheckpointError(f"detector {det.source or ''} and segmenter {seg.source or ''} are swapped: "
+                                  f"{det.describe()} given as detector, {seg.describe()} as segmenter")
+        expect_stage(det, "detector", role="detector")
+        expect_stage(seg, "segmenter", role="segmenter")
+        return det, seg
+
+    def schema(self, content: str = "complex") -> dict[str, Any]:
+        """The cube schema this model accepts (radar.schema)."""
+        return cube_schema(self.profile, content)
+
+    def detector_macs(self) -> int:
+        """Detector MACs per frame (analytic, cached per input shape); 0 without a detector."""
+        if self._detector_counter is None:
+            return 0
+        n_range, n_angle, n_doppler = self.profile.shape
+        return self._detector_counter.report((1, n_doppler, n_range, n_angle)).macs
+
+    @torch.no_grad()
+    def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None,
+                schema: dict[str, Any] | None = None) -> SegmentationResult:
+        """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
+
+        ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
+        evaluating stage 2 from ground-truth seeds, or a non-learned detector such as CFAR.
+        ``schema`` (optional) is the cube's own description; a mismatch with the model's raises
+        :class:`radar.schema.SchemaMismatch` naming every difference.
+        """
+        if schema is not None:
+            content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
+            check_schema(self.schema(content), schema)
+        if centres is None and self._run_detector is None:
+            raise ValueError("this EraseNet has no detector: give the seeds as centres=")
+        if cube.shape != self.profile.shape:
+            raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "
+                             f"got {cube.shape}")
+        seconds: dict[str, float] = {}
+        with _stage(seconds, "transform"):
+            log_power = cube.astype(np.float32, copy=False) if is_log_power else transforms.log_power(cube)
+            x = self._detector_input(log_power)
+        with _stage(seconds, "detect"):
+            if centres is None:
+                centres = decode_centres(self._run_detector, self._run_detector(x), [log_power], k=self.max_objects,
+                                         score_threshold=self.score_threshold,
+                                         doppler_refinement=self.doppler_refinement)[0]
+                detect_macs = self.detector_macs()
+            else:
+                detect_macs = 0
+        with _stage(seconds, "grow"):
+            regions = grow_regions(log_power, centres, self.profile, self.region_config)
+        with _stage(seconds, "segment"):
+            voxel_classes, segment_macs, segment_executed = self._segment_voxels(regions, log_power)
+        with _stage(seconds, "project"):
+            labels = np.zeros(self.profile.shape, np.uint8)
+            labels[tuple(regions.voxels.T)] = voxel_classes
+            # Background everywhere outside the ROI: project the ROI voxels alone.
+            shape, num_classes = self.profile.shape, self.profile.num_classes
+            ra_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 2, num_classes)
+            rd_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 1, num_classes)
+            objects = self._objects(regions, voxel_classes, centres)
+        compute = FrameCompute(
+            detect_macs=detect_macs, segment_macs=segment_macs, segment_executed_macs=segment_executed,
+            detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],
+            seconds={name: seconds.get(name, 0.0) for name in STEPS}, roi_voxels=len(regions),
+            visited_points=regions.visited, detections=len(centres), engine=self.engine)
+        return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute)
+
+    def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
+        """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""
+        # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.
+        cube_view = torch.from_numpy(log_power).to(self.device)[None].permute(0, 3, 1, 2)
+        return normalise_log_power(cube_view, self.mean_db, self.std_db)
+
+    def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int, int]:
+        """Class of every ROI voxel (N,) uint8 and the segmenter's useful and executed MACs."""
+        if len(regions) == 0:
+            return np.zeros(0, np.uint8), 0, 0
+        points = roi_points(regions.voxels, log_power, self.profile, mean_db=self.mean_db, std_db=self.std_db)
+        feats = torch.from_numpy(points.features).to(self.device)
+        coords = torch.from_numpy(points.coords).to(self.device)
+        batch = torch.zeros(len(coords), dtype=torch.int64, device=self.device)
+        with MacRecorder(self.segmenter, layers=self._segmenter_layers, params=self.params["segmenter"]) as recorder:
+            logits = self.segmenter(self.segmenter.make_input(torch.cat([batch[:, None], coords], dim=1), feats))
+        classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
+        report = recorder.report()
+        return classes[points.inverse], report.macs, report.executed
+
+    def _objects(self, regions: Regions, voxel_classes: np.ndarray, centres: Centres) -> list[SegmentedObject]:
+        """One object per seed whose region holds foreground voxels; class by majority vote."""
+        objects = []
+        cart_x, cart_y = self.profile.ra_cartesian
+        for seed, score in enumerate(centres.score):
+            own = (regions.seed_index == seed) & (voxel_classes > 0)
+            if not own.any():
+                continue
+            classes = voxel_classes[own]
+            class_id = int(np.bincount(classes, minlength=self.profile.num_classes)[1:].argmax() + 1)
+            r, a, d = regions.voxels[own].T
+            x, y = float(cart_x[r, a].mean()), float(cart_y[r, a].mean())
+            phase = 2 * np.pi * d / self.profile.n_doppler  # circular mean: the Doppler axis wraps
+            doppler = np.mod(np.angle(np.exp(1j * phase).mean()) / (2 * np.pi) * self.profile.n_doppler,
+                             self.profile.n_doppler)
+            objects.append(SegmentedObject(
+                class_id=class_id, class_name=self.class_names[class_id], score=float(score),
+                range_m=float(np.hypot(x, y)), angle_deg=float(np.degrees(np.arctan2(x, y))),
+                velocity_mps=float(self.profile.velocity_mps(doppler)), x=x, y=y, n_voxels=int(own.sum()),
+            ))
+        return objects

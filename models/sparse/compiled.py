@@ -1,0 +1,301 @@
+"""The compiled sparse engine: which engine runs the sparse convolutions, and the C++ kernels it loads.
+
+Two sparse engines run `models.sparse.conv`'s convolutions: `reference` (pure PyTorch, any device and dtype) and
+`compiled` (`csrc/sparse_conv.cpp`: gather-multiply kernels over the kernel map's neighbour table, float32 on
+CPU). The setting (`set_engine`, or the environment variable `RADARSEG_SPARSE_ENGINE` read at first use) is one
+of:
+
+- `auto` (default): compiled where it applies (CPU, float32) if it builds, else reference with one warning;
+- `compiled`: compiled where it applies; a failed build raises;
+- `reference`: always the pure-PyTorch engine.
+
+The sparse engine is not the runtime (`--engine torch|onnx`, :mod:`models.erasenet.engines`): the `torch`
+runtime runs its sparse convolutions on this setting's engine. The names `native` and `torch` of earlier
+versions are refused with the new name.
+
+The extension is built on first use with torch's extension machinery (g++ and ninja) and cached under
+`$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of the source,
+the compiler flags, torch's and Python's versions and the CPU's instruction-set flags (it is compiled with
+`-march=native`, so a cache shared between machines of different kinds never serves foreign code).
+torch's loader holds a file lock while it builds, so concurrent processes build it once.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import platform
+import shutil
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+logger = logging.getLogger(__name__)
+
+ENGINES = ("auto", "compiled", "reference")
+RENAMED = {"native": "compiled", "torch": "reference"}  # earlier names -> today's
+ENGINE_ENV = "RADARSEG_SPARSE_ENGINE"
+SOURCE = Path(__file__).parent / "csrc" / "sparse_conv.cpp"
+CFLAGS = ("-O3", "-march=native", "-fopenmp")
+LDFLAGS = ("-fopenmp",)
+# Instruction sets the kernels can be built for: `native` (everything this CPU has: 16-lane AVX-512
+# micro-kernels where present, else 8-lane AVX2) is what runs; `avx2` keeps AVX-512 off (a second build the
+# tests compare with on AVX-512 machines, so the AVX2 micro-kernels are checked there too).
+INSTRUCTION_SETS = {"native": (), "avx2": ("-mno-avx512f",)}
+
+_engine: str | None = None
+_module: ModuleType | None = None
+_build_error: str | None = None
+_lock = threading.Lock()
+
+
+def check_engine(name: str) -> str:
+    """`name` if it is one of `ENGINES`, else a ValueError naming them (or the new name of an old one)."""
+    if name in RENAMED:
+        raise ValueError(f"sparse engine {name!r} is now called {RENAMED[name]!r} (one of {ENGINES})")
+    if name not in ENGINES:
+        raise ValueError(f"sparse engine must be one of {ENGINES}, got {name!r}")
+    return name
+
+
+def get_engine() -> str:
+    """The engine setting: the last `set_engine`, else `RADARSEG_SPARSE_ENGINE`, else `auto`."""
+    global _engine
+    if _engine is None:
+        value = os.environ.get(ENGINE_ENV, "auto").strip().lower() or "auto"
+        try:
+            _engine = check_engine(value)
+        except ValueError as error:
+            raise ValueError(f"{ENGINE_ENV}: {error}") from None
+    return _engine
+
+
+def set_engine(name: str) -> None:
+    """Choose the engine for every later convolution (see the module docstring)."""
+    global _engine
+    _engine = check_engine(name)
+
+
+@contextmanager
+def using_engine(name: str) -> Iterator[None]:
+    """`set_engine(name)` inside a `with` block, the previous setting restored after it."""
+    previous = get_engine()
+    set_engine(name)
+    try:
+        yield
+    finally:
+        set_engine(previous)
+
+
+def cpu_flags() -> str:
+    """The CPU's instruction-set flags (Linux `/proc/cpuinfo`), or the processor's name elsewhere."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return " ".join(sorted(line.split(":", 1)[1].split()))
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def build_key(instruction_set: str = "native") -> str:
+    """Hash of everything the compiled code depends on (see the module docstring)."""
+    digest = hashlib.sha256()
+    flags = CFLAGS + INSTRUCTION_SETS[instruction_set] + LDFLAGS
+    for part in (SOURCE.read_bytes(), " ".join(flags).encode(), torch.__version__.encode(),
+                 sys.version.encode(), cpu_flags().encode(), platform.machine().encode()):
+        digest.update(part)
+        digest.update(b"\0")
+    return digest.hexdigest()[:16]
+
+
+def build_root() -> Path:
+    """Where built extensions are cached."""
+    base = os.environ.get("TORCH_EXTENSIONS_DIR")
+    return Path(base) if base else Path.home() / ".cache" / "radarseg" / "extensions"
+
+
+def _ensure_ninja_on_path() -> None:
+    """torch's loader runs `ninja` from PATH; a venv used without activation has it beside the interpreter."""
+    if shutil.which("ninja"):
+        return
+    candidates = [Path(sys.executable).parent]
+    try:
+        import ninja  # noqa: PLC0415
+
+        candidates.insert(0, Path(ninja.BIN_DIR))
+    except ImportError:
+        pass
+    for folder in candidates:
+        if (folder / "ninja").is_file():
+            os.environ["PATH"] = f"{folder}{os.pathsep}{os.environ.get('PATH', '')}"
+            return
+
+
+def load() -> ModuleType:
+    """The compiled kernels, built on first use (minutes at most; seconds when cached).
+
+    Raises:
+        RuntimeError: the build failed (no compiler, no ninja, ...); the message says why.
+    """
+    global _module, _build_error
+    if _module is not None:
+        return _module
+    with _lock:
+        if _module is not None:
+            return _module
+        if _build_error is not None:
+            raise RuntimeError(_build_error)
+        try:
+            _module = build("native")
+        except RuntimeError as error:
+            _build_error = str(error)
+            raise
+        return _module
+
+
+def build(instruction_set: str) -> ModuleType:
+    """The kernels compiled for `instruction_set` (one of `INSTRUCTION_SETS`), from the cache when built before.
+
+    Raises:
+        RuntimeError: the build failed; the message says why.
+    """
+    from torch.utils import cpp_extension  # noqa: PLC0415  (imports setuptools: only when needed)
+
+    name = f"radarseg_sparse_{build_key(instruction_set)}"
+    directory = build_root() / name
+    cached = (directory / f"{name}.so").is_file()
+    if not cached:
+        logger.info("building the compiled sparse engine (%s) in %s (first use with this CPU and source)",
+                    instruction_set, directory)
+    started = time.perf_counter()
+    try:
+        _ensure_ninja_on_path()
+        directory.mkdir(parents=True, exist_ok=True)
+        module = cpp_extension.load(
+            name=name, sources=[str(SOURCE)], build_directory=str(directory),
+            extra_cflags=list(CFLAGS + INSTRUCTION_SETS[instruction_set]), extra_ldflags=list(LDFLAGS),
+            verbose=False,
+        )
+    except Exception as error:  # noqa: BLE001  (compiler, ninja, linker or file errors all mean "no engine")
+        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
+        raise RuntimeError(f"the compiled sparse engine did not build ({type(error).__name__}: {first_line})") \
+            from error
+    if not cached:
+        logger.info("built the compiled sparse engine in %.1f s", time.perf_counter() - started)
+    return module
+
+
+def available() -> bool:
+    """Whether the compiled kernels load (building them if needed); never raises."""
+    try:
+        load()
+    except RuntimeError:
+        return False
+    return True
+
+
+_warned = False
+
+
+def use_compiled(*tensors: Tensor) -> bool:
+    """Whether the compiled engine runs a convolution on these tensors under the current setting.
+
+    Raises:
+        RuntimeError: the setting is `compiled` and the kernels did not build.
+    """
+    if not all(t.dtype == torch.float32 for t in tensors):
+        return False
+    return enabled_on(*(t.device for t in tensors))
+
+
+def enabled_on(*devices: torch.device) -> bool:
+    """Whether the compiled engine runs work on these devices under the current setting (CPU only; under `auto`
+    a failed build warns once and answers False).
+
+    Raises:
+        RuntimeError: the setting is `compiled` and the kernels did not build.
+    """
+    global _warned
+    engine = get_engine()
+    if engine == "reference" or not all(device.type == "cpu" for device in devices):
+        return False
+    if engine == "compiled":
+        load()
+        return True
+    try:
+        load()
+    except RuntimeError as error:
+        if not _warned:
+            _warned = True
+            warnings.warn(f"{error}; using the pure-PyTorch sparse engine", RuntimeWarning, stacklevel=3)
+        return False
+    return True
+
+
+def neighbour_conv(src: Tensor, neighbours: Tensor, weight: Tensor) -> Tensor:
+    """`out[j] = sum_k src[neighbours[j, k]] @ weight[k]`, missing neighbours (= len(src)) skipped.
+
+    Args:
+        src: (N, C) float32.
+        neighbours: (M, K) int64 rows of `src`, N where missing.
+        weight: (K, C, D).
+
+    Returns:
+        (M, D).
+    """
+    return load().neighbour_conv(src.contiguous(), neighbours.contiguous(), weight.contiguous())
+
+
+def scatter_conv(src: Tensor, neighbours: Tensor, weight: Tensor, num_out: int) -> Tensor:
+    """`out[neighbours[j, k]] = src[j] @ weight[k]` where present; each output row must be reached at most
+    once (a down-sampling map read backwards), rows never reached are zero.
+
+    Args:
+        src: (M, C) float32.
+        neighbours: (M, K) int64 output rows, `num_out` where missing.
+        weight: (K, C, D).
+        num_out: output rows.
+
+    Returns:
+        (num_out, D).
+    """
+    return load().scatter_conv(src.contiguous(), neighbours.contiguous(), weight.contiguous(), num_out)
+
+
+def neighbour_weight_grad(src: Tensor, neighbours: Tensor, dense: Tensor) -> Tensor:
+    """`grad[k] = sum_j src[neighbours[j, k]]^T dense[j]` over present neighbours.
+
+    Args:
+        src: (N, A) float32.
+        neighbours: (M, K) int64 rows of `src`, N where missing.
+        dense: (M, B).
+
+    Returns:
+        (K, A, B).
+    """
+    return load().neighbour_weight_grad(src.contiguous(), neighbours.contiguous(), dense.contiguous())
+
+
+def grid_neighbours(grid: Tensor, flat: Tensor, delta: Tensor) -> Tensor:
+    """`out[j, k] = grid[flat[j] + delta[k]]` as int64: a kernel map's neighbour table read from a dense index grid
+    in one pass (`models.sparse.kernel_map.VoxelIndex`).
+
+    Args:
+        grid: (cells,) int32 row of each cell.
+        flat: (M,) int64 cell of each output.
+        delta: (K,) int64 cell offset of each kernel offset; every `flat[j] + delta[k]` must lie in the grid.
+
+    Returns:
+        (M, K) int64.
+    """
+    return load().grid_neighbours(grid.contiguous(), flat.contiguous(), delta.contiguous())

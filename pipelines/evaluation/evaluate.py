@@ -1,0 +1,334 @@
+"""Evaluation of a trained ERASE-Net on a split of a store (docs/design.md sections 6, 10 and 12).
+
+``radarseg evaluate --detector CKPT --segmenter CKPT --store STORE --split test --out DIR`` (or
+``python -m pipelines.evaluation.evaluate ...``) runs :class:`models.erasenet.model.EraseNet` on every frame of the
+split and writes ``DIR/metrics.json``, ``DIR/report.md`` (:mod:`pipelines.evaluation.report`) and pictures:
+
+- detection: AP at k = 1, 3, 5 (metres and Doppler bins) and mAP (:mod:`radar.metrics`). The detector
+  is decoded for AP down to a score of ``AP_SCORE_THRESHOLD`` (a full precision-recall curve); the
+  segmentation runs at the network's operating threshold (``--score-threshold``);
+- region growing: recall (ground-truth object voxels inside the ROI over all of them, pooled over the
+  split) and visited points from the predicted seeds and from the ground-truth centres, plus a
+  D_thresh sweep for both on up to ``--sweep-frames`` frames;
+- segmentation: one RA and one RD confusion matrix over the split (background included), IoU per
+  class and mIoU; the same with ground-truth seeds (stage 2 alone, "oracle seeds");
+- cost: parameters and MACs per stage (mean per frame), seconds per stage (mean per frame);
+- pictures: PR curves, the RA/RD confusion matrices, and RA/RD maps of ``--pictures`` frames with the
+  ground truth above the prediction.
+
+Figures in ``metrics.json`` are fractions (IoU, recall, AP in [0, 1]); the report prints IoU in %.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from models.checkpoint import load_checkpoint
+from models.erasenet.detection import detect_centres
+from models.erasenet.engines import load_erasenet
+from models.erasenet.model import EraseNet
+from pipelines.data.spread import spread
+from pipelines.data.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
+from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
+from pipelines.jobs import run_module
+from pipelines.progress import progress
+from process.heap import freeze_loaded_heap
+from radar.detections import SCORE_THRESHOLD, Centres
+from radar.doppler import DOPPLER_REFINEMENT
+from radar.errors import UserError
+from radar.region_growing import RegionGrowingConfig, grow_regions
+
+log = logging.getLogger(__name__)
+
+AP_SCORE_THRESHOLD = 0.01  # detections kept for the PR curve
+D_THRESH_SWEEP_M = (4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    detector: str
+    segmenter: str
+    store: str
+    out: str
+    split: str | None = "test"  # None: every frame of the store
+    max_frames: int = 0  # 0 = every frame of the split
+    pictures: int = 4
+    sweep: tuple[float, ...] = D_THRESH_SWEEP_M
+    sweep_frames: int = 48
+    score_threshold: float | None = None  # operating threshold (None = EraseNet's default)
+    oracle: bool = True  # also segment from ground-truth seeds
+    doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
+    device: str = "cpu"
+    threads: int = 0  # torch intra-op threads (0 = torch's default); the per-stage seconds are taken with these
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.max_frames < 0 or self.pictures < 0 or self.sweep_frames < 0:
+            raise ValueError("max_frames, pictures and sweep_frames must be >= 0")
+        if any(d <= 0 for d in self.sweep):
+            raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
+
+
+class _RecallCounter:
+    """Pooled region-growing recall and mean visited points / ROI voxels over frames."""
+
+    def __init__(self) -> None:
+        self.inside = self.truth = self.visited = self.roi = self.frames = 0
+
+    def add(self, regions, instances: np.ndarray) -> None:
+        self.truth += int(np.count_nonzero(instances))
+        self.inside += int(np.count_nonzero(instances[tuple(regions.voxels.T)])) if len(regions) else 0
+        self.visited += regions.visited
+        self.roi += len(regions)
+        self.frames += 1
+
+    def summary(self) -> dict[str, float]:
+        frames = max(self.frames, 1)
+        return {"recall": self.inside / self.truth if self.truth else float("nan"),
+                "visited_mean": self.visited / frames, "roi_voxels_mean": self.roi / frames, "frames": self.frames}
+
+
+@dataclass
+class _Tallies:
+    """Everything :func:`evaluate` sums over the frames."""
+
+    detection: DetectionScorer
+    confusion: ViewConfusion
+    oracle_confusion: ViewConfusion
+    sweep: dict[tuple[str, float], _RecallCounter]
+    predicted_seeds: _RecallCounter = field(default_factory=_RecallCounter)
+    truth_seeds: _RecallCounter = field(default_factory=_RecallCounter)
+    macs: dict[str, list[float]] = field(default_factory=dict)
+    seconds: dict[str, list[float]] = field(default_factory=dict)
+
+    @classmethod
+    def empty(cls, profile: Any, distances: tuple[float, ...]) -> _Tallies:
+        num_classes = profile.num_classes
+        return cls(DetectionScorer(profile), ViewConfusion(num_classes), ViewConfusion(num_classes),
+                   {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in distances})
+
+
+def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
+    """Run the evaluation; writes ``metrics.json``, ``report.md`` and pictures into ``cfg.out``; returns the metrics."""
+    from pipelines.evaluation.report import write_report
+
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    det_ckpt = load_checkpoint(cfg.detector, stage="detector", role="--detector")
+    seg_ckpt = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
+    kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
+    net = load_erasenet(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
+    freeze_loaded_heap()  # no full garbage collection over torch and the models every few frames
+    root, frames = _frames(cfg, net.profile)
+    split_name = cfg.split or "all"
+    arrays = {name: root[name] for name in ("input", "instances", "ra_mask", "rd_mask", "objects", "n_objects")}
+    picture_frames = {int(frames[i]) for i in spread(len(frames), cfg.pictures)}
+    sweep_frames = {int(frames[i]) for i in spread(len(frames), cfg.sweep_frames)}
+    tallies = _Tallies.empty(net.profile, cfg.sweep)
+    pictures: list[str] = []
+    started = time.perf_counter()
+    for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
+        slot = int(slot)
+        frame = {name: array[slot] for name, array in arrays.items()}
+        picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames)
+        if slot in picture_frames:
+            title = f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)"
+            pictures.append(_frame_picture(net, picture, out / f"frame_{slot:05d}.png", title=title))
+    pictures = _summary_pictures(tallies, net.class_names, out, f"{split_name}, {len(frames)} frames") + pictures
+    metrics = _metrics(cfg, net, (det_ckpt, seg_ckpt), tallies, split_name, len(frames))
+    metrics.update(seconds=time.perf_counter() - started, pictures=pictures)  # in their place among the keys
+    if cfg.oracle:
+        metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
+                                               in tallies.oracle_confusion.summary(net.class_names).items()}
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    write_report(metrics, out / "report.md")
+    return metrics
+
+
+def _frames(cfg: EvaluateConfig, profile: Any) -> tuple[Any, np.ndarray]:
+    """The store (checked against the model's preset) and the slots to score."""
+    root = open_store(cfg.store)
+    if root.attrs["preset"] != profile.name:
+        raise UserError(f"store {cfg.store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
+    frames = frames_of_split(root, cfg.split)
+    if cfg.max_frames:
+        frames = frames[spread(len(frames), cfg.max_frames)]
+    if len(frames) == 0:
+        raise UserError(f"split {cfg.split!r} of {cfg.store} has no frames")
+    return root, frames
+
+
+def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: dict[str, np.ndarray], *,
+                 in_sweep: bool) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, Any]:
+    """Add one frame to every tally; returns what its picture needs: log power, truth masks, object table,
+    the segmentation result."""
+    profile = net.profile
+    log_power = frame["input"].astype(np.float32)  # (R, A, D) dB
+    instances = frame["instances"]
+    truth = {"ra": frame["ra_mask"], "rd": frame["rd_mask"]}
+    table = frame["objects"][: int(frame["n_objects"])].astype(np.float64)
+
+    # detection AP: the detector's scored centres down to a low threshold
+    frame_dra = torch.from_numpy(np.ascontiguousarray(log_power.transpose(2, 0, 1)))[None]  # (1, D, R, A)
+    with torch.no_grad():  # Doppler refined as the product refines it: AP of what it outputs
+        scored = detect_centres(net.detector, frame_dra, mean_db=net.mean_db, std_db=net.std_db,
+                                k=net.max_objects, score_threshold=AP_SCORE_THRESHOLD,
+                                doppler_refinement=net.doppler_refinement, device=net.device)[1][0]
+    tallies.detection.add(scored, table)
+
+    # the whole chain at the operating threshold
+    result = net.segment(log_power, is_log_power=True)
+    tallies.confusion.add_masks(truth, result.ra_mask, result.rd_mask)
+    tallies.predicted_seeds.add(result.regions, instances)
+    for name, value in result.compute.macs_by_stage().items():
+        tallies.macs.setdefault(name, []).append(value)
+    for name, value in result.compute.seconds_by_stage().items():
+        tallies.seconds.setdefault(name, []).append(value)
+
+    truth_centres = Centres.from_bins(table[:, CENTRE_COLUMNS])
+    tallies.truth_seeds.add(grow_regions(log_power, truth_centres, profile, net.region_config), instances)
+    if cfg.oracle:
+        oracle = net.segment(log_power, is_log_power=True, centres=truth_centres)
+        tallies.oracle_confusion.add_masks(truth, oracle.ra_mask, oracle.rd_mask)
+    if in_sweep:
+        for (seeds, distance), counter in tallies.sweep.items():
+            config = RegionGrowingConfig(**{**asdict(net.region_config), "distance_m": distance})
+            centres = result.centres if seeds == "predicted" else truth_centres
+            counter.add(grow_regions(log_power, centres, profile, config), instances)
+    return log_power, truth, table, result
+
+
+def _frame_picture(net: EraseNet, picture: tuple, path: Path, *, title: str) -> str:
+    """Ground truth against prediction for one frame, objects annotated; the file's name."""
+    from pipelines.figures import plot_truth_vs_prediction
+
+    log_power, truth, table, result = picture
+    profile, col = net.profile, OBJECT_COLUMN
+    truth_notes = [(net.class_names[int(row[col["class_id"]])], row[col["x"]], row[col["y"]],
+                    float(profile.velocity_mps(row[col["doppler_bin"]]))) for row in table]
+    pred_notes = [(f"{o.class_name} {o.score:.2f}", o.x, o.y, o.velocity_mps) for o in result.objects]
+    return plot_truth_vs_prediction(log_power, profile, (truth["ra"], truth["rd"]), (result.ra_mask, result.rd_mask),
+                                    path, truth_objects=truth_notes, predicted_objects=pred_notes, title=title).name
+
+
+def _summary_pictures(tallies: _Tallies, class_names: Any, out: Path, what: str) -> list[str]:
+    """The PR curves and one confusion matrix per view."""
+    from pipelines.figures import plot_confusion, plot_pr_curves
+
+    curves = tallies.detection.curves()
+    legend = {f"k = {k:g} (m and Doppler bins)": (c.recall, c.precision, c.ap) for k, c in curves.items()}
+    names = [plot_pr_curves(legend, out / "pr_curves.png").name]
+    for view, matrix in tallies.confusion.matrices.items():
+        names.append(plot_confusion(matrix, class_names, out / f"confusion_{view}.png",
+                                    title=f"{view.upper()} confusion ({what})").name)
+    return names
+
+
+def _metrics(cfg: EvaluateConfig, net: EraseNet, checkpoints: tuple[Any, Any], tallies: _Tallies, split_name: str,
+             n_frames: int) -> dict[str, Any]:
+    """metrics.json but for the figures only the caller knows: ``seconds``, ``pictures`` (placeholders here)
+    and ``segmentation_truth_seeds``."""
+    det_ckpt, seg_ckpt = checkpoints
+    class_names, detection = net.class_names, tallies.detection
+    curves = detection.curves()
+    return {
+        "store": str(cfg.store), "out": str(cfg.out), "split": split_name, "frames": n_frames,
+        "preset": net.profile.name,
+        "detector": str(cfg.detector), "segmenter": str(cfg.segmenter),
+        "models": {"detector": det_ckpt.model_name, "segmenter": seg_ckpt.model_name},
+        "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
+        "score_threshold": net.score_threshold, "classes": list(class_names),
+        "doppler_refinement": None if net.doppler_refinement is None else asdict(net.doppler_refinement),
+        "detection": {**detection.summary(), "n_truth": detection.n_truth,
+                      "n_predictions": int(len(next(iter(curves.values())).score)) if curves else 0,
+                      "ap_score_threshold": AP_SCORE_THRESHOLD},
+        "region_growing": {
+            "config": asdict(net.region_config),
+            "predicted_seeds": tallies.predicted_seeds.summary(), "truth_seeds": tallies.truth_seeds.summary(),
+            "sweep": [{"seeds": seeds, "distance_m": d, **counter.summary()}
+                      for (seeds, d), counter in tallies.sweep.items()],
+        },
+        "segmentation": {view.upper(): summary for view, summary in tallies.confusion.summary(class_names).items()},
+        "cost": {"params": net.params | {"total": sum(net.params.values())},
+                 "macs_mean": {k: float(np.mean(v)) for k, v in tallies.macs.items()},
+                 "seconds_mean": {k: float(np.mean(v)) for k, v in tallies.seconds.items()}},
+        "seconds": 0.0,
+        "pictures": [],
+    }
+
+
+def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
+    """What a checkpoint says about its training (profile, epochs, steps, time, validation figures)."""
+    metrics = extra.get("metrics", {})
+    return {"stage": extra.get("stage"), "profile": extra.get("profile"), "epoch": extra.get("epoch"),
+            "step": extra.get("step"), "elapsed_s": metrics.get("elapsed_s"),
+            **{k: v for k, v in metrics.items() if k.startswith("val_")}}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--detector", required=True, help="detector checkpoint")
+    parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
+    parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
+    parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
+    parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
+    parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread")
+    parser.add_argument("--pictures", type=int, default=4, help="frames drawn (truth above prediction)")
+    parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
+    parser.add_argument("--sweep-frames", type=int, default=48,
+                        help="frames of the region-growing D_thresh sweep")
+    parser.add_argument("--score-threshold", type=float, help=f"detector score threshold (default: {SCORE_THRESHOLD})")
+    parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
+    parser.add_argument("--no-doppler-refinement", action="store_true",
+                        help="keep the detector's own Doppler (no refinement from the cube)")
+    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
+    return EvaluateConfig(detector=args.detector, segmenter=args.segmenter, store=args.store, out=args.out,
+                          split=None if args.split == "all" else args.split, max_frames=args.max_frames,
+                          pictures=args.pictures,
+                          sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
+                          score_threshold=args.score_threshold, oracle=not args.no_oracle,
+                          doppler_refinement=not args.no_doppler_refinement, device=args.device,
+                          threads=args.threads, progress=not args.no_progress)
+
+
+def main(cfg: EvaluateConfig) -> dict[str, Any]:
+    """Run the evaluation (:func:`evaluate`); returns its metrics."""
+    return evaluate(cfg)
+
+
+def format_result(metrics: dict[str, Any]) -> str:
+    return f"{format_summary(metrics)}\nreport: {metrics['out']}/report.md"
+
+
+def format_summary(metrics: dict[str, Any]) -> str:
+    """A few lines with the headline figures of :func:`evaluate`'s metrics."""
+    det, rg, seg = metrics["detection"], metrics["region_growing"], metrics["segmentation"]
+    return "\n".join([
+        f"{metrics['split']}: {metrics['frames']} frames of {metrics['store']}",
+        f"  detection AP@1 {det['AP@1']:.3f}  AP@3 {det['AP@3']:.3f}  AP@5 {det['AP@5']:.3f}  mAP {det['mAP']:.3f}",
+        f"  region growing recall {rg['predicted_seeds']['recall']:.3f} (predicted seeds), "
+        f"{rg['truth_seeds']['recall']:.3f} (true centres); visited {rg['predicted_seeds']['visited_mean']:.0f}",
+        f"  mIoU RA {100 * seg['RA']['mIoU']:.2f}  RD {100 * seg['RD']['mIoU']:.2f}",
+    ])
+
+
+if __name__ == "__main__":
+    sys.exit(run_module("pipelines.evaluation.evaluate"))

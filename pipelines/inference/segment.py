@@ -1,0 +1,57 @@
+"""``radarseg segment CUBE.npy``: ERASE-Net on one cube file, with a picture of the prediction."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.erasenet.engines import load_erasenet
+from models.erasenet.model import EraseNet
+from radar import transforms
+from radar.detections import SCORE_THRESHOLD
+from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
+from radar.io.errors import DataError
+from radar.io.npy import load_npy
+from radar.profiles import resolve_profile
+
+
+def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str | Path,
+                 input_kind: InputKind | str | None = None, png: str | Path | None = None,
+                 score_threshold: float = SCORE_THRESHOLD, engine: str = "torch") -> dict[str, Any]:
+    """Segment a .npy cube and return objects and compute. ``input_kind`` says what the cube holds
+    (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
+    say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake.
+    ``engine``: "torch" or "onnx" (``models.erasenet.engines``)."""
+    declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
+    det, seg = EraseNet.load_pair(detector, segmenter)  # checked before anything is built or read
+    profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
+    if declared is InputKind.adc:
+        from radar.adc import adc_shape
+
+        shape, what = adc_shape(profile), "ADC samples (samples, chirps, virtual elements)"
+    else:
+        shape, what = profile.shape, "RAD cube (range, angle, Doppler)"
+    cube = load_npy(cube_path, shape=shape, dtypes=(np.complexfloating, np.floating), what=what)
+    try:
+        kind = resolve_kind(cube.dtype, declared)
+        check_values(cube, kind)
+    except ValueError as exc:
+        raise DataError(cube_path, str(exc)) from None
+    pair = (det, seg) if engine == "torch" else (detector, segmenter)  # the ONNX export is keyed by the files
+    net = load_erasenet(*pair, engine=engine, score_threshold=score_threshold)
+    if kind is InputKind.adc:
+        from radar.adc import process_adc
+
+        cube = process_adc(cube, net.profile)
+    is_log_power = kind is InputKind.log_power
+    result = net.segment(cube, is_log_power=is_log_power)
+    if png is not None:
+        from pipelines.figures import plot_prediction
+
+        log_power = cube.astype(np.float32) if is_log_power else transforms.log_power(cube)
+        plot_prediction(log_power, net.profile, result.ra_mask, result.rd_mask, result.objects, png,
+                        title=f"ERASE-Net on {Path(cube_path).name}")
+    return {"objects": [o.to_dict() for o in result.objects], "compute": result.compute.to_dict(),
+            "png": None if png is None else str(png), "input": kind.value}

@@ -1,0 +1,408 @@
+"""Ray job: segment a whole store split or recording with ERASE-Net checkpoints into a predictions store.
+
+::
+
+    python -m pipelines.inference.segment_batch --source store:STORE.zarr --split test \\
+        --detector checkpoints/detector.pt --segmenter checkpoints/segmenter.pt --out PRED.zarr
+    python -m pipelines.inference.segment_batch --source recording:DIR --detector DET.pt --segmenter SEG.pt \\
+        --out PRED.zarr
+    ray job submit --address http://127.0.0.1:8265 --working-dir . -- \\
+        python -m pipelines.inference.segment_batch ... --out /abs/PRED.zarr --workers 4
+
+The job follows :mod:`pipelines.jobs` and runs on :mod:`pipelines.data.sharded_job` like
+:mod:`pipelines.data.preprocess` (embedded local Ray without ``--address``; ``RAY_ADDRESS`` under ``ray job
+submit``; ``--in-process`` for smoke runs without Ray). The work is cut the same way: the selected frames
+take ``N`` slots of the predictions store (:mod:`pipelines.inference.predictions_store`), every array is cut along
+the frame axis every ``--shard-frames`` slots, and a shard is the unit of work, of writing and of resumption.
+
+Stages are callable classes (Ray's batch-inference pattern): ``--workers`` :class:`ShardSegmenter`
+actors each load both checkpoints once (``__init__``), then each call reads its shard's frames from
+the source, segments them and writes the whole shard of every array, then the shard's progress marker
+(last). Actors are spread over the cluster's nodes; the runner keeps every actor busy (``ray.wait``).
+A rerun with the same arguments skips shards whose marker exists; a store written with other
+arguments is refused. Frames that cannot be read or segmented are quarantined (``valid = 0``, reason
+in the ``report`` attribute); the job fails when every frame is bad.
+
+The figure the job returns (and prints) is ``frames_per_second``: frames segmented over the wall time
+from the first shard submitted to the last shard written, with every actor's model already loaded.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import logging
+import os
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.erasenet.engines import ENGINES
+from pipelines.data import shard_frames, sharded_job
+from pipelines.data.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
+from pipelines.data.sources import SourceKind, add_source_arguments, parse_source, source_from_args
+from pipelines.data.store import frames_of_split, open_store
+from pipelines.inference.predictions_store import (
+    COMPUTE_FIELDS,
+    FORMAT,
+    PREDICTION_OBJECT_FIELDS,
+    PredictionLayout,
+    create_predictions,
+    encode_prediction,
+)
+from pipelines.jobs import run_module
+from process.heap import freeze_loaded_heap
+from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
+from radar.errors import UserError
+from radar.io.errors import DataError
+from radar.io.recording import Recording
+
+log = logging.getLogger(__name__)
+
+SOURCE_KINDS = (SourceKind.STORE, SourceKind.RECORDING)
+
+
+@dataclass(frozen=True)
+class SegmentBatchConfig:
+    """Arguments of the job, as given."""
+
+    source: str  # "store:STORE.zarr" or "recording:DIR"
+    detector: str
+    segmenter: str
+    out: str
+    split: str | None = None  # store only: train, val, test; None = every valid frame
+    limit: int | None = None  # the first LIMIT selected frames only (smoke tests)
+    score_threshold: float = SCORE_THRESHOLD
+    max_objects: int = MAX_OBJECTS
+    address: str | None = None
+    workers: int | None = None  # segmenter actors; None = the cluster's CPUs
+    cpus_per_worker: float = 1.0
+    torch_threads: int = 1  # per actor: one core each, so actors scale instead of fighting over cores
+    shard_frames: int = SHARD_FRAMES
+    progress: bool = True
+    in_process: bool = False  # every shard in this process (one ShardSegmenter), no Ray
+    engine: str = "torch"  # models.erasenet.engines: torch, or onnx (the exported graphs in onnxruntime)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class FrameRef(sharded_job.FrameSlot):
+    """One frame to segment: where it is in the source and which slot it takes in the predictions."""
+
+    source_slot: int  # store slot, or running number over the recording's frames
+
+    def slot_arrays(self) -> dict[str, int]:
+        return {**super().slot_arrays(), "source_slot": self.source_slot}
+
+
+@dataclass(frozen=True)
+class BatchPlan(sharded_job.ShardedPlan):
+    """Everything fixed before any work: the source, the predictions' layout, the slot of every frame
+    (``FrameRef``s) and the checkpoints."""
+
+    checkpoints: dict[str, Any]
+    class_names: tuple[str, ...]
+
+    def identity(self) -> dict[str, Any]:
+        """What a resumed run must share with the run that created the store."""
+        return {"source": self.source.to_dict(), "split": self.cfg.split, "layout": self.layout.to_dict(),
+                "checkpoints": self.checkpoints, "score_threshold": self.cfg.score_threshold,
+                "source_slots": [f.source_slot for f in self.frames]}
+
+
+# --------------------------------------------------------------------------- arguments
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The job's arguments (shared by ``python -m pipelines.inference.segment_batch`` and ``radarseg
+    segment-batch``)."""
+    add_source_arguments(parser, SOURCE_KINDS)
+    parser.add_argument("--detector", required=True, help="detector checkpoint")
+    parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
+    parser.add_argument("--out", required=True, help="predictions store path (shared by all Ray nodes)")
+    parser.add_argument("--split", choices=["train", "val", "test"],
+                        help="store source: the split to segment (default: every valid frame)")
+    parser.add_argument("--limit", type=int, help="segment only the first LIMIT selected frames (smoke runs)")
+    parser.add_argument("--score-threshold", type=float, default=SCORE_THRESHOLD, help="detector score threshold")
+    parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS,
+                        help="detections per frame and width of the object table")
+    parser.add_argument("--workers", type=int, help="segmenter actors, each loading the model once "
+                                                    "(default: the cluster's CPUs / --cpus-per-worker)")
+    parser.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per actor")
+    parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
+    parser.add_argument("--engine", choices=ENGINES, default="torch",
+                        help="torch (default), or onnx: the exported graphs in onnxruntime (exported once into "
+                             "each node's $RADARSEG_ONNX_CACHE, default ~/.cache/radarseg/onnx)")
+    sharded_job.add_execution_arguments(parser)
+
+
+def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
+    return SegmentBatchConfig(
+        source=source_from_args(args, SOURCE_KINDS), detector=str(Path(args.detector).expanduser().absolute()),
+        segmenter=str(Path(args.segmenter).expanduser().absolute()), out=str(Path(args.out).expanduser().absolute()),
+        split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
+        address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
+        torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
+        in_process=args.in_process, engine=args.engine,
+    )
+
+
+# --------------------------------------------------------------------------- planning
+def _file_sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
+    """Check every argument, the checkpoints' metadata and the source, and lay out the predictions store.
+    Raises ValueError (CheckpointError is one) or DataError saying what is wrong; nothing is written."""
+    from models.checkpoint import load_checkpoint
+
+    source_of_frames = parse_source(cfg.source, SOURCE_KINDS)
+    kind, location = source_of_frames.kind, source_of_frames.location or ""
+    for name in ("workers", "shard_frames", "max_objects", "limit", "torch_threads"):
+        value = getattr(cfg, name)
+        if value is not None and value < 1:
+            raise UserError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    if cfg.cpus_per_worker <= 0:
+        raise UserError(f"--cpus-per-worker must be > 0, got {cfg.cpus_per_worker}")
+    if not 0.0 <= cfg.score_threshold <= 1.0:
+        raise UserError(f"--score-threshold must be in [0, 1], got {cfg.score_threshold}")
+    if kind is SourceKind.RECORDING and cfg.split is not None:
+        raise UserError("--split: only with a store source (a recording is segmented whole)")
+
+    det = load_checkpoint(cfg.detector, stage="detector", role="--detector")
+    seg = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
+    if det.preset != seg.preset:
+        raise UserError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
+                         f"for {seg.preset!r}")
+    root_path = Path(location).expanduser().absolute()
+    frames: list[FrameRef] = []
+    if kind is SourceKind.STORE:
+        root = open_store(root_path)
+        preset = root.attrs["preset"]
+        sequences = tuple(root.attrs["sequences"])
+        slots = frames_of_split(root, cfg.split)
+        sequence_ids, frame_indices = root["sequence_id"][:], root["frame_index"][:]
+        for slot in slots[: cfg.limit]:
+            seq_id = int(sequence_ids[slot])
+            frames.append(FrameRef(len(frames), seq_id, sequences[seq_id], int(frame_indices[slot]), int(slot)))
+    else:
+        recording = Recording(root_path)
+        preset = recording.profile.name
+        sequences = tuple(sorted(recording.sequences()))
+        running = 0
+        for seq_id, seq in enumerate(sequences):
+            for index in range(recording.n_frames(seq)):
+                frames.append(FrameRef(len(frames), seq_id, seq, index, running))
+                running += 1
+        frames = frames[: cfg.limit]
+    if preset != det.preset:
+        raise UserError(f"the source {root_path} holds {preset!r} frames but the checkpoints are for {det.preset!r}")
+    if not frames:
+        raise DataError(root_path, f"no valid frame to segment (split {cfg.split or 'all'})")
+    layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects)
+    checkpoints = {name: {"path": str(Path(path)), "sha256": _file_sha256(Path(path)), "model": ckpt.model_name}
+                   for name, path, ckpt in (("detector", cfg.detector, det), ("segmenter", cfg.segmenter, seg))}
+    plan = BatchPlan(cfg=cfg, out=Path(cfg.out), source=sharded_job.SourceSpec(kind, str(root_path), preset),
+                     layout=layout,
+                     sequences=sequences, frames=tuple(frames), checkpoints=checkpoints,
+                     class_names=tuple(det.class_names))
+    _check_out(plan)
+    return plan
+
+
+def _check_out(plan: BatchPlan) -> None:
+    """An existing ``--out`` must be empty, or a predictions store of the same job (which is then resumed)."""
+    check_resumable_out(plan.out, store_format=FORMAT, identity=plan.identity(), what="radarseg predictions store")
+
+
+# --------------------------------------------------------------------------- the segmenter stage
+def _source_cubes(source: sharded_job.SourceSpec,
+                  frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError]]:
+    """Each frame's cube (a store's: float16 log power in dB; a recording's: complex), or the DataError
+    reading it raised."""
+    if source.kind == "store":
+        inputs = open_store(source.path)["input"]
+        for ref in frames:
+            yield ref, inputs[ref.source_slot].astype(np.float32)
+        return
+    recording = Recording(source.path)
+    for ref in frames:
+        try:
+            yield ref, recording.read_frame(ref.sequence, ref.index).cube
+        except DataError as exc:
+            yield ref, exc
+
+
+class ShardSegmenter:
+    """Callable stage: loads ERASE-Net once (in ``__init__``), then segments and writes one shard per call.
+
+    Used as a Ray actor (one per ``--workers``); plain instances run the same code in-process.
+    """
+
+    def __init__(self, detector: str, segmenter: str, *, score_threshold: float = SCORE_THRESHOLD,
+                 max_objects: int = MAX_OBJECTS, torch_threads: int = 1, engine: str = "torch") -> None:
+        import torch
+
+        from models.erasenet.engines import load_erasenet
+
+        torch.set_num_threads(torch_threads)  # the ONNX engine takes its thread count from torch's too
+        started = time.perf_counter()
+        self.net = load_erasenet(detector, segmenter, engine=engine, score_threshold=score_threshold,
+                                 max_objects=max_objects)
+        # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
+        # not count against the first shard.
+        self.net.segment(np.zeros(self.net.profile.shape, np.float32), is_log_power=True)
+        freeze_loaded_heap()  # no full garbage collection over torch and the model every few frames
+        self.model_loads = 1
+        self.load_seconds = time.perf_counter() - started
+        self.calls = 0
+
+    def identity(self) -> dict[str, Any]:
+        """Where this stage runs and how often it loaded the model (once)."""
+        return {"pid": os.getpid(), "node_id": _node_id(), "model_loads": self.model_loads,
+                "load_seconds": self.load_seconds}
+
+    def __call__(self, job: sharded_job.ShardJob) -> dict[str, Any]:
+        """Segment the frames of ``job``, write the whole shard of every array, then its marker; returns
+        (and stores in the marker) the shard's summary."""
+        self.calls += 1
+        layout = job.layout
+        is_log_power = job.source.kind == "store"  # a store holds log power; a recording, complex cubes
+        seconds = []
+
+        def segment(cube: np.ndarray) -> dict[str, np.ndarray]:  # a cube of the wrong shape raises ValueError
+            tick = time.perf_counter()
+            result = self.net.segment(cube, is_log_power=is_log_power)
+            seconds.append(time.perf_counter() - tick)
+            return encode_prediction(result, layout)
+
+        buffers, quarantined = shard_frames.fill_shard(job, _source_cubes(job.source, job.frames), segment)
+        write_shard_arrays(job.store, layout, job.shard, buffers)
+        valid = buffers["valid"].astype(bool)
+        summary = {
+            "shard": job.shard,
+            "frames": len(job.frames),
+            "written": int(valid.sum()),
+            "quarantined": quarantined,
+            "objects": int(buffers["n_objects"][valid].sum()),
+            "macs": int(buffers["compute"][valid, COMPUTE_FIELDS.index("macs_total")].sum()),
+            "segment_seconds": sum(seconds),
+            "worker": {**self.identity(), "calls": self.calls},
+        }
+        mark_shard_done(job.store, job.shard, summary)
+        return summary
+
+
+def _node_id() -> str | None:
+    import ray
+
+    if not ray.is_initialized():
+        return None
+    return ray.get_runtime_context().get_node_id()
+
+
+# --------------------------------------------------------------------------- the job
+REPORT_PICTURES = 3  # frames drawn in the report beside the store (most detections first)
+
+
+def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
+    """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
+    plan = plan_job(cfg)
+    if cfg.engine == "onnx":  # export once here, not in every actor at once (they share this node's cache)
+        from models.export.onnx_engine import exported_dir
+
+        exported_dir(cfg.detector, cfg.segmenter)
+    job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
+                                 stage_args=(cfg.detector, cfg.segmenter),
+                                 stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
+                                               "torch_threads": cfg.torch_threads, "engine": cfg.engine},
+                                 reduce=reduce_summaries, finish=partial(store_attributes, plan))
+    execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
+                                      cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment")
+    run = sharded_job.run_sharded(job, execution)
+    per_worker: dict[int, dict[str, Any]] = {}
+    for s in run.summaries:
+        entry = per_worker.setdefault(s["worker"]["pid"], {**s["worker"], "shards": 0, "frames": 0})
+        entry.update(calls=max(entry["calls"], s["worker"]["calls"]), shards=entry["shards"] + 1,
+                     frames=entry["frames"] + s["frames"])
+    stats = run.stats
+    from pipelines.inference.predictions_report import (
+        write_predictions_report,  # summary.json/.txt and pictures beside it
+    )
+
+    report = write_predictions_report(plan.out, pictures=REPORT_PICTURES)
+    return {
+        "store": str(plan.out),
+        "report": report["dir"],
+        "source": plan.source.to_dict(),
+        "frames": stats["frames"],
+        "written": stats["written"],
+        "quarantined": len(stats["quarantined"]),
+        "objects": stats["objects"],
+        "macs_total": stats["macs"],
+        "shards": plan.layout.n_shards,
+        "shards_run": run.shards_run,
+        "shards_skipped": run.shards_skipped,
+        "workers": run.workers,
+        "nodes": len({w["node_id"] for w in per_worker.values()}),
+        "worker_stats": sorted(per_worker.values(), key=lambda w: w["pid"]),
+        "seconds_ray_and_models": run.seconds_start,
+        "seconds_segmenting": run.seconds_shards,
+        "seconds_total": run.seconds_total,
+        "frames_per_second": run.frames_per_second,
+    }
+
+
+def reduce_summaries(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The job's figures from every shard's summary (given in shard order)."""
+    return {
+        "frames": sum(s["frames"] for s in summaries),
+        "written": sum(s["written"] for s in summaries),
+        "objects": sum(s["objects"] for s in summaries),
+        "macs": sum(s["macs"] for s in summaries),
+        "quarantined": sorted((q for s in summaries for q in s["quarantined"]), key=lambda q: q["frame"]),
+    }
+
+
+def store_attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
+    """The predictions store's final attributes (DataError when every frame failed to segment)."""
+    if stats["written"] == 0:
+        raise DataError(plan.source.path, f"every one of the {stats['frames']} frames failed to segment (first: "
+                                          f"{stats['quarantined'][0]['reason'] if stats['quarantined'] else '?'})")
+    return {
+        "preset": plan.layout.preset,
+        "class_names": list(plan.class_names),
+        "sequences": list(plan.sequences),
+        "object_fields": list(PREDICTION_OBJECT_FIELDS),
+        "compute_fields": list(COMPUTE_FIELDS),
+        "source": plan.source.to_dict(),
+        "split": plan.cfg.split,
+        "checkpoints": plan.checkpoints,
+        "report": {"frames": stats["frames"], "written": stats["written"], "objects": stats["objects"],
+                   "macs": stats["macs"], "quarantined": stats["quarantined"]},
+        "job": plan.cfg.to_dict(),
+    }
+
+
+def format_result(result: dict[str, Any]) -> str:
+    """The summary line (``--json`` prints the figures as one JSON line instead: what drivers of ``ray job
+    submit`` read)."""
+    return (f"predictions {result['store']}: {result['written']}/{result['frames']} frames segmented, "
+            f"{result['quarantined']} quarantined, {result['shards_run']} shards run, "
+            f"{result['shards_skipped']} already done; {result['frames_per_second'] or 0:.2f} frames/s with "
+            f"{result['workers']} worker(s) on {result['nodes']} node(s); summary and pictures in {result['report']}")
+
+
+if __name__ == "__main__":
+    sys.exit(run_module("pipelines.inference.segment_batch"))

@@ -1,1 +1,0 @@
-"""Built-in radar profiles as data files (TOML); see radar/profile_files.py."""

@@ -1,0 +1,102 @@
+"""Evaluation: metrics.json, report.md and pictures from tiny checkpoints; the shipped model reaches the
+figures of its report on a freshly simulated test split."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from pipelines.evaluation.evaluate import EvaluateConfig, evaluate
+from pipelines.training.config import TrainConfig
+from pipelines.training.loop import train_loop
+
+REPO = Path(__file__).resolve().parents[3]
+SHIPPED = REPO / "checkpoints"
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoints(small_store, tmp_path_factory):
+    """A tiny detector and segmenter trained for one step each on the small test store."""
+    root = tmp_path_factory.mktemp("runs")
+    common = {"store": str(small_store), "model_config": {}, "epochs": 1, "max_steps": 1, "progress": False,
+              "val_split": None}
+    train_loop(TrainConfig(stage="detector", out=str(root / "det"), model="centre_detector_tiny", batch_size=2,
+                           **common))
+    train_loop(TrainConfig(stage="segmenter", out=str(root / "seg"), model="minkunet_tiny", batch_size=2,
+                           jitter_std=(1.0, 1.0, 0.5), **common))
+    return root / "det" / "model.pt", root / "seg" / "model.pt"
+
+
+def test_evaluate_writes_metrics_report_and_pictures(small_store, tiny_checkpoints, tmp_path):
+    detector, segmenter = tiny_checkpoints
+    out = tmp_path / "eval"
+    metrics = evaluate(EvaluateConfig(detector=str(detector), segmenter=str(segmenter), store=str(small_store),
+                                      out=str(out), split="val", max_frames=2, pictures=1, sweep=(6.0, 12.0),
+                                      sweep_frames=1, score_threshold=0.05, progress=False))
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["frames"] == 2 and saved["split"] == "val"
+    assert set(saved["detection"]) >= {"AP@1", "AP@3", "AP@5", "mAP", "n_truth"}
+    assert saved["detection"]["n_truth"] > 0
+    for view in ("RA", "RD"):
+        confusion = np.array(saved["segmentation"][view]["confusion"])
+        assert confusion.shape == (4, 4)
+        # every RA cell / RD cell of both frames is counted once
+        assert confusion.sum() == 2 * 128 * (128 if view == "RA" else 32)
+        assert 0.0 <= saved["segmentation"][view]["mIoU"] <= 1.0
+    rg = saved["region_growing"]
+    assert 0.0 < rg["truth_seeds"]["recall"] <= 1.0 and rg["truth_seeds"]["visited_mean"] > 0
+    assert {(row["seeds"], row["distance_m"]) for row in rg["sweep"]} == {
+        ("predicted", 6.0), ("predicted", 12.0), ("truth", 6.0), ("truth", 12.0)}
+    sweep = {(row["seeds"], row["distance_m"]): row for row in rg["sweep"]}
+    assert sweep[("truth", 12.0)]["visited_mean"] >= sweep[("truth", 6.0)]["visited_mean"]
+    assert saved["cost"]["params"]["detector"] > 0 and saved["cost"]["macs_mean"]["detect"] > 0
+    report = (out / "report.md").read_text()
+    for heading in ("## Detection", "## Segmentation", "## Region growing", "## Cost per frame", "| small RA |"):
+        assert heading in report
+    for name in saved["pictures"]:
+        assert (out / name).stat().st_size > 1000, name
+    assert {"pr_curves.png", "confusion_ra.png", "confusion_rd.png"} <= set(saved["pictures"])
+    assert metrics["frames"] == 2
+
+
+def test_cli_evaluate(small_store, tiny_checkpoints, tmp_path, capsys):
+    from pipelines.cli import main as cli
+
+    detector, segmenter = tiny_checkpoints
+    threads = torch.get_num_threads()
+    try:
+        code = cli(["evaluate", "--detector", str(detector), "--segmenter", str(segmenter), "--store",
+                    str(small_store), "--split", "val", "--out", str(tmp_path), "--max-frames", "1", "--pictures", "0",
+                    "--sweep", "6", "--sweep-frames", "0", "--no-oracle", "--no-progress", "--threads", "1"])
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(threads)
+    assert code == 0 and (tmp_path / "report.md").is_file()
+    assert "mAP" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SHIPPED / "metrics.json").is_file(), reason="no shipped checkpoints")
+def test_shipped_model_reaches_its_report(tmp_path):
+    """A freshly simulated small test split (other seed than the training store) evaluates within a
+    tolerance of the figures in checkpoints/metrics.json (few frames: the tolerance is generous)."""
+    from pipelines.data.preprocess import PreprocessConfig
+    from tests.pipelines.conftest import build_store_inline
+
+    shipped = json.loads((SHIPPED / "metrics.json").read_text())
+    store = build_store_inline(PreprocessConfig(source="sim", out=str(tmp_path / "fresh.zarr"), preset="small",
+                                                sequences=4, frames=12, seed=90210,
+                                                split_fractions=(0.25, 0.25, 0.5), shard_frames=12, progress=False))
+    metrics = evaluate(EvaluateConfig(detector=str(SHIPPED / "detector.pt"), segmenter=str(SHIPPED / "segmenter.pt"),
+                                      store=str(store), out=str(tmp_path / "eval"), split="test", pictures=0,
+                                      sweep=(), sweep_frames=0, oracle=False, progress=False))
+    assert metrics["frames"] == 24
+    assert metrics["detection"]["mAP"] >= shipped["detection"]["mAP"] - 0.12
+    assert metrics["region_growing"]["predicted_seeds"]["recall"] >= shipped["region_growing"]["predicted_seeds"][
+        "recall"] - 0.05
+    for view in ("RA", "RD"):
+        assert metrics["segmentation"][view]["mIoU"] >= shipped["segmentation"][view]["mIoU"] - 0.10, view
