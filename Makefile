@@ -35,12 +35,17 @@ $(STAMP): pyproject.toml
 		|| echo "set-up: the compiled sparse engine did not build; the pure-PyTorch engine will run (README)"
 	touch $(STAMP)
 
+# The suite runs on one pytest-xdist worker per core (TEST_WORKERS=0 runs it in this process); the Ray tests
+# share one worker (tests/conftest.py), so one cluster runs at a time.
+TEST_WORKERS ?= auto
+PYTEST := $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+
 test: venv
-	$(BIN)/python -m pytest -q
+	$(PYTEST)
 
 # The day-to-day lane: everything but the slow and Ray tests (CI runs the full `make test`).
 test-fast: venv
-	$(BIN)/python -m pytest -q -m "not slow and not ray"
+	$(PYTEST) -m "not slow and not ray"
 
 demo: venv
 	$(BIN)/radarseg demo --out out/demo

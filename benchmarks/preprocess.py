@@ -27,9 +27,9 @@ import torch
 
 from models.detector.targets import build_centre_targets
 from models.registry import create_model
-from pipelines.data.preprocess import PreprocessConfig, main
-from pipelines.data.ray_runtime import init_ray
-from pipelines.data.store import CENTRE_COLUMNS, StoreDataset
+from pipelines.datasets.preprocess import PreprocessConfig, main
+from pipelines.datasets.ray_runtime import init_ray
+from pipelines.datasets.store import CENTRE_COLUMNS, StoreDataset
 
 RESULTS = Path(__file__).parent / "results" / "preprocess.json"
 

@@ -26,7 +26,7 @@ sys.path.insert(0, str(REPO))  # for radar/ only: a deployment copies it (it imp
 from radar import transforms  # noqa: E402
 from radar.detections import Centres  # noqa: E402
 from radar.doppler import DOPPLER_REFINEMENT, refine_doppler  # noqa: E402
-from radar.profiles import get_profile  # noqa: E402
+from radar.profiles import resolve_profile  # noqa: E402
 from radar.region_growing import RegionGrowingConfig, grow_regions  # noqa: E402
 from radar.roi import roi_points  # noqa: E402
 
@@ -45,7 +45,8 @@ centres_numpy = load_by_path(REPO / "models" / "export" / "centres_numpy.py")
 def segment(onnx_dir: Path, cube: np.ndarray, *, score_threshold: float = 0.3, max_objects: int = 32) -> np.ndarray:
     """Label cube (R, A, D) uint8 of one complex RAD cube (background outside the grown regions)."""
     manifest = json.loads((onnx_dir / "manifest.json").read_text())
-    profile = get_profile(manifest["preset"])
+    # a built-in preset by name, or the radar the manifest itself describes (a profile file's contents)
+    profile = resolve_profile(manifest["preset"], manifest.get("radar_file"), source=str(onnx_dir / "manifest.json"))
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
     detector = ort.InferenceSession(str(onnx_dir / "detector.onnx"), options, providers=["CPUExecutionProvider"])

@@ -26,6 +26,7 @@ from torch import nn
 from models.capabilities import Stage
 from models.registry import create_model
 from radar.errors import UserError
+from radar.profiles import BUILTIN_PRESETS, RadarProfile, resolve_profile
 
 FORMAT = "radarseg.checkpoint"
 VERSION = 1
@@ -71,13 +72,23 @@ class Checkpoint:
         """What the model takes as input (``log_power_db``: normalised log power, radar.input_kind)."""
         return self.extra.get("input_kind", INPUT_KIND)
 
+    @property
+    def profile(self) -> RadarProfile:
+        """The radar the model was trained for: a built-in preset by name, or the description the checkpoint
+        carries (``extra["radar_file"]``, written by the trainers for a radar described by a file)."""
+        return resolve_profile(self.preset, self.extra.get("radar_file"),
+                               source=f"{self.stage or 'model'} checkpoint {self.source or ''}".rstrip())
+
     def describe(self) -> str:
         """``a detector checkpoint (centre_detector, preset small)``."""
         return f"a {self.stage or 'model'} checkpoint ({self.model_name}, preset {self.preset})"
 
     def build(self, *, device: str | torch.device = "cpu") -> nn.Module:
         """The model in eval mode with the checkpoint's weights."""
-        model = create_model(self.model_name, **self.config)
+        config = dict(self.config)
+        if config.get("preset") not in (None, *BUILTIN_PRESETS):  # a radar described by a file: its profile
+            config["preset"] = self.profile
+        model = create_model(self.model_name, **config)
         model.load_state_dict(self.state_dict)
         return model.to(device).eval()
 

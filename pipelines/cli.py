@@ -12,12 +12,13 @@ from typing import Any
 from models.erasenet.engines import ENGINES
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
 from radar.detections import SCORE_THRESHOLD
+from radar.errors import UserError
 from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS
 
 # The jobs (pipelines.jobs' contract): command -> (module, help). A job module loads only when its command runs.
 JOBS: dict[str, tuple[str, str]] = {
-    "preprocess": ("pipelines.data.preprocess", "Ray job: cubes into the zarr store of inputs and targets"),
+    "preprocess": ("pipelines.datasets.preprocess", "Ray job: cubes into the zarr store of inputs and targets"),
     "segment-batch": ("pipelines.inference.segment_batch", "Ray job: segment a store split or a recording into a "
                                                  "predictions store"),
     "train": ("pipelines.training.train", "train the detector or the segmenter from a store, or export a checkpoint"),
@@ -34,7 +35,7 @@ JOBS: dict[str, tuple[str, str]] = {
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
-    from pipelines.data.record import simulate_recording
+    from pipelines.datasets.record import simulate_recording
 
     out = simulate_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
                              seed=args.seed, out=args.out, adc=args.adc)
@@ -58,7 +59,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     for path in result["pictures"]:
         print(f"  {path}")
     if "store" in result:
-        from pipelines.data.store import format_summary, summarise
+        from pipelines.datasets.store import format_summary, summarise
 
         how = "in process" if result.get("preprocessed_in_process") else "with embedded Ray"
         print(f"preprocessed {how} into {result['store']} (radarseg store info {result['store']}):")
@@ -104,7 +105,7 @@ def _is_predictions_store(path: str) -> bool:
 
 
 def _cmd_store_info(args: argparse.Namespace) -> int:
-    from pipelines.data.store import format_summary, summarise
+    from pipelines.datasets.store import format_summary, summarise
 
     if _is_predictions_store(args.store):
         from pipelines.inference.predictions_report import format_predictions, summarise_predictions
@@ -141,7 +142,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
                           input_kind=args.input, png=args.png, score_threshold=args.score_threshold,
-                          engine=args.engine)
+                          engine=args.engine, warm_up=args.warm_up)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -151,7 +152,8 @@ def _cmd_segment(args: argparse.Namespace) -> int:
     compute = result["compute"]
     print(f"objects: {len(result['objects'])}  MACs: {compute['macs']['total'] / 1e9:.3f} G "
           f"(detect {compute['macs']['detect'] / 1e9:.3f}, segment {compute['macs']['segment'] / 1e9:.3f})  "
-          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms  "
+          f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms"
+          f"{' (after a warm-up run)' if result['timed_after_warm_up'] else ' (first run: includes warm-up)'}  "
           f"engine: {compute['engine']}")
     if result["png"]:
         print(f"picture: {result['png']}")
@@ -182,6 +184,20 @@ def _cmd_models_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+def _served_model(args: argparse.Namespace) -> dict[str, str]:
+    """The one model ``serve --detector D --segmenter S`` serves, named ``--model-name`` or after its radar."""
+    import re
+    from pathlib import Path
+
+    from models.checkpoint import load_checkpoint
+
+    detector = load_checkpoint(args.detector, stage="detector", role="--detector")
+    load_checkpoint(args.segmenter, stage="segmenter", role="--segmenter")
+    name = args.model_name or re.sub(r"[^a-z0-9_.-]+", "-", detector.profile.name.lower()).strip("-.")[:64] or "model"
+    return {"name": name, "detector": str(Path(args.detector).absolute()),
+            "segmenter": str(Path(args.segmenter).absolute()), "engine": args.engine}
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     """Become ``python -m service.server`` (same pid, so whoever started us stops the server by it): the service's
     own runner binds the port before the models load and bounds request heads. By module name, so that pipelines
@@ -190,6 +206,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
     argv = [sys.executable, "-m", "service.server", "--log-level", args.log_level]
     argv += [f"--{name}={getattr(args, name)}" for name in ("host", "port") if getattr(args, name) is not None]
+    if (args.detector is None) != (args.segmenter is None):
+        raise UserError("--detector and --segmenter go together (one served model), or neither (RADARSEG_MODELS)")
+    if args.detector is not None:
+        os.environ["RADARSEG_MODELS"] = json.dumps([_served_model(args)])
+        os.environ.pop("RADARSEG_DEFAULT_MODEL", None)
     sys.stdout.flush()
     sys.stderr.flush()
     os.execv(sys.executable, argv)
@@ -204,6 +225,36 @@ def _cmd_radar_show(args: argparse.Namespace) -> int:
     width = max(len(k) for k, _ in rows)
     for key, value in rows:
         print(f"{key:<{width}}  {value}")
+    return 0
+
+
+def _cmd_radar_tune_growing(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from pipelines.progress import progress
+    from radar.growing_sweep import BRIDGES, DISTANCES_M, FLOORS_DB, sweep_growing, write_settings
+
+    with progress(total=len(DISTANCES_M) * len(FLOORS_DB) * len(BRIDGES), desc=f"sweep {args.profile}",
+                  unit="setting") as bar:
+        result = sweep_growing(args.profile, sequences=args.sequences, frames=args.frames, seed=args.seed,
+                               target_recall=args.target_recall, progress=lambda done, total: bar.update(1))
+    if args.write:
+        if args.profile in BUILTIN_PRESETS:
+            raise UserError(f"--write: {args.profile} is a built-in preset; copy its file and tune the copy")
+        write_settings(args.profile, result)
+    if args.json:
+        print(json.dumps({**dataclasses.asdict(result), "settings": result.settings()}, indent=2))
+        return 0
+    print(f"{result.profile}: {result.frames} simulated frames, seeded at the true centres")
+    print(f"{'distance m':>10} {'floor dB':>8} {'bridge':>6} {'recall':>6} {'ROI voxels':>10}")
+    for row in sorted(result.rows, key=lambda r: (r.recall < result.target_recall, r.roi_voxels)):
+        mark = "  <- chosen" if row == result.chosen else ""
+        print(f"{row.distance_m:>10.1f} {row.min_snr_db:>8.1f} {row.bridge:>6d} {row.recall:>6.3f} "
+              f"{row.roi_voxels:>10.0f}{mark}")
+    if not result.reached:
+        print(f"no setting reaches recall {result.target_recall}: the highest is chosen")
+    where = f"written into {args.profile}" if args.write else "add to the profile file (or run with --write)"
+    print(f"\n{where}:\n\n{result.toml()}")
     return 0
 
 
@@ -311,6 +362,9 @@ def _add_frame_commands(sub: Any) -> None:
     seg.add_argument("--engine", choices=ENGINES, default="torch",
                      help="torch, or onnx: the exported graphs in onnxruntime, exported on first use "
                           "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)")
+    seg.add_argument("--no-warm-up", dest="warm_up", action="store_false",
+                     help="report the first run's time (by default the cube is segmented once before the timed run, "
+                          "so the time is a steady frame's)")
     seg.add_argument("--json", action="store_true", help="print the result as JSON (for machines)")
     seg.set_defaults(func=_cmd_segment)
 
@@ -329,6 +383,17 @@ def _add_frame_commands(sub: Any) -> None:
     show = radar_sub.add_parser("show", help="print what a profile derives (bins, resolutions, limits)")
     show.add_argument("profile", help="carrada, nxp, small, or a .toml/.json profile file")
     show.set_defaults(func=_cmd_radar_show)
+    tune = radar_sub.add_parser("tune-growing", help="derive a radar's region-growing settings from a sweep on its "
+                                                     "simulated frames (prints the profile file's table)")
+    tune.add_argument("profile", help="carrada, nxp, small, or a .toml/.json profile file")
+    tune.add_argument("--sequences", type=int, default=6, help="simulated sequences")
+    tune.add_argument("--frames", type=int, default=2, help="frames per sequence")
+    tune.add_argument("--seed", type=int, default=0, help="scene seed")
+    tune.add_argument("--target-recall", type=float, default=0.95,
+                      help="recall from the true centres the settings must reach (then the most compact ROI)")
+    tune.add_argument("--write", action="store_true", help="write the chosen settings into the profile file")
+    tune.add_argument("--json", action="store_true", help="print the sweep as JSON")
+    tune.set_defaults(func=_cmd_radar_tune_growing)
 
     adc = sub.add_parser("process-adc", help="raw complex ADC samples of one frame -> RAD cube (.npy)")
     adc.add_argument("adc", help=".npy of complex ADC samples")
@@ -349,7 +414,7 @@ def _add_model_commands(sub: Any) -> None:
     """upload-check, models, serve, demo."""
     upload = sub.add_parser("upload-check", help="what `ray job submit --working-dir DIR` would upload; a one-line "
                                                  "error over Ray's limit (HTTP 413) naming the largest files")
-    from pipelines.data import upload_check
+    from pipelines.datasets import upload_check
 
     upload_check.add_arguments(upload)
     upload.set_defaults(func=upload_check.run)
@@ -370,6 +435,10 @@ def _add_model_commands(sub: Any) -> None:
     serve.add_argument("--port", type=int, help="port (default 8000, or RADARSEG_PORT)")
     serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
                        help="uvicorn's log level")
+    serve.add_argument("--detector", help="serve this one pair (with --segmenter) instead of RADARSEG_MODELS")
+    serve.add_argument("--segmenter", help="the pair's segmenter checkpoint")
+    serve.add_argument("--model-name", help="the pair's model name (default: its radar's name)")
+    serve.add_argument("--engine", choices=ENGINES, default="torch", help="the pair's runtime")
     serve.set_defaults(func=_cmd_serve)
 
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")

@@ -154,12 +154,13 @@ def plot_compare_frames(frames: list[tuple[str, np.ndarray, dict[str, tuple[np.n
 def plot_pr_curves(curves: dict[str, tuple[np.ndarray, np.ndarray, float]], path: str | Path, *,
                    title: str = "detection precision-recall") -> Path:
     """Write a PNG of precision-recall curves; ``curves[label] = (recall (N,), precision (N,), AP)``."""
-    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    fig, ax = plt.subplots(figsize=(5.5, 5.2))
     for label, (recall, precision, ap) in curves.items():
         ax.plot(np.concatenate([[0.0], recall]), np.concatenate([[1.0], precision]), label=f"{label} (AP {ap:.3f})")
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.02), title=title)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower left")
+    # below the axes, so that no curve is hidden behind it (curves end low on the left)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=8, frameon=False)
     fig.tight_layout()
     return save_figure(fig, path)
 

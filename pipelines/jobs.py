@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 
 def job_module(name: str) -> ModuleType:
-    """Import a job module (``pipelines.data.preprocess``) and check that it follows the contract."""
+    """Import a job module (``pipelines.datasets.preprocess``) and check that it follows the contract."""
     module = importlib.import_module(name)
     missing = [attr for attr in CONTRACT if not callable(getattr(module, attr, None))]
     if missing:

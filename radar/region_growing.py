@@ -28,8 +28,11 @@ voxels, owners and visited counts as the plain algorithm (tests/radar/test_regio
 reference); 1.5x (``small``, bridging: the fill over the dilated candidates is most of what remains) to 2.2x
 (``carrada``) faster.
 
-Defaults per radar (:meth:`RegionGrowingConfig.for_profile`), from sweeps over ratio x floor x
-D_thresh x bridge on simulated frames seeded at the true centres (12 frames per preset; recall /
+Settings per radar are part of its profile (the ``[region_growing]`` table of its file; read by
+:meth:`RegionGrowingConfig.for_profile`); a radar whose file states none gets the paper's 0.5 / 6 m with a
+logged warning, and ``radarseg radar tune-growing PROFILE`` (:mod:`radar.growing_sweep`) derives them for a
+new radar from a short sweep on its simulated frames. The built-in presets' settings come from sweeps over
+ratio x floor x D_thresh x bridge on simulated frames seeded at the true centres (12 frames per preset; recall /
 mean ROI voxels): the ``I_thresh`` ratio is 0 everywhere, so the noise floor binds (simulated labels
 reach down to noise + 6 dB and to their object's peak - 20 dB; a ratio of 0.5 cut recall to 0.6-0.8).
 
@@ -44,11 +47,12 @@ reach down to noise + 6 dB and to their object's peak - 20 dB; a ratio of 0.5 cu
   with bridging and 400 k ROI voxels (1.4 s), so we trade recall for a compact ROI;
 - ``nxp``: the paper's 6 m, 6 dB floor, bridging (its 192-element array resolves an object's
   scatterers into separate blobs);
-- other radars: the paper's 0.5 / 6 m.
+- other radars: the paper's 0.5 / 6 m unless their file says otherwise.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,16 +61,12 @@ from skimage.morphology._flood_fill_cy import _flood_fill_equal  # flood's compi
 from skimage.segmentation import flood
 
 from radar.detections import Centres
-from radar.profiles import RadarProfile
+from radar.profiles import RadarProfile, get_profile
+
+logger = logging.getLogger(__name__)
+_warned_default: set[str] = set()
 
 SIX_CONNECTED = ndimage.generate_binary_structure(3, 1)
-
-
-PROFILE_DEFAULTS: dict[str, dict] = {
-    "nxp": {"intensity_ratio": 0.0, "distance_m": 6.0, "min_snr_db": 6.0, "bridge": True},
-    "carrada": {"intensity_ratio": 0.0, "distance_m": 12.0, "min_snr_db": 4.5, "bridge": False},
-    "small": {"intensity_ratio": 0.0, "distance_m": 12.0, "min_snr_db": 5.0, "bridge": 2},
-}
 
 
 @dataclass(frozen=True)
@@ -79,10 +79,16 @@ class RegionGrowingConfig:
 
     @classmethod
     def for_profile(cls, profile: RadarProfile | str, **overrides) -> RegionGrowingConfig:
-        """The default thresholds of a radar, with keyword overrides."""
-        name = profile if isinstance(profile, str) else profile.name
-        base = PROFILE_DEFAULTS.get(name, {})
-        return cls(**{**base, **overrides})
+        """The settings a radar's profile states (its ``[region_growing]`` table), with keyword overrides; the
+        paper's for a profile that states none (logged once per radar)."""
+        profile = get_profile(profile)
+        stated = dict(profile.region_growing)
+        if not stated and not overrides and profile.name not in _warned_default:
+            _warned_default.add(profile.name)
+            logger.warning("radar %r states no [region_growing] settings: assuming the paper's (intensity ratio "
+                           "0.5, 6 m, 6 dB floor); derive this radar's with `radarseg radar tune-growing PROFILE`",
+                           profile.name)
+        return cls(**{**stated, **overrides})
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.intensity_ratio <= 1.0:

@@ -54,9 +54,8 @@ class ModelSpec(BaseModel):
     segmenter: Path
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = SCORE_THRESHOLD
     max_objects: Annotated[int, Field(ge=1, le=256)] = MAX_OBJECTS
-    # torch: the sparse engine; onnx: the exported graphs in onnxruntime (models.erasenet.engines), exported on
-    # first load
-    # into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)
+    # torch: PyTorch (its sparse convolutions on models.sparse's engine); onnx: the exported graphs in onnxruntime
+    # (models.erasenet.engines), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)
     engine: Literal["torch", "onnx"] = "torch"
 
 

@@ -7,12 +7,29 @@ import pytest
 
 os.environ.setdefault("RAY_AUTH_MODE", "disabled")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+if os.environ.get("PYTEST_XDIST_WORKER"):  # `make test` runs one worker per core: one thread each, children too
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+
+def pytest_configure(config):
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        import torch
+
+        torch.set_num_threads(1)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (``--dist loadgroup``) every test that starts a Ray cluster runs on one worker, so
+    one cluster at a time shares the machine with the other workers' tests."""
+    for item in items:
+        if item.get_closest_marker("ray"):
+            item.add_marker(pytest.mark.xdist_group("ray"))
 
 
 @pytest.fixture(scope="session")
 def small_recording(tmp_path_factory):
     """A tiny simulated recording (small preset, 2 sequences x 3 frames) shared by reader tests."""
-    from pipelines.data.record import simulate_recording
+    from pipelines.datasets.record import simulate_recording
 
     out = tmp_path_factory.mktemp("rec") / "small"
     return simulate_recording(preset="small", sequences=2, frames=3, seed=11, out=out, progress=False)
@@ -43,8 +60,8 @@ def save_tiny_checkpoints(store, root, kinds=tuple(KINDS), *, mixed_labels: bool
 
     normalisation, stats = dict(UNTRAINED_NORMALISATION), None
     if store is not None:
-        from pipelines.data.store import open_store
-        from pipelines.data.views import ViewStats
+        from pipelines.datasets.store import open_store
+        from pipelines.datasets.views import ViewStats
 
         attrs = open_store(store).attrs
         normalisation = {"mean": float(attrs["normalisation"]["mean"]), "std": float(attrs["normalisation"]["std"])}

@@ -1,6 +1,6 @@
 """The import graph flows one way (radar <- models <- pipelines; service <- models + radar; ``process``, the
 process-level concerns, below them all) with no cycle, and the wings of ``pipelines/`` import downward only
-(data <- inference <- evaluation <- training <- demo; the top-level modules other than the CLI below every
+(datasets <- inference <- evaluation <- training <- demo; the top-level modules other than the CLI below every
 wing), counting imports inside functions too: read from the source with ast, so nothing is imported to check."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ ALLOWED = {  # package -> the packages of ours it may import
     "pipelines": {"process", "radar", "models", "pipelines"},
     "service": {"process", "radar", "models", "service"},
 }
-WINGS = ("data", "inference", "evaluation", "training", "demo")  # pipelines' wings, lowest first
+WINGS = ("datasets", "inference", "evaluation", "training", "demo")  # pipelines' wings, lowest first
 TOP_OF_PIPELINES = "pipelines.cli"  # the one top-level module above the wings
 
 
@@ -105,7 +105,7 @@ def test_wings_of_pipelines_import_downward_only():
 
 
 def test_the_wing_checker_sees_an_upward_import():
-    graph = {"pipelines.evaluation.compare": {"pipelines.training.baselines", "pipelines.data.store"},
+    graph = {"pipelines.evaluation.compare": {"pipelines.training.baselines", "pipelines.datasets.store"},
              "pipelines.jobs": {"pipelines.cli"}, "pipelines.cli": {"pipelines.demo.demo"}}
     assert wrong_way_wing_imports(graph) == ["pipelines.evaluation.compare imports pipelines.training.baselines",
                                              "pipelines.jobs imports pipelines.cli"]

@@ -27,7 +27,7 @@ from radar import transforms
 from radar.detections import Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
-from radar.profiles import RadarProfile, get_profile, resolve_profile
+from radar.profiles import RadarProfile, get_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
 from radar.schema import check_schema, cube_schema
@@ -124,7 +124,7 @@ class EraseNet:
         if det.preset != seg.preset:
             raise UserError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
         # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
-        profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
+        profile = det.profile
         for ckpt, what in ((det, "detector"), (seg, "segmenter")):
             if "schema" in ckpt.extra:
                 check_schema(cube_schema(profile), ckpt.extra["schema"], what=f"{what} checkpoint")

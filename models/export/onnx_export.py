@@ -35,7 +35,7 @@ from models.detector.inference import fold_batch_norms
 from models.export.kernel_maps_numpy import input_names as map_input_names
 from models.export.kernel_maps_numpy import kernel_maps
 from models.export.sparse_graph import ExportMinkUNet
-from radar.profiles import RadarProfile, resolve_profile
+from radar.profiles import RadarProfile, describe_for_storage
 from radar.roi import N_FEATURES
 
 OPSET = 17
@@ -189,7 +189,7 @@ def export_onnx(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
     if det.preset != seg.preset:
         raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
-    profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
+    profile = det.profile
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "manifest.json").unlink(missing_ok=True)
@@ -201,6 +201,8 @@ def export_onnx(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     detector_report = ComputeCounter(detector_model).report((1, n_doppler, n_range, n_angle))
     manifest = {
         "format": FORMAT, "version": VERSION, "opset": OPSET, "preset": profile.name,
+        # a radar described by a file travels in the manifest, so an edge box needs no copy of the file
+        "radar_file": describe_for_storage(profile),
         "cube_shape": list(profile.shape), "class_names": list(det.class_names),
         "normalisation": {"mean_db": float(mean_db), "std_db": float(std_db),
                           "applied": "detector: inside the graph; segmenter: feature 3 is (log_power - mean_db) / "

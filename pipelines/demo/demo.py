@@ -20,9 +20,9 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from pipelines.data.preprocess import PreprocessConfig
-from pipelines.data.preprocess import main as preprocess
-from pipelines.data.record import simulate_recording
+from pipelines.datasets.preprocess import PreprocessConfig
+from pipelines.datasets.preprocess import main as preprocess
+from pipelines.datasets.record import simulate_recording
 from pipelines.figures import plot_frame_views
 from pipelines.progress import note_line, seconds_since_line
 from radar.io.recording import Recording

@@ -13,7 +13,7 @@ comes from the RD network and its RA mask from the RA one. ``--cfar-segmenter`` 
 :func:`radar.cfar.cfar_centres` in place of the learned detector (CFAR + region growing + segmenter).
 
 Frames: every model is scored on the same target frames, those the longest-window model can use
-(:func:`pipelines.data.views.split_windows`: TMVA-Net reads the target and the 4 frames before it in its
+(:func:`pipelines.datasets.views.split_windows`: TMVA-Net reads the target and the 4 frames before it in its
 sequence, so the first 4 frames of each sequence are left out for every model), then ``--max-frames``
 of them evenly spread.
 
@@ -51,10 +51,10 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
-from pipelines.data.spread import spread
-from pipelines.data.store import open_store
-from pipelines.data.store_info import StoreInfo
-from pipelines.data.views import (
+from pipelines.datasets.spread import spread
+from pipelines.datasets.store import open_store
+from pipelines.datasets.store_info import StoreInfo
+from pipelines.datasets.views import (
     ViewDataset,
     ViewStats,
     collate_views,
@@ -70,7 +70,6 @@ from pipelines.progress import progress
 from radar.cfar import cfar_centres
 from radar.errors import UserError
 from radar.metrics import consistency, consistency_counts
-from radar.profiles import resolve_profile
 
 log = logging.getLogger(__name__)
 
@@ -198,7 +197,7 @@ class EraseNetPredictor:
         else:
             seg = load_checkpoint(spec.checkpoints[0])
             _check_checkpoint(seg, spec.checkpoints[0], Stage.SEGMENTER, preset, class_names)
-            profile = resolve_profile(seg.preset, seg.extra.get("radar_file"), source="segmenter checkpoint")
+            profile = seg.profile
             # No detector: CFAR gives the centres of every frame.
             self.net = EraseNet(None, seg.build(), profile, class_names=seg.class_names,
                                 mean_db=seg.normalisation.get("mean", 0.0), std_db=seg.normalisation.get("std", 1.0),

@@ -37,8 +37,8 @@ from models.checkpoint import load_checkpoint
 from models.erasenet.detection import detect_centres
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
-from pipelines.data.spread import spread
-from pipelines.data.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
+from pipelines.datasets.spread import spread
+from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
 from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
 from pipelines.jobs import run_module
 from pipelines.progress import progress
@@ -284,7 +284,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
     parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
-    parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread")
+    parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread (0: all)")
     parser.add_argument("--pictures", type=int, default=4, help="frames drawn (truth above prediction)")
     parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
     parser.add_argument("--sweep-frames", type=int, default=48,

@@ -1,5 +1,5 @@
 """Scoring shared by training validation, ``evaluate``, ``compare`` and ``slim-sweep``: which frames
-(:func:`pipelines.data.spread.subset`), detection AP over decoded centres (:class:`DetectionScorer`,
+(:func:`pipelines.datasets.spread.subset`), detection AP over decoded centres (:class:`DetectionScorer`,
 :func:`score_detector`),
 per-view confusion and mIoU with one key convention (:class:`ViewConfusion`, views ``"ra"`` and
 ``"rd"``), and the 2-D baselines' scores (:func:`score_baseline`). The metrics themselves are numpy
@@ -17,9 +17,9 @@ from torch import nn
 
 from models.detector.targets import build_centre_targets
 from models.erasenet.detection import detect_centres
-from pipelines.data.spread import subset
-from pipelines.data.store import CENTRE_COLUMNS, OBJECT_COLUMN, StoreDataset
-from pipelines.data.views import ViewDataset, collate_views, masks_of, model_inputs
+from pipelines.datasets.spread import subset
+from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, StoreDataset
+from pipelines.datasets.views import ViewDataset, collate_views, masks_of, model_inputs
 from radar.detections import Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, mean_iou

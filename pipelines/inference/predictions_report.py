@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from pipelines.inference.predictions_store import COMPUTE_FIELDS, PREDICTION_OBJECT_FIELDS, open_predictions
-from radar.profiles import get_profile
+from radar.profiles import resolve_profile
 
 OBJ = {name: i for i, name in enumerate(PREDICTION_OBJECT_FIELDS)}
 CMP = {name: i for i, name in enumerate(COMPUTE_FIELDS)}
@@ -85,7 +85,7 @@ def format_predictions(summary: dict[str, Any]) -> str:
 def _log_power(source: dict[str, Any], slot: int, sequence: str, index: int) -> np.ndarray:
     """(R, A, D) log power of one segmented frame, read back from the job's source."""
     if source["kind"] == "store":
-        from pipelines.data.store import open_store
+        from pipelines.datasets.store import open_store
 
         return open_store(source["path"])["input"][slot].astype(np.float32)
     from radar.io.recording import Recording
@@ -110,7 +110,7 @@ def write_predictions_report(path: str | Path, out: str | Path | None = None, *,
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     (out / "summary.txt").write_text(format_predictions(summary) + "\n")
     group = open_predictions(path)
-    profile = get_profile(summary["preset"])
+    profile = resolve_profile(summary["preset"], group.attrs.get("radar_file"), source=str(path))
     names = list(group.attrs["class_names"])
     sequences = list(group.attrs["sequences"])
     valid = group["valid"][:].astype(bool)

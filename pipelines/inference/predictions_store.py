@@ -2,7 +2,7 @@
 open.
 
 Layout of ``PRED.zarr`` (zarr v3, sharded along the frame axis like the preprocessed store; see
-:mod:`pipelines.data.sharded_store`)::
+:mod:`pipelines.datasets.sharded_store`)::
 
     labels       uint8   (N, R, A, D)  predicted class per RAD voxel (background outside the ROI)
     ra_mask      uint8   (N, R, A)     RA projection of ``labels``
@@ -19,16 +19,16 @@ Layout of ``PRED.zarr`` (zarr v3, sharded along the frame axis like the preproce
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 import zarr
 
-from pipelines.data.sharded_store import Sharded, create_sharded_store, open_sharded_store
+from pipelines.datasets.sharded_store import Sharded, create_sharded_store, open_sharded_store
 from radar.detections import MAX_OBJECTS
-from radar.profiles import RadarProfile, get_profile
+from radar.profiles import RadarProfile, resolve_profile
 
 FORMAT = "radarseg.predictions"
 VERSION = 1
@@ -47,10 +47,11 @@ class PredictionLayout(Sharded):
     n_frames: int
     shard_frames: int
     max_objects: int = MAX_OBJECTS
+    radar_file: dict[str, Any] | None = field(default=None, compare=False)  # a radar described by a file
 
     @property
     def profile(self) -> RadarProfile:
-        return get_profile(self.preset)
+        return resolve_profile(self.preset, self.radar_file, source="predictions store")
 
     def arrays(self) -> dict[str, tuple[tuple[int, ...], str, Any]]:
         """``name -> (per-frame shape, dtype, fill value)``."""

@@ -14,19 +14,21 @@ from radar.detections import SCORE_THRESHOLD
 from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
 from radar.io.errors import DataError
 from radar.io.npy import load_npy
-from radar.profiles import resolve_profile
 
 
 def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str | Path,
                  input_kind: InputKind | str | None = None, png: str | Path | None = None,
-                 score_threshold: float = SCORE_THRESHOLD, engine: str = "torch") -> dict[str, Any]:
+                 score_threshold: float = SCORE_THRESHOLD, engine: str = "torch", warm_up: bool = True
+                 ) -> dict[str, Any]:
     """Segment a .npy cube and return objects and compute. ``input_kind`` says what the cube holds
     (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
     say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake.
-    ``engine``: "torch" or "onnx" (``models.erasenet.engines``)."""
+    ``engine``: "torch" or "onnx" (``models.erasenet.engines``). With ``warm_up`` the cube is segmented once
+    before the run whose compute is reported, so its seconds are a steady frame's, not the process's first
+    (which pays one-off costs: the first call of every kernel, allocator growth)."""
     declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
     det, seg = EraseNet.load_pair(detector, segmenter)  # checked before anything is built or read
-    profile = resolve_profile(det.preset, det.extra.get("radar_file"), source="detector checkpoint")
+    profile = det.profile
     if declared is InputKind.adc:
         from radar.adc import adc_shape
 
@@ -46,6 +48,8 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
 
         cube = process_adc(cube, net.profile)
     is_log_power = kind is InputKind.log_power
+    if warm_up:
+        net.segment(cube, is_log_power=is_log_power)
     result = net.segment(cube, is_log_power=is_log_power)
     if png is not None:
         from pipelines.figures import plot_prediction
@@ -54,4 +58,4 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
         plot_prediction(log_power, net.profile, result.ra_mask, result.rd_mask, result.objects, png,
                         title=f"ERASE-Net on {Path(cube_path).name}")
     return {"objects": [o.to_dict() for o in result.objects], "compute": result.compute.to_dict(),
-            "png": None if png is None else str(png), "input": kind.value}
+            "png": None if png is None else str(png), "input": kind.value, "timed_after_warm_up": warm_up}

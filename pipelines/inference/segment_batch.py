@@ -9,8 +9,8 @@
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \\
         python -m pipelines.inference.segment_batch ... --out /abs/PRED.zarr --workers 4
 
-The job follows :mod:`pipelines.jobs` and runs on :mod:`pipelines.data.sharded_job` like
-:mod:`pipelines.data.preprocess` (embedded local Ray without ``--address``; ``RAY_ADDRESS`` under ``ray job
+The job follows :mod:`pipelines.jobs` and runs on :mod:`pipelines.datasets.sharded_job` like
+:mod:`pipelines.datasets.preprocess` (embedded local Ray without ``--address``; ``RAY_ADDRESS`` under ``ray job
 submit``; ``--in-process`` for smoke runs without Ray). The work is cut the same way: the selected frames
 take ``N`` slots of the predictions store (:mod:`pipelines.inference.predictions_store`), every array is cut along
 the frame axis every ``--shard-frames`` slots, and a shard is the unit of work, of writing and of resumption.
@@ -44,10 +44,10 @@ from typing import Any
 import numpy as np
 
 from models.erasenet.engines import ENGINES
-from pipelines.data import shard_frames, sharded_job
-from pipelines.data.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
-from pipelines.data.sources import SourceKind, add_source_arguments, parse_source, source_from_args
-from pipelines.data.store import frames_of_split, open_store
+from pipelines.datasets import shard_frames, sharded_job
+from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
+from pipelines.datasets.sources import SourceKind, add_source_arguments, parse_source, source_from_args
+from pipelines.datasets.store import frames_of_split, open_store
 from pipelines.inference.predictions_store import (
     COMPUTE_FIELDS,
     FORMAT,
@@ -62,6 +62,7 @@ from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
 from radar.io.errors import DataError
 from radar.io.recording import Recording
+from radar.profiles import describe_for_storage
 
 log = logging.getLogger(__name__)
 
@@ -210,7 +211,8 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
         raise UserError(f"the source {root_path} holds {preset!r} frames but the checkpoints are for {det.preset!r}")
     if not frames:
         raise DataError(root_path, f"no valid frame to segment (split {cfg.split or 'all'})")
-    layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects)
+    layout = PredictionLayout(preset, len(frames), cfg.shard_frames, cfg.max_objects,
+                              radar_file=describe_for_storage(det.profile))
     checkpoints = {name: {"path": str(Path(path)), "sha256": _file_sha256(Path(path)), "model": ckpt.model_name}
                    for name, path, ckpt in (("detector", cfg.detector, det), ("segmenter", cfg.segmenter, seg))}
     plan = BatchPlan(cfg=cfg, out=Path(cfg.out), source=sharded_job.SourceSpec(kind, str(root_path), preset),
@@ -382,6 +384,7 @@ def store_attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
                                           f"{stats['quarantined'][0]['reason'] if stats['quarantined'] else '?'})")
     return {
         "preset": plan.layout.preset,
+        "radar_file": plan.layout.radar_file,
         "class_names": list(plan.class_names),
         "sequences": list(plan.sequences),
         "object_fields": list(PREDICTION_OBJECT_FIELDS),

@@ -1,6 +1,6 @@
 """The 2-D baselines' stage (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9).
 
-Data: :class:`pipelines.data.views.ViewDataset` (RD/RA/AD views scaled by the train split's min/max; TMVA-Net
+Data: :class:`pipelines.datasets.views.ViewDataset` (RD/RA/AD views scaled by the train split's min/max; TMVA-Net
 reads the target frame and the 4 before it in its sequence, so the first 4 frames of each sequence
 are not used, as in the reference). Loss: :class:`models.baselines.losses.MultiViewLoss` (per view
 0.5 x weighted CE + 5 x soft Dice, plus 5 x coherence for the two-view networks), class weights the
@@ -20,7 +20,7 @@ from torch.utils.data import Dataset
 
 from models.baselines.losses import MultiViewLoss, class_weights_from_counts
 from models.capabilities import Stage
-from pipelines.data.views import (
+from pipelines.datasets.views import (
     ViewDataset,
     ViewStats,
     collate_views,

@@ -13,7 +13,7 @@ from torch.utils.data import Dataset
 
 from models.capabilities import Stage
 from models.detector.targets import build_centre_targets
-from pipelines.data.store import StoreDataset
+from pipelines.datasets.store import StoreDataset
 from pipelines.evaluation.scoring import frame_centres, score_detector
 from pipelines.training.task import Task, unwrap
 

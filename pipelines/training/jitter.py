@@ -13,14 +13,13 @@ import torch
 
 from models.checkpoint import load_checkpoint
 from models.erasenet.detection import detect_centres
-from pipelines.data.spread import subset
-from pipelines.data.store import StoreDataset
+from pipelines.datasets.spread import subset
+from pipelines.datasets.store import StoreDataset
 from pipelines.evaluation.scoring import frame_centres
 from pipelines.training.config import DEFAULT_JITTER_STD
 from radar.detections import SCORE_THRESHOLD
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
-from radar.profiles import get_profile
 
 JITTER_MATCH_M = 3.0  # a detection within this many metres (and bins of Doppler) of a truth is "its" detection
 
@@ -82,7 +81,7 @@ def measure_detector_errors(detector_path: str | Path, store: str | Path, split:
     EraseNet refines it (:mod:`radar.doppler`) unless ``doppler_refinement`` is None."""
     checkpoint = load_checkpoint(detector_path)
     detector = checkpoint.build(device=device)
-    profile = get_profile(checkpoint.preset)
+    profile = checkpoint.profile
     dataset = StoreDataset(store, split, fields=("input", "objects"), normalise=False)
     mean_db, std_db = checkpoint.normalisation["mean"], checkpoint.normalisation["std"]
     residuals, misses, truths, false_pos = [], 0, 0, 0

@@ -30,15 +30,16 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.slimming.penalty import slimming_penalty
-from pipelines.data.ray_runtime import init_ray
-from pipelines.data.store import frames_of_split, open_store
-from pipelines.data.store_info import StoreInfo
+from pipelines.datasets.ray_runtime import init_ray
+from pipelines.datasets.store import frames_of_split, open_store
+from pipelines.datasets.store_info import StoreInfo
 from pipelines.progress import progress
 from pipelines.training.config import TrainConfig
 from pipelines.training.optim import make_optimizer, make_scheduler, resolve_device
 from pipelines.training.task import Task, unwrap
 from pipelines.training.tasks import task_for
 from radar.errors import UserError
+from radar.profiles import describe_for_storage
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +168,14 @@ def _checkpoint(task: Task, model: nn.Module, extra: dict[str, Any]) -> Checkpoi
     return Checkpoint(model_name=task.hyper.model, config=task.model_config(), state_dict=state,
                       preset=task.store.profile.name, class_names=task.store.class_names,
                       normalisation=task.normalisation(),
-                      extra={"stage": task.stage, "profile": task.cfg.profile, **task.extra(), **extra})
+                      extra={"stage": task.stage, "profile": task.cfg.profile, **_radar_description(task),
+                             **task.extra(), **extra})
+
+
+def _radar_description(task: Task) -> dict[str, Any]:
+    """``{"radar_file": ...}`` for a radar described by a file (the checkpoint carries it), else nothing."""
+    description = describe_for_storage(task.store.profile)
+    return {} if description is None else {"radar_file": description}
 
 
 def _check_run_dir(cfg: TrainConfig, run_dir: Path, hyper: Any) -> None:
@@ -187,12 +195,24 @@ def _check_run_dir(cfg: TrainConfig, run_dir: Path, hyper: Any) -> None:
     config_path.write_text(json.dumps({**cfg.to_dict(), "resolved": dataclasses.asdict(hyper)}, indent=2))
 
 
+MIN_TRAIN_FRAMES = 600
+"""Fewer train frames than this draw a warning: on a new radar (README, "Bring your own radar") a detector
+trained on 120 frames scored validation mAP 0.0002 and one on 600 frames 0.20."""
+
+
 def _check_splits(cfg: TrainConfig) -> None:
-    """An empty validation split would make an unvalidated model "the best": refuse it, saying what to do."""
-    if cfg.val_split and len(frames_of_split(open_store(cfg.store), cfg.val_split)) == 0:
+    """An empty validation split would make an unvalidated model "the best": refuse it, saying what to do. A train
+    split too small to learn from is allowed (smoke runs, tests) but warned about."""
+    root = open_store(cfg.store)
+    if cfg.val_split and len(frames_of_split(root, cfg.val_split)) == 0:
         raise UserError(f"split {cfg.val_split!r} of {cfg.store} has no frames, so no epoch could be validated; "
                          "preprocess more sequences (--split-fractions), or pass --val-split none to keep the last "
                          "epoch as model.pt")
+    n_train = len(frames_of_split(root, "train"))
+    if n_train < MIN_TRAIN_FRAMES:
+        log.warning("%s holds %d train frames: too few for the model to learn (at least %d; a detector on 120 "
+                    "frames of a new radar scored mAP 0.0002, on 600 frames 0.20); preprocess more sequences",
+                    cfg.store, n_train, MIN_TRAIN_FRAMES)
 
 
 def train_loop(cfg: TrainConfig, world: World | None = None) -> dict[str, Any]:

@@ -20,9 +20,9 @@ from torch.utils.data import Dataset
 
 from models.capabilities import Stage
 from models.segmenter.lovasz import lovasz_softmax
-from pipelines.data.spread import subset
-from pipelines.data.store import StoreDataset, open_store
-from pipelines.data.store_info import StoreInfo
+from pipelines.datasets.spread import subset
+from pipelines.datasets.store import StoreDataset, open_store
+from pipelines.datasets.store_info import StoreInfo
 from pipelines.evaluation.scoring import ViewConfusion, frame_centres
 from pipelines.training.jitter import SeedJitter, measure_detector_errors
 from pipelines.training.task import Task, unwrap

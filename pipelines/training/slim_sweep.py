@@ -43,8 +43,8 @@ from models.capabilities import Stage, dense_input_shapes, stage_of
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.compute import count_macs
 from models.slimming.prune import prune_checkpoint
-from pipelines.data.store_info import StoreInfo
-from pipelines.data.views import ViewDataset, load_baseline
+from pipelines.datasets.store_info import StoreInfo
+from pipelines.datasets.views import ViewDataset, load_baseline
 from pipelines.evaluation.evaluate import EvaluateConfig, evaluate
 from pipelines.evaluation.report import fmt_pct
 from pipelines.evaluation.scoring import score_baseline, score_detector

@@ -14,7 +14,7 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from models.registry import create_model
-from pipelines.data.store_info import StoreInfo
+from pipelines.datasets.store_info import StoreInfo
 from pipelines.training.config import Hyper, TrainConfig
 from radar.errors import UserError
 
@@ -44,8 +44,9 @@ class Task:
         return config
 
     def build_model(self) -> nn.Module:
+        """The model for the store's radar (its profile, so that a radar described by a file builds too)."""
         try:
-            return create_model(self.hyper.model, **self.model_config())
+            return create_model(self.hyper.model, **{**self.model_config(), "preset": self.store.profile})
         except TypeError as exc:  # an argument the builder does not take: the user's --model-config
             raise UserError(f"model {self.hyper.model!r} cannot be built with {self.model_config()}: {exc} "
                              "(check --model-config)") from None

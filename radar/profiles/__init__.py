@@ -11,11 +11,11 @@ import functools
 from pathlib import Path
 from typing import Any
 
-from radar.profiles.files import ProfileError, load_profile_file, profile_from_dict
+from radar.profiles.files import ProfileError, load_profile_file, profile_from_dict, profile_to_dict
 from radar.profiles.profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
 
 __all__ = ["BUILTIN_PRESETS", "SPEED_OF_LIGHT", "ChirpParameters", "RadarProfile", "UnknownPresetError",
-           "get_profile", "resolve_profile"]
+           "describe_for_storage", "get_profile", "resolve_profile"]
 
 BUILTIN_PRESETS = ("carrada", "nxp", "small")  # data files in radar/profiles/presets/
 
@@ -54,10 +54,20 @@ def get_profile(name: str | Path | RadarProfile) -> RadarProfile:
 
 
 def resolve_profile(name: str, description: dict[str, Any] | None = None, *, source: str = "profile") -> RadarProfile:
-    """A built-in preset by name, or the radar a stored file-form ``description`` defines."""
-
-    if description is not None:
-        return profile_from_dict(description, source=source)
+    """The radar a store, recording or checkpoint names: a built-in preset by its name (the preset's file as it is
+    today, whatever description an older store kept), else the radar its stored file-form ``description``
+    (:func:`describe_for_storage`) defines."""
     if name in BUILTIN_PRESETS:
         return get_profile(name)
+    if description is not None:
+        return profile_from_dict(description, source=source)
     raise ProfileError(f"{source}: radar {name!r} is not a built-in preset and no profile description is stored")
+
+
+def describe_for_storage(profile: RadarProfile) -> dict[str, Any] | None:
+    """The file form of a radar that is not a built-in preset (what stores, checkpoints and ONNX manifests keep so
+    that it travels with them, read back by :func:`resolve_profile`); None for a built-in preset, which its
+    name identifies."""
+    if profile.name in BUILTIN_PRESETS and profile == get_profile(profile.name):
+        return None
+    return profile_to_dict(profile)

@@ -10,6 +10,8 @@ A file holds these tables (units in the key names; see radar/profiles/presets/*.
     [processing]  range_pad, doppler_pad, angle_bins, window ("hann" or "rect")
     [simulation]  noise_floor_db, snr_0dbsm_10m_db, objects_per_frame, max_angle_deg   (optional)
     [expect]      range_res_m, velocity_res_mps, max_range_m, max_velocity_mps          (optional)
+    [region_growing]  distance_m, min_snr_db, intensity_ratio, bridge, seed_search      (optional; derive them
+                  for a new radar with ``radarseg radar tune-growing PROFILE``)
 
 Derived: range bin = c / (2 B) / range_pad with B = slope * samples / sample_rate; velocity bin =
 lambda / (2 chirps chirp_cycle) / doppler_pad; cube = (samples * range_pad, angle_bins, chirps *
@@ -38,13 +40,15 @@ class ProfileError(UserError):
 
 
 _SCHEMA: dict[str, set[str]] = {
-    "": {"name", "class_names", "frame_rate_hz", "chirp", "array", "processing", "simulation", "expect"},
+    "": {"name", "class_names", "frame_rate_hz", "chirp", "array", "processing", "simulation", "expect",
+         "region_growing"},
     "chirp": {"carrier_hz", "sweep_bandwidth_hz", "slope_hz_per_s", "sample_rate_hz", "samples_per_chirp",
               "chirps_per_frame", "chirp_cycle_s"},
     "array": {"n_tx", "n_rx", "tdm_order"},
     "processing": {"range_pad", "doppler_pad", "angle_bins", "window"},
     "simulation": {"noise_floor_db", "snr_0dbsm_10m_db", "objects_per_frame", "max_angle_deg"},
     "expect": {"range_res_m", "velocity_res_mps", "max_range_m", "max_velocity_mps"},
+    "region_growing": {"distance_m", "min_snr_db", "intensity_ratio", "bridge", "seed_search"},
 }
 
 
@@ -113,6 +117,32 @@ def _simulation_options(simulation: dict, source: str) -> dict[str, Any]:
     return sim_kwargs
 
 
+def _region_growing_options(table: dict, source: str) -> tuple[tuple[str, Any], ...]:
+    """The ``[region_growing]`` table as sorted ``(key, value)`` pairs (checked here; ranges by the config)."""
+    options: dict[str, Any] = {}
+    for key in ("distance_m", "min_snr_db"):
+        if key in table:
+            options[key] = float(_number(table, key, source))
+    if "intensity_ratio" in table:
+        ratio = float(_number(table, "intensity_ratio", source, positive=False))
+        if not 0.0 <= ratio <= 1.0:
+            raise ProfileError(f"{source}: [region_growing] intensity_ratio must be in [0, 1], got {ratio}")
+        options["intensity_ratio"] = ratio
+    if "bridge" in table:
+        bridge = table["bridge"]
+        if isinstance(bridge, bool) or not isinstance(bridge, int) or bridge < 0:
+            raise ProfileError(f"{source}: [region_growing] bridge must be a gap size in voxels >= 0, got {bridge!r}")
+        options["bridge"] = bridge
+    if "seed_search" in table:
+        search = table["seed_search"]
+        if not (isinstance(search, list) and len(search) == 3
+                and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in search)):
+            raise ProfileError(f"{source}: [region_growing] seed_search must be 3 integers >= 0 (range, angle, "
+                               f"Doppler bins), got {search!r}")
+        options["seed_search"] = tuple(search)
+    return tuple(sorted(options.items()))
+
+
 def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> RadarProfile:
     """Validate a profile description and build the :class:`RadarProfile` it derives."""
     if not isinstance(data, dict):
@@ -129,6 +159,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
     chirp, array = _table(data, "chirp", source), _table(data, "array", source)
     processing, simulation = _table(data, "processing", source), _table(data, "simulation", source, False)
     expect = _table(data, "expect", source, False)
+    growing = _region_growing_options(_table(data, "region_growing", source, False), source)
 
     carrier = _number(chirp, "carrier_hz", source)
     fs = _number(chirp, "sample_rate_hz", source)
@@ -173,7 +204,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
             name=name, n_range=samples * range_pad, n_angle=angle_bins, n_doppler=chirps * doppler_pad,
             range_res=range_res, velocity_res=velocity_res, n_tx=n_tx, n_rx=n_rx,
             class_names=tuple(class_names), range_pad=range_pad, doppler_pad=doppler_pad, carrier_hz=float(carrier),
-            frame_rate_hz=frame_rate, window=window,
+            frame_rate_hz=frame_rate, window=window, region_growing=growing,
             chirp=ChirpParameters(float(carrier), float(bandwidth), float(fs), samples, chirps, float(cycle),
                                   tdm_order, window),
             **sim_kwargs,
@@ -219,6 +250,9 @@ def describe(profile: RadarProfile) -> list[tuple[str, str]]:
                          f"({c.adc_time_s * 1e6:.2f} us)"),
                  ("slope", f"{c.slope_hz_per_s / 1e12:.3f} MHz/us"), ("TDM order", str(list(c.tdm_order))),
                  ("window", c.window)]
+    growing = ", ".join(f"{k} {list(v) if isinstance(v, tuple) else v}" for k, v in profile.region_growing)
+    rows.append(("region growing", growing or "not stated: the paper's settings are assumed "
+                                              "(radarseg radar tune-growing derives them)"))
     return rows
 
 
@@ -239,4 +273,6 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
                        "angle_bins": profile.n_angle, "window": profile.window},
         "simulation": {"noise_floor_db": profile.noise_floor_db, "snr_0dbsm_10m_db": profile.snr_0dbsm_10m_db,
                        "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg},
+        **({"region_growing": {k: list(v) if isinstance(v, tuple) else v for k, v in profile.region_growing}}
+           if profile.region_growing else {}),
     }

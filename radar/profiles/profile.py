@@ -76,6 +76,10 @@ class RadarProfile:
     objects_per_frame: tuple[int, int] = (1, 4)
     window: str = "hann"  # on range, Doppler and the array
     chirp: ChirpParameters | None = None  # the waveform, when the profile came from a file
+    # Region growing's settings for this radar (keys of radar.region_growing.RegionGrowingConfig), as stated in
+    # the file's [region_growing] table: part of the radar, because the right disc radius and SNR floor depend
+    # on its resolution and noise. Empty: none stated (the paper's settings are assumed, with a warning).
+    region_growing: tuple[tuple[str, float | int | tuple[int, ...]], ...] = ()
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:

@@ -303,7 +303,7 @@ def test_every_module_the_deploy_docs_name_imports():
     text = "\n".join(p.read_text() for p in (DEPLOY / "README.md", COMPOSE, DEPLOY / "serve.yaml"))
     modules = set(re.findall(r"python -m ((?:pipelines|service)(?:\.\w+)+)", text))
     modules |= {m.split(":")[0] for m in re.findall(r"\b(service\.\w+:\w+)", text)}
-    assert {"pipelines.data.preprocess", "pipelines.inference.segment_batch", "service.serve_app"} <= modules
+    assert {"pipelines.datasets.preprocess", "pipelines.inference.segment_batch", "service.serve_app"} <= modules
     for name in modules:
         assert importlib.util.find_spec(name) is not None, name
     parser = argparse.ArgumentParser()

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipelines.data.store import open_store
+from pipelines.datasets.store import open_store
 from pipelines.inference.predictions_store import COMPUTE_FIELDS, open_predictions
 from service.ledger import Ledger
 from tests.deploy.conftest import radarseg_serve_command, submit_job, uvicorn_command
@@ -47,7 +47,8 @@ def test_cluster_runs_both_jobs_and_two_apis_share_the_ledger(cluster, tiny_chec
 
     # 1. preprocessing submitted to the head: 4 one-frame shards as Ray tasks over both nodes
     store = tmp_path / "store.zarr"
-    pre = submit_job(cluster, "pipelines.data.preprocess", "--source", "sim", "--preset", "small", "--sequences", "2",
+    pre = submit_job(cluster, "pipelines.datasets.preprocess", "--source", "sim", "--preset", "small",
+                     "--sequences", "2",
                      "--frames", "2", "--seed", "3", "--shard-frames", "1", "--split-fractions", "0.5", "0.5", "0",
                      "--no-progress", "--json", "--out", str(store))
     assert pre["written"] == 4 and pre["shards_run"] == 4, pre

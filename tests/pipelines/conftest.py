@@ -136,7 +136,7 @@ def build_store_inline(cfg):
     store and the Dataset. The Ray paths are tested in test_preprocess.py."""
     from dataclasses import replace
 
-    from pipelines.data.preprocess import main
+    from pipelines.datasets.preprocess import main
 
     return Path(main(replace(cfg, in_process=True))["store"])
 
@@ -145,7 +145,7 @@ def build_store_inline(cfg):
 
 def sim_store(tmp_path_factory, name: str, **fields):
     """A store of simulated ``small`` frames built without Ray (the runner's in-process mode)."""
-    from pipelines.data.preprocess import PreprocessConfig
+    from pipelines.datasets.preprocess import PreprocessConfig
 
     out = tmp_path_factory.mktemp(name) / f"{name}.zarr"
     return build_store_inline(PreprocessConfig(source="sim", out=str(out), preset="small", progress=False, **fields))
@@ -164,7 +164,7 @@ def assert_store_matches_simulator(path, *, preset: str, sequences: int, frames:
     import zarr
 
     from models.detector.targets import render_heatmap
-    from pipelines.data.store import OBJECT_FIELDS, open_store
+    from pipelines.datasets.store import OBJECT_FIELDS, open_store
     from radar import transforms
     from radar.simulate import simulate_sequence
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipelines.data.preprocess import PreprocessConfig
+from pipelines.datasets.preprocess import PreprocessConfig
 from pipelines.jobs import smoke_config
 from pipelines.training.config import TrainConfig
 
@@ -20,6 +20,6 @@ def test_smoke_mode_is_read_from_the_environment(monkeypatch, small_store, tmp_p
     from pipelines.jobs import run_job
 
     monkeypatch.setenv("RADARSEG_SMOKE", "1")
-    result, _ = run_job("pipelines.data.preprocess", ["--source", "sim", "--sequences", "50", "--frames", "9",
+    result, _ = run_job("pipelines.datasets.preprocess", ["--source", "sim", "--sequences", "50", "--frames", "9",
                                                  "--out", str(tmp_path / "s.zarr"), "--no-progress"], prog="t")
     assert result["frames"] == 4 * 6

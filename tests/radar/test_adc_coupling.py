@@ -83,7 +83,7 @@ def test_the_layout_error_names_the_layout_the_shape_matches(tmp_path, capsys, f
 
 
 def test_uncoupled_simulation_is_one_switch_away_and_recorded(tmp_path):
-    from pipelines.data.record import simulate_recording
+    from pipelines.datasets.record import simulate_recording
 
     config = SimulatorConfig(tdm_coupling=False)
     out = simulate_recording(preset="small", sequences=1, frames=1, seed=3, out=tmp_path / "plain", progress=False,

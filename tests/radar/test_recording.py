@@ -140,7 +140,7 @@ def test_a_recording_of_a_radar_described_by_a_file_reads_back(tmp_path):
 
 
 def test_adc_recordings_are_processed_on_read_into_the_same_cubes(tmp_path):
-    from pipelines.data.record import simulate_recording
+    from pipelines.datasets.record import simulate_recording
 
     out = simulate_recording(preset="small", sequences=1, frames=2, seed=11, out=tmp_path / "adc", progress=False,
                              adc=True)

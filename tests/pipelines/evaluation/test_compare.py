@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from models.checkpoint import load_checkpoint, save_checkpoint
-from pipelines.data.views import ViewDataset, load_baseline
+from pipelines.datasets.views import ViewDataset, load_baseline
 from pipelines.evaluation import compare as compare_job
 from pipelines.evaluation.compare import CompareConfig, ModelSpec, compare, parse_model
 from pipelines.evaluation.scoring import score_baseline
@@ -22,7 +22,7 @@ from tests.pipelines.conftest import build_store_inline, save_tiny_checkpoints
 @pytest.fixture(scope="module")
 def seq_store(tmp_path_factory):
     """small preset, 2 sequences x 6 frames (train, test), built without Ray: TMVA-Net can score 2 test frames."""
-    from pipelines.data.preprocess import PreprocessConfig
+    from pipelines.datasets.preprocess import PreprocessConfig
 
     out = tmp_path_factory.mktemp("compare") / "seq.zarr"
     return build_store_inline(PreprocessConfig(source="sim", out=str(out), preset="small", sequences=2, frames=6,

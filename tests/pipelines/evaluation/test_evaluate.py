@@ -84,7 +84,7 @@ def test_cli_evaluate(small_store, tiny_checkpoints, tmp_path, capsys):
 def test_shipped_model_reaches_its_report(tmp_path):
     """A freshly simulated small test split (other seed than the training store) evaluates within a
     tolerance of the figures in checkpoints/metrics.json (few frames: the tolerance is generous)."""
-    from pipelines.data.preprocess import PreprocessConfig
+    from pipelines.datasets.preprocess import PreprocessConfig
     from tests.pipelines.conftest import build_store_inline
 
     shipped = json.loads((SHIPPED / "metrics.json").read_text())

@@ -4,8 +4,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from pipelines.data.spread import subset
-from pipelines.data.store import StoreDataset
+from pipelines.datasets.spread import subset
+from pipelines.datasets.store import StoreDataset
 from pipelines.evaluation.scoring import frame_centres, score_detector
 from radar.profiles import SMALL
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from models.erasenet.model import EraseNet
-from pipelines.data.sharded_store import done_shards
-from pipelines.data.store import open_store
+from pipelines.datasets.sharded_store import done_shards
+from pipelines.datasets.store import open_store
 from pipelines.inference.predictions_store import (
     COMPUTE_FIELDS,
     PREDICTION_OBJECT_FIELDS,

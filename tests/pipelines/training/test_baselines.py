@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from models.checkpoint import load_checkpoint
-from pipelines.data.views import ViewDataset, load_baseline
+from pipelines.datasets.views import ViewDataset, load_baseline
 from pipelines.evaluation.scoring import score_baseline
 from pipelines.training.config import TrainConfig
 from pipelines.training.loop import train_loop

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 import pipelines.training.jitter as jitter
-from pipelines.data.spread import subset
-from pipelines.data.store import StoreDataset
+from pipelines.datasets.spread import subset
+from pipelines.datasets.store import StoreDataset
 from pipelines.evaluation.scoring import frame_centres
 
 

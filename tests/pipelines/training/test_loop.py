@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from models.checkpoint import export_checkpoint, load_checkpoint
-from pipelines.data.store_info import StoreInfo
+from pipelines.datasets.store_info import StoreInfo
 from pipelines.jobs import parse_config
 from pipelines.training import train as train_job
 from pipelines.training.config import PROFILES, TrainConfig

@@ -16,7 +16,7 @@ from tests.pipelines.conftest import build_store_inline, save_tiny_checkpoints
 
 @pytest.fixture(scope="module")
 def sweep_inputs(tmp_path_factory):
-    from pipelines.data.preprocess import PreprocessConfig
+    from pipelines.datasets.preprocess import PreprocessConfig
 
     root = tmp_path_factory.mktemp("sweep")
     store = build_store_inline(PreprocessConfig(source="sim", out=str(root / "seq.zarr"), preset="small", sequences=2,

@@ -9,7 +9,7 @@ import zarr
 
 from models.detector.targets import render_heatmap
 from pipelines.cli import main as cli_main
-from pipelines.data.store import (
+from pipelines.datasets.store import (
     OBJECT_FIELDS,
     SPLIT_CODE,
     StoreDataset,

@@ -32,8 +32,8 @@ from torch.utils.data import Dataset
 
 from models.capabilities import Stage
 from models.checkpoint import Checkpoint, load_checkpoint
-from pipelines.data.spread import spread
-from pipelines.data.store import frames_of_split, open_store
+from pipelines.datasets.spread import spread
+from pipelines.datasets.store import frames_of_split, open_store
 from radar import transforms
 from radar.errors import UserError
 

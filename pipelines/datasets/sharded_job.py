@@ -1,4 +1,5 @@
-"""The runner of the jobs that write a sharded store: :mod:`pipelines.data.preprocess` and :mod:`pipelines.inference.segment_batch`.
+"""The runner of the jobs that write a sharded store: :mod:`pipelines.datasets.preprocess` and
+:mod:`pipelines.inference.segment_batch`.
 
 A job plans its work (every argument checked, the store's layout and the frame of every slot fixed) and
 hands the runner a :class:`ShardedJob`. The runner
@@ -16,8 +17,8 @@ hands the runner a :class:`ShardedJob`. The runner
    (``finish``), writes them with the code version and, last, ``complete``.
 
 Every shard summary holds ``shard`` and ``frames`` (slots in the shard). Also here, shared by both jobs:
-the execution arguments. Elsewhere: what a stage reads and writes per shard (:mod:`pipelines.data.shard_frames`),
-the Ray start-up (:mod:`pipelines.data.ray_runtime`) and the code version (:mod:`pipelines.data.provenance`).
+the execution arguments. Elsewhere: what a stage reads and writes per shard (:mod:`pipelines.datasets.shard_frames`),
+the Ray start-up (:mod:`pipelines.datasets.ray_runtime`) and the code version (:mod:`pipelines.datasets.provenance`).
 """
 
 from __future__ import annotations
@@ -30,11 +31,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipelines.datasets.provenance import code_version
+from pipelines.datasets.ray_runtime import init_ray
+from pipelines.datasets.shard_frames import FrameSlot, ShardJob, SourceSpec
+from pipelines.datasets.sharded_store import SHARD_FRAMES, Sharded, done_shards, finish_store
 from pipelines.progress import progress
-from pipelines.data.provenance import code_version
-from pipelines.data.ray_runtime import init_ray
-from pipelines.data.shard_frames import FrameSlot, ShardJob, SourceSpec
-from pipelines.data.sharded_store import SHARD_FRAMES, Sharded, done_shards, finish_store
 
 log = logging.getLogger(__name__)
 

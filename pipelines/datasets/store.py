@@ -18,7 +18,7 @@ Layout of ``STORE.zarr`` (one zarr v3 group; ``N`` frame slots, ``S`` frames per
 
 Every array is cut along the frame axis at the same shard boundaries (``S`` frames); the Ray task that
 owns a shard writes it whole, then its progress marker, and ``complete`` comes last (the mechanics of
-both of our stores: :mod:`pipelines.data.sharded_store`).
+both of our stores: :mod:`pipelines.datasets.sharded_store`).
 
 Objects with no labelled voxel (``n_voxels == 0``) are not in the table: they are not targets.
 Encoding uses zstd level 1 without shuffle (noise-like log power barely compresses; docs/design.md section 4).
@@ -39,13 +39,13 @@ import torch
 import zarr
 
 from models.detector.targets import OUTPUT_STRIDE, output_grid, render_heatmap
-from pipelines.data.sharded_store import Sharded, create_sharded_store, done_shards, open_sharded_store
+from pipelines.datasets.sharded_store import Sharded, create_sharded_store, done_shards, open_sharded_store
 from radar import transforms
+from radar.detections import MAX_OBJECTS
 from radar.frame import RadarFrame
 from radar.io.errors import DataError
 from radar.io.npy import check_array
-from radar.profiles import RadarProfile, get_profile
-from radar.detections import MAX_OBJECTS
+from radar.profiles import RadarProfile, resolve_profile
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +231,7 @@ class StoreDataset(torch.utils.data.Dataset):
         self.path = Path(path)
         root = open_store(self.path)
         attrs = root.attrs.asdict()
-        self.profile = get_profile(attrs["preset"])
+        self.profile = resolve_profile(attrs["preset"], attrs.get("radar_file"), source=f"store {self.path}")
         self.output_stride = int(attrs["layout"]["output_stride"])
         self.frames = frames_of_split(root, split)
         self.split = split

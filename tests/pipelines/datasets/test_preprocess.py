@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from pipelines.cli import main as cli_main
+from pipelines.datasets.preprocess import PreprocessConfig, _split_by_fractions, main, plan_job, simulated_frames
+from pipelines.datasets.ray_runtime import init_ray
+from pipelines.datasets.sharded_store import done_shards
+from pipelines.datasets.store import array_checksums, open_store, summarise
 from pipelines.jobs import job_module, parse_config, run_module
-from pipelines.data.preprocess import PreprocessConfig, _split_by_fractions, main, plan_job, simulated_frames
-from pipelines.data.ray_runtime import init_ray
-from pipelines.data.sharded_store import done_shards
-from pipelines.data.store import array_checksums, open_store, summarise
 from radar import transforms
 from radar.io.errors import DataError
 from radar.io.recording import Recording
@@ -38,7 +38,8 @@ SUBMIT_ARGS = ["--source", "sim", "--preset", "small", "--sequences", "3", "--fr
 
 
 def parse_args(argv: list[str]) -> PreprocessConfig:
-    return parse_config(job_module("pipelines.data.preprocess"), argv, prog="python -m pipelines.data.preprocess")
+    return parse_config(job_module("pipelines.datasets.preprocess"), argv,
+                        prog="python -m pipelines.datasets.preprocess")
 
 
 # --------------------------------------------------------------------------- no Ray
@@ -57,7 +58,8 @@ def test_wrong_arguments_fail_before_any_work(tmp_path, small_recording, capsys)
         (["--source", "sim", "--preset", "tiny"], "unknown radar preset 'tiny'"),
     ]
     for args, message in bad:
-        assert run_module("pipelines.data.preprocess", [*args, "--out", str(out)]) == 2  # python -m pipelines.data.preprocess
+        # python -m pipelines.datasets.preprocess
+        assert run_module("pipelines.datasets.preprocess", [*args, "--out", str(out)]) == 2
         assert message in capsys.readouterr().err, args
     assert not out.exists()
     (tmp_path / "busy").mkdir()
@@ -109,7 +111,7 @@ def test_a_store_records_the_simulator_of_its_frames(small_recording, tmp_path):
 @pytest.mark.slow
 def test_ray_job_submit_on_a_local_cluster(ray_head, tmp_path):
     out = tmp_path / "STORE.zarr"
-    log = ray_job_submit(ray_head.dashboard_url, "pipelines.data.preprocess", *SUBMIT_ARGS, "--out", str(out),
+    log = ray_job_submit(ray_head.dashboard_url, "pipelines.datasets.preprocess", *SUBMIT_ARGS, "--out", str(out),
                          "--no-progress", "--json")
     result = json.loads(next(line for line in log.splitlines() if line.startswith('{"store"')))
     assert result["written"] == 24 and result["quarantined"] == 0 and result["shards_run"] == 3
@@ -131,7 +133,8 @@ def embedded_ray():
 
 
 def _job(*args: str, env_extra: dict[str, str] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "pipelines.data.preprocess", *args, "--no-progress", "--json"], cwd=REPO,
+    return subprocess.Popen([sys.executable, "-m", "pipelines.datasets.preprocess", *args, "--no-progress", "--json"],
+                            cwd=REPO,
                             env=ray_env(**(env_extra or {})), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
 
@@ -232,7 +235,7 @@ def test_bad_cubes_are_quarantined_and_the_job_carries_on(tmp_path, small_record
 
 @pytest.mark.ray
 def test_adc_recordings_preprocess_like_cube_recordings(tmp_path, embedded_ray, capsys):
-    from pipelines.data.record import simulate_recording
+    from pipelines.datasets.record import simulate_recording
 
     adc_rec = simulate_recording(preset="small", sequences=2, frames=2, seed=5, out=tmp_path / "adc", progress=False,
                                  adc=True)
@@ -247,6 +250,6 @@ def test_adc_recordings_preprocess_like_cube_recordings(tmp_path, embedded_ray, 
     np.testing.assert_allclose(a["input"][:].astype(np.float32), c["input"][:].astype(np.float32), atol=0.07)
     np.testing.assert_array_equal(a["labels"][:], c["labels"][:])
     assert a.attrs["schema"]["content"] == "log_power_db" and a.attrs["schema"]["profile"] == "small"
-    assert run_module("pipelines.data.preprocess", ["--source", f"adc-recording:{cube_rec}", "--out",
+    assert run_module("pipelines.datasets.preprocess", ["--source", f"adc-recording:{cube_rec}", "--out",
                                                str(tmp_path / "x.zarr"), *common]) == 2
     assert "holds RAD cubes, not ADC samples" in capsys.readouterr().err

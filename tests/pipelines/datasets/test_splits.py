@@ -8,7 +8,7 @@ from collections import Counter
 
 import pytest
 
-from pipelines.data.preprocess import DEFAULT_SPLIT_FRACTIONS, PreprocessConfig, _split_by_fractions, plan_job
+from pipelines.datasets.preprocess import DEFAULT_SPLIT_FRACTIONS, PreprocessConfig, _split_by_fractions, plan_job
 
 
 def _counts(n: int, fractions=DEFAULT_SPLIT_FRACTIONS) -> Counter:
@@ -33,7 +33,7 @@ def test_large_stores_follow_the_fractions_and_splits_are_contiguous_in_name_ord
 def test_too_few_sequences_for_the_requested_splits_is_a_warning_naming_them(tmp_path, caplog):
     cfg = PreprocessConfig(source="sim", out=str(tmp_path / "s.zarr"), preset="small", sequences=2, frames=1,
                            progress=False)
-    with caplog.at_level(logging.WARNING, logger="pipelines.data.preprocess"):
+    with caplog.at_level(logging.WARNING, logger="pipelines.datasets.preprocess"):
         plan = plan_job(cfg)
     assert sorted(slot.split for slot in plan.frames) == sorted({0, 1})  # train and val, one sequence each
     (record,) = [r for r in caplog.records if "no sequence" in r.getMessage()]

@@ -1,8 +1,8 @@
 """What a sharded job's stage reads and writes per shard: the :class:`SourceSpec` it reopens, the
 :class:`FrameSlot` of each frame, the :class:`ShardJob` payload, and :func:`fill_shard` (the shard's
 buffers, bad frames quarantined).
-Shared by :mod:`pipelines.data.preprocess` and :mod:`pipelines.inference.segment_batch`; the runner is
-:mod:`pipelines.data.sharded_job`."""
+Shared by :mod:`pipelines.datasets.preprocess` and :mod:`pipelines.inference.segment_batch`; the runner is
+:mod:`pipelines.datasets.sharded_job`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.data.sharded_store import Sharded
+from pipelines.datasets.sharded_store import Sharded
 from radar.io.errors import DataError
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""A zarr v3 store cut into shards along its frame axis: what the preprocessed store (:mod:`pipelines.data.store`)
+"""A zarr v3 store cut into shards along its frame axis: what the preprocessed store (:mod:`pipelines.datasets.store`)
 and the predictions store (:mod:`pipelines.inference.predictions_store`) share.
 
 Every array holds one entry per frame slot (``N`` slots) and is cut at the same shard boundaries

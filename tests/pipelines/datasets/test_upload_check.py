@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from pipelines.cli import main
-from pipelines.data.upload_check import check_upload
+from pipelines.datasets.upload_check import check_upload
 
 REPO = Path(__file__).resolve().parents[3]
 

@@ -2,14 +2,14 @@
 
 ::
 
-    python -m pipelines.data.preprocess --source sim --preset small --sequences 3 --frames 8 --seed 11 --out STORE.zarr
-    python -m pipelines.data.preprocess --source recording:DIR --out STORE.zarr [--split-fractions 0.7 0.15 0.15]
-    python -m pipelines.data.preprocess --source carrada:ROOT --out STORE.zarr      # split from data_seq_ref.json
+    python -m pipelines.datasets.preprocess --sim --preset small --sequences 3 --frames 8 --seed 11 --out STORE.zarr
+    python -m pipelines.datasets.preprocess --source recording:DIR --out STORE.zarr [--split-fractions 0.7 0.15 0.15]
+    python -m pipelines.datasets.preprocess --source carrada:ROOT --out STORE.zarr      # split from data_seq_ref.json
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \
-        python -m pipelines.data.preprocess ... --out /abs/STORE.zarr
+        python -m pipelines.datasets.preprocess ... --out /abs/STORE.zarr
 
 The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``,
-``format_result``) and runs on :mod:`pipelines.data.sharded_job`. With no ``--address`` (and no
+``format_result``) and runs on :mod:`pipelines.datasets.sharded_job`. With no ``--address`` (and no
 ``RAY_ADDRESS``, which ``ray job submit`` sets for its drivers) it starts an embedded local Ray with a
 capped object store; ``--in-process`` runs every shard in the calling process without Ray (smoke runs).
 
@@ -42,11 +42,10 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.data import shard_frames, sharded_job
-from pipelines.jobs import run_module
-from pipelines.data.sources import SourceKind, add_source_arguments, parse_source, source_from_args
-from pipelines.data.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
-from pipelines.data.store import (
+from pipelines.datasets import shard_frames, sharded_job
+from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
+from pipelines.datasets.sources import SourceKind, add_source_arguments, parse_source, source_from_args
+from pipelines.datasets.store import (
     FORMAT,
     MAX_OBJECTS,
     OBJECT_FIELDS,
@@ -56,13 +55,14 @@ from pipelines.data.store import (
     create_store,
     encode_frame,
 )
+from pipelines.jobs import run_module
 from radar.errors import UserError
 from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
 from radar.io.errors import DataError
 from radar.io.recording import Recording
-from radar.profiles.files import ProfileError, profile_to_dict
 from radar.profiles import UnknownPresetError, get_profile
+from radar.profiles.files import ProfileError, profile_to_dict
 from radar.schema import cube_schema
 from radar.simulate import SimulatorConfig, sequence_name, simulate_sequence
 
@@ -124,7 +124,7 @@ class JobPlan(sharded_job.ShardedPlan):
 
 # --------------------------------------------------------------------------- arguments
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The job's arguments (shared by ``python -m pipelines.data.preprocess`` and ``radarseg preprocess``)."""
+    """The job's arguments (shared by ``python -m pipelines.datasets.preprocess`` and ``radarseg preprocess``)."""
     add_source_arguments(parser, SOURCE_KINDS)
     parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
     parser.add_argument("--preset", help="sim: radar preset (carrada, nxp, small; default small) or a profile file")
@@ -140,8 +140,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
     return PreprocessConfig(
-        source=source_from_args(args, SOURCE_KINDS), out=str(Path(args.out).expanduser().absolute()), preset=args.preset,
-        sequences=args.sequences, frames=args.frames, seed=args.seed,
+        source=source_from_args(args, SOURCE_KINDS), out=str(Path(args.out).expanduser().absolute()),
+        preset=args.preset, sequences=args.sequences, frames=args.frames, seed=args.seed,
         split_fractions=None if args.split_fractions is None else tuple(args.split_fractions),
         address=args.address, tasks=args.tasks, shard_frames=args.shard_frames, max_objects=args.max_objects,
         progress=args.progress, in_process=args.in_process,
@@ -428,4 +428,4 @@ def format_result(result: dict[str, Any]) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(run_module("pipelines.data.preprocess"))
+    sys.exit(run_module("pipelines.datasets.preprocess"))

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipelines.data.store import open_store
-from pipelines.data.views import (
+from pipelines.datasets.store import open_store
+from pipelines.datasets.views import (
     ViewDataset,
     ViewStats,
     collate_views,
