@@ -96,7 +96,9 @@ class Checkpoint:
         return {
             "format": FORMAT, "version": VERSION, "model_name": self.model_name, "config": dict(self.config),
             "state_dict": self.state_dict, "preset": self.preset, "class_names": list(self.class_names),
-            "normalisation": dict(self.normalisation), "extra": dict(self.extra),
+            "normalisation": dict(self.normalisation),
+            # plain values only (torch.load(weights_only=True) refuses enum classes): a Stage as its name
+            "extra": {k: str(v) if isinstance(v, Stage) else v for k, v in self.extra.items()},
             # what the file is, readable without the registry (older readers ignore these keys)
             "stage": None if self.stage is None else str(self.stage), "input_kind": self.input_kind,
         }

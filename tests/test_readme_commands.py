@@ -45,11 +45,13 @@ SKIPS: tuple[tuple[str, str], ...] = (
     (r"^ray job submit --address http://127.0.0.1:8265", "needs the Ray head above (tests/deploy/test_topology.py)"),
     (r"serve run deploy/serve.yaml", "a persistent local Ray Serve on port 8000: the same "
      "config is deployed in tests/deploy/test_topology.py"),
+    (r"my_radar\.toml|data/mine|runs/mine|model=myradar", "the own-radar path: run as written, and checked step by "
+     "step, by tests/test_readme_own_radar.py"),
 )
 SMOKE_ENV = {"RADARSEG_SMOKE": "1", "RADARSEG_WARMUP": "false", "RAY_AUTH_MODE": "disabled",
              "RAY_USAGE_STATS_ENABLED": "0"}
-LINKED = (".venv", "radar", "models", "pipelines", "service", "deploy", "benchmarks", "Makefile", "pyproject.toml",
-          "README.md", ".gitignore")
+LINKED = (".venv", "process", "radar", "models", "pipelines", "service", "deploy", "benchmarks", "docs", "Makefile",
+          "pyproject.toml", "README.md", ".gitignore")
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,7 @@ torch's loader holds a file lock while it builds, so concurrent processes build 
 
 from __future__ import annotations
 
+import fcntl
 import hashlib
 import logging
 import os
@@ -163,6 +164,23 @@ def load() -> ModuleType:
         return _module
 
 
+@contextmanager
+def _build_lock(directory: Path) -> Iterator[None]:
+    """Hold an OS file lock on the build directory while torch's loader runs in it. torch's own lock is a file it
+    deletes when done, so a build killed halfway (Ctrl-C, a killed test run) leaves it behind and every later
+    process waits for it forever; our lock dies with its holder, so whoever holds it may delete a left-over one."""
+    with open(directory / ".radarseg-build.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            stale = directory / "lock"  # torch.utils.file_baton's: nobody else can be inside the build now
+            if stale.exists():
+                logger.warning("removing %s, left by an interrupted build", stale)
+                stale.unlink(missing_ok=True)
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 def build(instruction_set: str) -> ModuleType:
     """The kernels compiled for `instruction_set` (one of `INSTRUCTION_SETS`), from the cache when built before.
 
@@ -181,11 +199,12 @@ def build(instruction_set: str) -> ModuleType:
     try:
         _ensure_ninja_on_path()
         directory.mkdir(parents=True, exist_ok=True)
-        module = cpp_extension.load(
-            name=name, sources=[str(SOURCE)], build_directory=str(directory),
-            extra_cflags=list(CFLAGS + INSTRUCTION_SETS[instruction_set]), extra_ldflags=list(LDFLAGS),
-            verbose=False,
-        )
+        with _build_lock(directory):
+            module = cpp_extension.load(
+                name=name, sources=[str(SOURCE)], build_directory=str(directory),
+                extra_cflags=list(CFLAGS + INSTRUCTION_SETS[instruction_set]), extra_ldflags=list(LDFLAGS),
+                verbose=False,
+            )
     except Exception as error:  # noqa: BLE001  (compiler, ninja, linker or file errors all mean "no engine")
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise RuntimeError(f"the compiled sparse engine did not build ({type(error).__name__}: {first_line})") \

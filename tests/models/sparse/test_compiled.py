@@ -7,6 +7,10 @@ these tests instead of skipping them.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -206,3 +210,18 @@ def test_kernel_maps_read_from_the_grid_agree_on_both_engines(kernel_size, strid
     assert tables["compiled"].pair_counts == tables["reference"].pair_counts
     with pytest.raises(RuntimeError, match="outside the grid"):
         compiled.grid_neighbours(torch.zeros(10, dtype=torch.int32), torch.tensor([9]), torch.tensor([0, 1]))
+
+
+def test_a_lock_left_by_a_killed_build_does_not_block_the_next_process():
+    """torch's build lock is a plain file: a build killed halfway leaves it and the next load would wait forever.
+    Under our OS lock the left-over file is removed (in a child process, so that a hang fails by its timeout)."""
+    script = ("from models.sparse import compiled\n"
+              "d = compiled.build_root() / f'radarseg_sparse_{compiled.build_key(\"native\")}'\n"
+              "d.mkdir(parents=True, exist_ok=True)\n"
+              "(d / 'lock').touch()\n"
+              "compiled.build('native')\n"
+              "print('loaded', (d / 'lock').exists())\n")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
+                          cwd=Path(__file__).resolve().parents[3])
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "loaded False"

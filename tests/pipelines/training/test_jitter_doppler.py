@@ -8,6 +8,7 @@ import pipelines.training.jitter as jitter
 from pipelines.datasets.spread import subset
 from pipelines.datasets.store import StoreDataset
 from pipelines.evaluation.scoring import frame_centres
+from radar.profiles import get_profile
 
 
 class OffsetTruthDecoder:
@@ -33,6 +34,7 @@ class OffsetTruthDecoder:
 
 class FakeCheckpoint:
     preset = "small"
+    profile = get_profile("small")
     normalisation = {"mean": 60.0, "std": 8.0}
 
     def __init__(self, decoder: OffsetTruthDecoder):
