@@ -52,19 +52,34 @@ def match_frame(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.nd
                          f"score {len(pred_score)}")
     if len(truth_xy) != len(truth_doppler):
         raise ValueError(f"ground truth disagrees in length: xy {len(truth_xy)}, doppler {len(truth_doppler)}")
-    tp = np.zeros(len(pred_xy), bool)
+    return _greedy_match(pred_xy, pred_doppler, pred_score, truth_xy, truth_doppler, k)[0]
+
+
+def matched_truths(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.ndarray, truth_xy: np.ndarray,
+                   truth_doppler: np.ndarray, k: float) -> np.ndarray:
+    """(M,) bool: which ground truths :func:`match_frame`'s predictions matched (the same one-to-one rule)."""
+    return _greedy_match(*(np.asarray(a, np.float64) for a in (pred_xy, pred_doppler, pred_score)),
+                         np.asarray(truth_xy, np.float64).reshape(-1, 2),
+                         np.asarray(truth_doppler, np.float64).reshape(-1), k)[1]
+
+
+def _greedy_match(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.ndarray, truth_xy: np.ndarray,
+                  truth_doppler: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+    """Predictions by descending score each take the nearest untaken eligible truth: (N,) matched predictions,
+    (M,) matched truths."""
+    pred_xy = pred_xy.reshape(-1, 2)
+    tp, taken = np.zeros(len(pred_xy), bool), np.zeros(len(truth_xy), bool)
     if len(pred_xy) == 0 or len(truth_xy) == 0:
-        return tp
+        return tp, taken
     distance = np.linalg.norm(pred_xy[:, None, :] - truth_xy[None, :, :], axis=2)  # (N, M) metres
-    eligible = (distance <= k) & (np.abs(pred_doppler[:, None] - truth_doppler[None, :]) < k)
-    taken = np.zeros(len(truth_xy), bool)
-    for i in np.argsort(-pred_score, kind="stable"):
+    eligible = (distance <= k) & (np.abs(pred_doppler.reshape(-1)[:, None] - truth_doppler[None, :]) < k)
+    for i in np.argsort(-pred_score.reshape(-1), kind="stable"):
         candidates = np.flatnonzero(eligible[i] & ~taken)
         if len(candidates):
             j = candidates[np.argmin(distance[i, candidates])]
             taken[j] = True
             tp[i] = True
-    return tp
+    return tp, taken
 
 
 @dataclass(frozen=True)

@@ -20,9 +20,9 @@ from models.erasenet.detection import detect_centres
 from pipelines.datasets.spread import subset
 from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, StoreDataset
 from pipelines.datasets.views import ViewDataset, collate_views, masks_of, model_inputs
-from radar.detections import Centres
+from radar.detections import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
-from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, mean_iou
+from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, matched_truths, mean_iou
 from radar.profiles import RadarProfile
 
 VIEWS = ("ra", "rd")
@@ -40,9 +40,13 @@ def frame_centres(sample: Mapping[str, Any]) -> np.ndarray:
 class DetectionScorer:
     """AP at 1/3/5 m over frames: each frame's decoded centres against its object table."""
 
+    RECALL_DISTANCE = 3.0  # metres (and Doppler bins) of the per-class recall at the operating point
+
     def __init__(self, profile: RadarProfile) -> None:
         self.profile = profile
         self.evaluator = DetectionEvaluator()
+        n = len(profile.class_names) + 1
+        self.found, self.truths = np.zeros(n, np.int64), np.zeros(n, np.int64)  # per class id (0: background)
 
     def add(self, centres: Centres, objects: np.ndarray) -> None:
         """``centres``: the frame's scored detections; ``objects``: its (N, 10) object table (true objects)."""
@@ -51,6 +55,18 @@ class DetectionScorer:
         truth_xy = table[:, [OBJECT_COLUMN["x"], OBJECT_COLUMN["y"]]]
         truth_doppler = table[:, OBJECT_COLUMN["doppler_bin"]]
         self.evaluator.add(pred_xy, centres.doppler_bin, centres.score, truth_xy, truth_doppler)
+        seeds = centres.score >= SCORE_THRESHOLD  # the seeds EraseNet grows from
+        matched = matched_truths(pred_xy[seeds], centres.doppler_bin[seeds], centres.score[seeds], truth_xy,
+                                 truth_doppler, self.RECALL_DISTANCE)
+        classes = table[:, OBJECT_COLUMN["class_id"]].astype(np.int64)
+        np.add.at(self.truths, classes, 1)
+        np.add.at(self.found, classes[matched], 1)
+
+    def recall_by_class(self) -> dict[str, float]:
+        """``recall_<class>``: the share of each class's true objects matched (3 m) by a seed at the operating
+        score threshold (:data:`radar.detections.SCORE_THRESHOLD`); NaN for a class with no object."""
+        return {f"recall_{name}": float(self.found[i] / self.truths[i]) if self.truths[i] else float("nan")
+                for i, name in enumerate(self.profile.class_names, 1)}
 
     def summary(self) -> dict[str, float]:
         return self.evaluator.summary()
@@ -90,7 +106,7 @@ def score_detector(detector: nn.Module, store: str, split: str, profile: RadarPr
             loss_sum += float(loss) * len(samples)
         for sample, centres in zip(samples, frames, strict=True):
             scorer.add(centres, sample["objects"][:int(sample["n_objects"])])
-    result = dict(scorer.summary())
+    result = {**scorer.summary(), **scorer.recall_by_class()}
     if with_loss:
         result["loss"] = loss_sum / max(len(indices), 1)
     return result

@@ -78,16 +78,24 @@ def stop_group(pgid: int, *, grace_s: float = 10.0) -> list[int]:
     return group_alive(pgid)
 
 
+# Refusals of a loaded machine's Ray that a later submission gets past: the dashboard answers before its job agent
+# is up, and the agent times out fetching the working-directory package it was just sent (its message says to
+# submit again).
+TRANSIENT_SUBMIT_ERRORS = ("No available agent", "Failed to download runtime_env file package")
+
+
 def ray_job_submit(dashboard_url: str, *job: str, timeout_s: float = 240) -> str:
     """``ray job submit --working-dir . -- python -m JOB...``; returns the job's log. The dashboard answers
-    before its job agent is up on a loaded machine ("No available agent"): such a refusal is retried."""
+    before its job agent is up on a loaded machine ("No available agent"): such a refusal, and the other
+    :data:`TRANSIENT_SUBMIT_ERRORS`, are retried."""
     cmd = [str(BIN / "ray"), "job", "submit", "--address", dashboard_url, "--working-dir", ".", "--",
            "python", "-m", *job]
     deadline = time.monotonic() + 90
     while True:
         proc = subprocess.run(cmd, cwd=REPO, env=ray_env(), capture_output=True, text=True, timeout=timeout_s)
         log = proc.stdout + proc.stderr
-        if proc.returncode == 0 or "No available agent" not in log or time.monotonic() > deadline:
+        if proc.returncode == 0 or not any(t in log for t in TRANSIENT_SUBMIT_ERRORS) \
+                or time.monotonic() > deadline:
             break
         time.sleep(3)
     assert proc.returncode == 0 and "succeeded" in log, log[-4000:]
