@@ -8,8 +8,9 @@ architecture, so it loads without the original.
 A checkpoint says what it is: its ``stage`` (detector, segmenter or baseline), its architecture (the registry
 name), its preset and the ``input_kind`` it takes (normalised log power in dB for every model we train). Files
 written before these fields existed still load: the stage comes from ``extra["stage"]`` or, failing that, from
-the architecture. Every command that loads a checkpoint for a role names the role (``load_checkpoint(path,
-stage="detector")``), so a swapped or foreign file is one line naming what was given and what was expected.
+the architecture. Every command that loads a checkpoint for a stage names it and the option it came from
+(``load_checkpoint(path, stage=Stage.DETECTOR, option="--detector")``), so a swapped or foreign file is one
+line naming what was given and what was expected.
 """
 
 from __future__ import annotations
@@ -114,12 +115,12 @@ def save_checkpoint(checkpoint: Checkpoint, path: str | Path) -> Path:
     return path
 
 
-def load_checkpoint(path: str | Path, *, stage: str | None = None, role: str | None = None) -> Checkpoint:
+def load_checkpoint(path: str | Path, *, stage: str | None = None, option: str | None = None) -> Checkpoint:
     """The checkpoint in ``path``; with ``stage``, refused (CheckpointError) unless it is one of that stage.
-    ``role`` names the option it was given as (``--detector``) in the message."""
+    ``option`` names the option it was given as (``--detector``) in the message."""
     path = Path(path)
-    what = f"{role} {path}" if role else str(path)
-    kind = stage or (role if role in tuple(Stage) else "model")
+    what = f"{option} {path}" if option else str(path)
+    kind = stage or (option if option in tuple(Stage) else "model")
     expected = f"expected a radarseg {kind} checkpoint (.pt written by radarseg train)"
     if not path.is_file():
         raise CheckpointError(f"{what}: no such checkpoint file; {expected}")
@@ -142,16 +143,16 @@ def load_checkpoint(path: str | Path, *, stage: str | None = None, role: str | N
         if data.get(key) and key not in checkpoint.extra:
             checkpoint.extra[key] = data[key]
     if stage is not None:
-        expect_stage(checkpoint, stage, role=role)
+        expect_stage(checkpoint, stage, option=option)
     return checkpoint
 
 
-def expect_stage(checkpoint: Checkpoint, stage: str, *, role: str | None = None) -> None:
+def expect_stage(checkpoint: Checkpoint, stage: str, *, option: str | None = None) -> None:
     """CheckpointError unless ``checkpoint`` is of ``stage``, naming what was given and what was expected."""
     if stage not in tuple(Stage):
         raise ValueError(f"stage must be one of {[str(s) for s in Stage]}, got {stage!r}")
     if checkpoint.stage != stage:
-        where = " ".join(part for part in (role, checkpoint.source) if part) or "checkpoint"
+        where = " ".join(part for part in (option, checkpoint.source) if part) or "checkpoint"
         raise CheckpointError(f"{where}: {checkpoint.describe()}, expected a {stage} checkpoint")
 
 

@@ -189,10 +189,11 @@ def _served_model(args: argparse.Namespace) -> dict[str, str]:
     import re
     from pathlib import Path
 
+    from models.capabilities import Stage
     from models.checkpoint import load_checkpoint
 
-    detector = load_checkpoint(args.detector, stage="detector", role="--detector")
-    load_checkpoint(args.segmenter, stage="segmenter", role="--segmenter")
+    detector = load_checkpoint(args.detector, stage=Stage.DETECTOR, option="--detector")
+    load_checkpoint(args.segmenter, stage=Stage.SEGMENTER, option="--segmenter")
     name = args.model_name or re.sub(r"[^a-z0-9_.-]+", "-", detector.profile.name.lower()).strip("-.")[:64] or "model"
     return {"name": name, "detector": str(Path(args.detector).absolute()),
             "segmenter": str(Path(args.segmenter).absolute()), "engine": args.engine}

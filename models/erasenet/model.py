@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from models.capabilities import Stage
 from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_checkpoint
 from models.compute import ComputeCounter, MacRecorder, count_params, counted_layers
 from models.detector.inference import FrozenDetector
@@ -141,13 +142,13 @@ class EraseNet:
             if Path(detector).resolve() == Path(segmenter).resolve():
                 raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
                                       f"detector checkpoint and a segmenter checkpoint")
-        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, role="detector")
-        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, role="segmenter")
+        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, option="detector")
+        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, option="segmenter")
         if det.stage == "segmenter" and seg.stage == "detector":
             raise CheckpointError(f"detector {det.source or ''} and segmenter {seg.source or ''} are swapped: "
                                   f"{det.describe()} given as detector, {seg.describe()} as segmenter")
-        expect_stage(det, "detector", role="detector")
-        expect_stage(seg, "segmenter", role="segmenter")
+        expect_stage(det, Stage.DETECTOR, option="detector")
+        expect_stage(seg, Stage.SEGMENTER, option="segmenter")
         return det, seg
 
     def schema(self, content: str = "complex") -> dict[str, Any]:

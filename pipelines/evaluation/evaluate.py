@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
 from models.erasenet.detection import detect_centres
 from models.erasenet.engines import load_erasenet
@@ -124,8 +125,8 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
 
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    det_ckpt = load_checkpoint(cfg.detector, stage="detector", role="--detector")
-    seg_ckpt = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
+    det_ckpt = load_checkpoint(cfg.detector, stage=Stage.DETECTOR, option="--detector")
+    seg_ckpt = load_checkpoint(cfg.segmenter, stage=Stage.SEGMENTER, option="--segmenter")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}

@@ -166,6 +166,7 @@ def _file_sha256(path: Path) -> str:
 def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
     """Check every argument, the checkpoints' metadata and the source, and lay out the predictions store.
     Raises ValueError (CheckpointError is one) or DataError saying what is wrong; nothing is written."""
+    from models.capabilities import Stage
     from models.checkpoint import load_checkpoint
 
     source_of_frames = parse_source(cfg.source, SOURCE_KINDS)
@@ -181,8 +182,8 @@ def plan_job(cfg: SegmentBatchConfig) -> BatchPlan:
     if kind is SourceKind.RECORDING and cfg.split is not None:
         raise UserError("--split: only with a store source (a recording is segmented whole)")
 
-    det = load_checkpoint(cfg.detector, stage="detector", role="--detector")
-    seg = load_checkpoint(cfg.segmenter, stage="segmenter", role="--segmenter")
+    det = load_checkpoint(cfg.detector, stage=Stage.DETECTOR, option="--detector")
+    seg = load_checkpoint(cfg.segmenter, stage=Stage.SEGMENTER, option="--segmenter")
     if det.preset != seg.preset:
         raise UserError(f"detector {cfg.detector} is for preset {det.preset!r} but segmenter {cfg.segmenter} "
                          f"for {seg.preset!r}")

@@ -57,9 +57,9 @@ log = logging.getLogger(__name__)
 
 PAPER_RATIOS = (0.1, 0.3, 0.4, 0.6, 0.7)
 SEGMENTERS = {"minkunet": "ERASE-Net (M)", "spvcnn": "ERASE-Net (S)"}
-# The sweep's checkpoint arguments and the role (models.capabilities) each one's model must declare:
-# scoring, fine-tuning and the learning rate follow the role.
-SLOTS: dict[str, Stage] = {"detector": Stage.DETECTOR, "minkunet": Stage.SEGMENTER, "spvcnn": Stage.SEGMENTER,
+# The sweep's checkpoint arguments and the stage (models.capabilities) each one's model must declare:
+# scoring, fine-tuning and the learning rate follow the stage.
+SLIMMED: dict[str, Stage] = {"detector": Stage.DETECTOR, "minkunet": Stage.SEGMENTER, "spvcnn": Stage.SEGMENTER,
                           "smvanet": Stage.BASELINE}
 
 
@@ -96,7 +96,7 @@ class SweepConfig:
 
     def steps(self, kind: str) -> int:
         """Fine-tuning steps after pruning for the checkpoint given as ``--<kind>``."""
-        if SLOTS[kind] is Stage.BASELINE and self.finetune_steps_baseline is not None:
+        if SLIMMED[kind] is Stage.BASELINE and self.finetune_steps_baseline is not None:
             return self.finetune_steps_baseline
         return self.finetune_steps
 
@@ -137,23 +137,23 @@ def finetune(kind: str, pruned: Path, run: Path, cfg: SweepConfig) -> Path:
 
     ``run`` belongs to the sweep: a run left there by an earlier sweep is replaced."""
     shutil.rmtree(run, ignore_errors=True)
-    role = SLOTS[kind]
-    train(TrainConfig(stage=role.value, model=load_checkpoint(pruned).model_name if role is Stage.BASELINE else None,
+    stage = SLIMMED[kind]
+    train(TrainConfig(stage=stage.value, model=load_checkpoint(pruned).model_name if stage is Stage.BASELINE else None,
                       store=cfg.store, out=str(run), init=str(pruned),
-                      lr=cfg.lr_baseline if role is Stage.BASELINE else cfg.lr_erasenet, epochs=10_000,
+                      lr=cfg.lr_baseline if stage is Stage.BASELINE else cfg.lr_erasenet, epochs=10_000,
                       # the detector's deepest BatchNorm needs two frames (TrainConfig refuses batch 1 there)
-                      batch_size=max(2, cfg.batch_size) if role is Stage.DETECTOR else cfg.batch_size,
+                      batch_size=max(2, cfg.batch_size) if stage is Stage.DETECTOR else cfg.batch_size,
                       max_steps=cfg.steps(kind), val_split=None, seed=cfg.seed,
                       threads=cfg.threads, progress=False,
-                      jitter_std=DEFAULT_JITTER_STD if role is Stage.SEGMENTER else None))
+                      jitter_std=DEFAULT_JITTER_STD if stage is Stage.SEGMENTER else None))
     return run / "model.pt"  # without validation model.pt holds the latest weights
 
 
 # --------------------------------------------------------------------------- the sweep
 def _score(kind: str, path: Path, cfg: SweepConfig, tag: str) -> dict[str, float]:
-    if SLOTS[kind] is Stage.DETECTOR:
+    if SLIMMED[kind] is Stage.DETECTOR:
         return score_detector_checkpoint(path, cfg)
-    if SLOTS[kind] is Stage.BASELINE:
+    if SLIMMED[kind] is Stage.BASELINE:
         return score_smvanet(path, cfg)
     return score_segmenter(path, cfg, tag)
 
@@ -165,9 +165,9 @@ def sweep_model(kind: str, path: str, cfg: SweepConfig) -> list[dict[str, Any]]:
     pruning and again after fine-tuning: keys ``pruned_<metric>`` hold the first scores.
     """
     checkpoint: Checkpoint = load_checkpoint(path)
-    role = stage_of(checkpoint.build())
-    if role is not SLOTS[kind]:
-        raise UserError(f"--{kind} {path}: expected a {SLOTS[kind]} checkpoint, got a {role} "
+    stage = stage_of(checkpoint.build())
+    if stage is not SLIMMED[kind]:
+        raise UserError(f"--{kind} {path}: expected a {SLIMMED[kind]} checkpoint, got a {stage} "
                          f"({checkpoint.model_name})")
     work = Path(cfg.work) / kind
     rows = []
@@ -195,7 +195,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
 
     def what(kind: str) -> str:
         steps = cfg.steps(kind)
-        lr = cfg.lr_baseline if SLOTS[kind] is Stage.BASELINE else cfg.lr_erasenet
+        lr = cfg.lr_baseline if SLIMMED[kind] is Stage.BASELINE else cfg.lr_erasenet
         return (f"pruned, then fine-tuned for {steps} optimiser steps (batch {cfg.batch_size}, lr {lr:g})" if steps
                 else "pruned only, **not fine-tuned**")
 
@@ -216,7 +216,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
     lines += ["Input checkpoints: " + ", ".join(f"{k} `{getattr(cfg, k)}`" for k in kinds), ""]
     if cfg.notes:
         lines += [cfg.notes, ""]
-    det = [r for r in rows if SLOTS[r["model"]] is Stage.DETECTOR]
+    det = [r for r in rows if SLIMMED[r["model"]] is Stage.DETECTOR]
     if det:
         tuned = cfg.steps(det[0]["model"]) > 0
         lines += ["## Detector", "", "| ratio | params (M) | GMACs | AP@1 | AP@3 | AP@5 | mAP |"
@@ -228,7 +228,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
             lines.append(f"| {r['ratio']:.1f} | {r['params'] / 1e6:.3f} | {r['macs'] / 1e9:.3f} | {ap} |{before}")
         lines += ["", "Paper (NXP, 50-epoch fine-tunes), ratio 0/0.1/0.3/0.4/0.6/0.7: params "
                   "2.08/1.87/1.45/1.25/0.83/0.62 M, mAP 0.853/0.82/0.83/0.84/0.79/0.13.", ""]
-    seg = [r for r in rows if SLOTS[r["model"]] is not Stage.DETECTOR]
+    seg = [r for r in rows if SLIMMED[r["model"]] is not Stage.DETECTOR]
     if seg:
         lines += ["## Segmentation (mIoU %, background included)", "",
                   "| model | ratio | params (M) | GMACs | RA mIoU | RD mIoU | RA / RD before fine-tuning |",
@@ -246,7 +246,7 @@ def format_report(rows: list[dict[str, Any]], cfg: SweepConfig, command: str, se
 
 def plot(rows: list[dict[str, Any]], path: Path) -> Path | None:
     """RA and RD mIoU against the parameters left, one line per segmentation model."""
-    seg = [r for r in rows if SLOTS[r["model"]] is not Stage.DETECTOR]
+    seg = [r for r in rows if SLIMMED[r["model"]] is not Stage.DETECTOR]
     if not seg:
         return None
     import matplotlib
@@ -279,7 +279,7 @@ def main(cfg: SweepConfig, command: str | None = None) -> dict[str, Any]:
     torch.set_num_threads(max(1, cfg.threads))
     started = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    for kind in SLOTS:
+    for kind in SLIMMED:
         path = getattr(cfg, kind)
         if path:
             rows += sweep_model(kind, path, cfg)
@@ -302,7 +302,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True, help="preprocessed store (zarr) to score (and fine-tune) on")
     parser.add_argument("--out", default="reports", help="where slimming.md/.png/.json go")
     parser.add_argument("--work", default="out/slim-sweep", help="pruned checkpoints and fine-tune runs")
-    for kind in SLOTS:
+    for kind in SLIMMED:
         parser.add_argument(f"--{kind}", help=f"{kind} checkpoint (trained with --slim-lambda, ideally)")
     parser.add_argument("--ratios", type=float, nargs="+", default=list(PAPER_RATIOS),
                         help="compression ratios (fraction of BatchNorm channels removed)")

@@ -2,6 +2,7 @@ import numpy as np
 import pytest
 import torch
 
+from models.capabilities import Stage
 from models.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from models.erasenet.model import EraseNet
 from models.registry import create_model
@@ -104,7 +105,7 @@ def test_checkpoints_say_what_they_are_and_roles_are_checked(tmp_path):
     with pytest.raises(CheckpointError, match="the same file"):
         EraseNet.from_checkpoints(det, det)
     with pytest.raises(CheckpointError, match="a detector checkpoint .*expected a segmenter checkpoint"):
-        load_checkpoint(det, stage="segmenter", role="--segmenter")
+        load_checkpoint(det, stage=Stage.SEGMENTER, option="--segmenter")
 
 
 def test_given_centres_replace_the_detector(frame):
