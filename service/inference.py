@@ -142,19 +142,21 @@ class ServedModel:
         with self._lock:
             self._held -= 1
 
-    async def run(self, cube: np.ndarray, *, is_log_power: bool, adc_compensation: bool | None = None
-                  ) -> SegmentationResult:
+    async def run(self, cube: np.ndarray, *, is_log_power: bool, adc_compensation: bool | None = None,
+                  views: bool = False) -> SegmentationResult:
         """Segment on an inference thread; the slot (taken by :meth:`acquire`) is released when inference ends,
         even if the awaiting request was cancelled. ``adc_compensation`` not None: ``cube`` holds raw ADC
-        samples, processed into the RAD cube first (with or without TDM compensation; timed as transform)."""
+        samples, processed into the RAD cube first (with or without TDM compensation; timed as transform), once:
+        ``views`` has the model return the input's RA/RD views from the same frame, inside its compute."""
         if self._executor is None:
             self.release()
             raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
-        future = self._executor.submit(self._segment, cube, is_log_power, adc_compensation)
+        future = self._executor.submit(self._segment, cube, is_log_power, adc_compensation, views)
         future.add_done_callback(lambda _: self.release())
         return await asyncio.wrap_future(future)
 
-    def _segment(self, cube: np.ndarray, is_log_power: bool, adc_compensation: bool | None) -> SegmentationResult:
+    def _segment(self, cube: np.ndarray, is_log_power: bool, adc_compensation: bool | None,
+                 views: bool = False) -> SegmentationResult:
         net = self._free.get()
         try:
             adc_s = 0.0
@@ -162,7 +164,7 @@ class ServedModel:
                 start = time.perf_counter()
                 cube = process_adc(cube, net.profile, tdm_compensation=adc_compensation)
                 adc_s = time.perf_counter() - start
-            result = net.segment(cube, is_log_power=is_log_power)
+            result = net.segment(cube, is_log_power=is_log_power, views=views)
             result.compute = result.compute.plus_seconds("transform", adc_s)
         finally:
             self._free.put(net)

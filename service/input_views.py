@@ -6,11 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from radar import transforms
-from radar.adc import process_adc
 from radar.profiles import RadarProfile
 from service.encoding import encode_array
-from service.schemas import InputKind, InputView, InputViews, MaskEncoding, ViewAxes
+from service.schemas import InputView, InputViews, MaskEncoding, ViewAxes
 
 
 def quantise_view(view_db: np.ndarray, encoding: MaskEncoding) -> InputView:
@@ -33,13 +31,8 @@ def view_axes(profile: RadarProfile) -> ViewAxes:
                     velocity_mps=values(profile.velocity_mps(np.arange(n_doppler))))
 
 
-def input_views(cube: np.ndarray, profile: RadarProfile, input_kind: InputKind, encoding: MaskEncoding, *,
-                tdm_compensation: bool = True) -> InputViews:
-    """RA view (R, A) and RD view (R, D) of a validated upload: a complex RAD cube, its log power in dB, or raw
-    ADC samples (processed again here, as the model did)."""
-    if input_kind is InputKind.adc:
-        cube = process_adc(cube, profile, tdm_compensation=tdm_compensation)
-    log_power = cube.astype(np.float32, copy=False) if input_kind is InputKind.log_power else transforms.log_power(cube)
-    return InputViews(ra=quantise_view(transforms.ra_view(log_power, is_log_power=True), encoding),
-                      rd=quantise_view(transforms.rd_view(log_power, is_log_power=True), encoding),
-                      axes=view_axes(profile))
+def input_views(ra_db: np.ndarray, rd_db: np.ndarray, profile: RadarProfile, encoding: MaskEncoding) -> InputViews:
+    """The answer's views from the model's RA view (R, A) and RD view (R, D) of the input in dB
+    (``SegmentationResult.views``: computed by the model from the log power it segmented, so raw ADC is processed
+    once and the views are part of the request's compute)."""
+    return InputViews(ra=quantise_view(ra_db, encoding), rd=quantise_view(rd_db, encoding), axes=view_axes(profile))

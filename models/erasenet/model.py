@@ -63,6 +63,9 @@ class SegmentationResult:
     centres: Centres
     regions: Regions
     compute: FrameCompute
+    # with segment(views=True): the RA (R, A) and RD (R, D) views of the input in dB (radar.transforms), from the
+    # log power the model computed (timed with the projections)
+    views: tuple[np.ndarray, np.ndarray] | None = None
 
 
 @contextmanager
@@ -164,13 +167,14 @@ class EraseNet:
 
     @torch.no_grad()
     def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None,
-                schema: dict[str, Any] | None = None) -> SegmentationResult:
+                schema: dict[str, Any] | None = None, views: bool = False) -> SegmentationResult:
         """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
 
         ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
         evaluating stage 2 from ground-truth seeds, or a non-learned detector such as CFAR.
         ``schema`` (optional) is the cube's own description; a mismatch with the model's raises
-        :class:`radar.schema.SchemaMismatch` naming every difference.
+        :class:`radar.schema.SchemaMismatch` naming every difference. ``views``: also return the input's RA and
+        RD views in dB (``SegmentationResult.views``), from the frame's log power, inside the timed work.
         """
         if schema is not None:
             content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
@@ -204,12 +208,14 @@ class EraseNet:
             ra_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 2, num_classes)
             rd_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 1, num_classes)
             objects = self._objects(regions, voxel_classes, centres)
+            input_views = ((transforms.ra_view(log_power, is_log_power=True),
+                            transforms.rd_view(log_power, is_log_power=True)) if views else None)
         compute = FrameCompute(
             detect_macs=detect_macs, segment_macs=segment_macs, segment_executed_macs=segment_executed,
             detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],
             seconds={name: seconds.get(name, 0.0) for name in STEPS}, roi_voxels=len(regions),
             visited_points=regions.visited, detections=len(centres), engine=self.engine)
-        return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute)
+        return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views)
 
     def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
         """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""

@@ -161,11 +161,12 @@ def _take_slot(served: ServedModel, state: ServiceState) -> None:
 
 
 async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, tdm_compensation: bool,
-                 state: ServiceState) -> SegmentationResult:
+                 state: ServiceState, *, views: bool) -> SegmentationResult:
     """Inference in the slot taken by :func:`_take_slot` (the model releases it when inference ends)."""
     try:
         return await served.run(cube, is_log_power=input_kind is InputKind.log_power,
-                                adc_compensation=tdm_compensation if input_kind is InputKind.adc else None)
+                                adc_compensation=tdm_compensation if input_kind is InputKind.adc else None,
+                                views=views)
     except NotReady as exc:
         raise ApiError(503, str(exc), error="not_ready",
                        headers={"Retry-After": str(state.settings.retry_after_s)}) from None
@@ -225,10 +226,10 @@ async def segment(
     _take_slot(served, state)  # a saturated model answers 503 before the quota is touched (no ledger round trips)
     # reserved (the slot given back if refused); the lease is given back unless settled
     async with state.billing.hold(caller.tenant, served, on_refused=served.release) as quota:
-        result = await _infer(served, cube, input_kind, tdm_compensation, state)
-        views = (await run_in_threadpool(input_views, cube, served.net.profile, input_kind, encoding,
-                                         tdm_compensation=tdm_compensation) if "views" in chosen else None)
+        # the views come from the model's own log power (ADC processed once), inside the compute that is billed
+        result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in chosen)
         del cube
+        views = None if result.views is None else input_views(*result.views, served.net.profile, encoding)
         report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included
         compute = _compute(report)
         request_id = uuid.uuid4().hex

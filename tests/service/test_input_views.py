@@ -54,3 +54,23 @@ def test_views_option_is_documented_and_an_unknown_output_is_a_422(make_settings
     assert "views" in params["outputs"]["description"]
     r = client.post("/v1/segment?outputs=view", content=cube_body, headers=NPY)
     assert r.status_code == 422 and "views" in r.json()["detail"]
+
+
+def test_adc_views_come_from_the_one_processed_cube_inside_the_billed_compute(make_settings, client_for, frame,
+                                                                             monkeypatch):
+    """?input=adc&outputs=views: the ADC -> RAD chain runs once per request (the model's), the views are the
+    processed cube's, and their time is inside the compute the answer reports."""
+    import service.inference
+
+    calls = []
+    real = service.inference.process_adc
+    monkeypatch.setattr(service.inference, "process_adc", lambda *a, **k: calls.append(1) or real(*a, **k))
+    client = client_for(make_settings())
+    by_cube = client.post("/v1/segment?outputs=views", content=npy_bytes(frame.cube), headers=NPY)
+    by_adc = client.post("/v1/segment?input=adc&outputs=views", content=npy_bytes(frame.extras["adc"]), headers=NPY)
+    assert by_cube.status_code == by_adc.status_code == 200, by_adc.text
+    assert len(calls) == 1
+    for name in ("ra", "rd"):
+        assert np.abs(_db(by_adc.json()["views"][name]) - _db(by_cube.json()["views"][name])).max() < 0.5
+    seconds = by_adc.json()["compute"]["seconds"]
+    assert seconds["project"] > 0 and seconds["total"] >= seconds["transform"] + seconds["project"]
