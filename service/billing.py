@@ -5,9 +5,16 @@ The reservation estimate is the tenant's own: the largest MACs billed to it for 
 ``HISTORY`` requests (in the ledger, so it survives restarts and is shared by every process on the same ledger);
 a tenant with no history yet reserves the detector's exact MACs plus ``reservation_headroom`` times the largest
 segmenter MACs of the model's warm-up scenes (the same for every tenant). Another tenant's cubes never raise it,
-and neither does a request refused at settlement (only billed requests are history). A request whose actual cost
-exceeds what is left is refused at settlement (429) and not billed;
-``radarseg_rejected_requests{reason="quota_at_settlement"}`` counts those, the inference wasted.
+and neither does a request refused at reservation (only billed requests are history). Compute is always billed: a
+request that ran is billed for what it ran, even past the quota (a reservation admits a request only while the
+quota covers its estimate, so a tenant runs at most one frame's compute beyond its quota; its next request is
+refused).
+
+The ledger's database: every call runs on threads of the billing's own (``ledger_threads``, never the threads the
+plain routes and ``/healthz`` use) and waits at most ``ledger_timeout_s``; a database error or a silent database is
+a 503. The first failure marks the ledger down: requests that need it answer 503 at once, ``/readyz`` says why,
+and :meth:`Billing.watch` probes it every ``ledger_check_s`` (opening it if the service started without it), gives
+back the leases that failures left behind, and marks it up again.
 
 A 429 at reservation says when to retry: when the tenant's billed MACs leave room for the request but its own
 requests in flight hold the rest, ``Retry-After`` is the deadline of the lease that frees enough (they usually end
@@ -16,14 +23,16 @@ much sooner); when the billed MACs alone leave too little, the next UTC day.
 
 from __future__ import annotations
 
+import asyncio
 import datetime as dt
+import functools
 import logging
 from collections.abc import AsyncIterator, Callable
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import asynccontextmanager
 from typing import Any, TypeVar
 
 from sqlalchemy.exc import SQLAlchemyError
-from starlette.concurrency import run_in_threadpool
 
 from models.erasenet.compute_report import FrameCompute
 from service.errors import ApiError
@@ -76,9 +85,16 @@ class QuotaHold:
         self.ended = False
 
     async def settle(self, *, model: str, compute: FrameCompute, request_id: str) -> RequestUsage:
-        """Bill the request (see :meth:`Billing.settle`); the lease ends with it, billed or refused."""
+        """Bill the request (see :meth:`Billing.settle`); the lease ends with it. When the ledger fails here the
+        request is not billed (503) and its lease is given back once the ledger answers again."""
         self.ended = True
-        return await self.billing.settle(self.tenant, self.lease, model=model, compute=compute, request_id=request_id)
+        try:
+            return await self.billing.settle(self.tenant, self.lease, model=model, compute=compute,
+                                             request_id=request_id)
+        except ApiError:
+            if self.lease is not None:
+                self.billing.left_behind.append(self.lease)
+            raise
 
 
 class Billing:
@@ -89,14 +105,85 @@ class Billing:
         self.ledger = ledger
         self.settings = settings
         self.metrics = metrics
+        self.error: str | None = None  # why the ledger cannot be used now (None: it can, or was not tried yet)
+        self.opened = False
+        self.left_behind: list[Lease] = []  # leases whose release failed: given back once the database answers
+        self._threads = ThreadPoolExecutor(settings.ledger_threads, thread_name_prefix="ledger")
+        self._probe = ThreadPoolExecutor(1, thread_name_prefix="ledger-probe")  # never queued behind requests
+
+    def unavailable(self, why: str) -> ApiError:
+        return ApiError(503, f"usage ledger unavailable ({why}); the request was not billed",
+                        error="ledger_unavailable", headers={"Retry-After": str(self.settings.retry_after_s)})
+
+    def mark_down(self, exc: BaseException) -> None:
+        why = ("no answer within the ledger timeout" if isinstance(exc, TimeoutError)
+               else f"{type(exc).__name__}: {(str(exc).splitlines() or [''])[0]}")
+        if self.error is None or not self.opened:
+            log.error("usage ledger %s unavailable: %s", self.ledger.dialect, why)
+        self.error = why
 
     async def _call(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """``fn`` on a ledger thread, waiting at most ``ledger_timeout_s``; a 503 while the ledger is down, on a
+        database error and on a silent database (which marks it down)."""
+        if self.error is not None:
+            raise self.unavailable(self.error)
+        return await self.run(self._threads, fn, *args, **kwargs)
+
+    async def run(self, threads: ThreadPoolExecutor, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        future = asyncio.get_running_loop().run_in_executor(threads, functools.partial(fn, *args, **kwargs))
         try:
-            return await run_in_threadpool(fn, *args, **kwargs)
-        except SQLAlchemyError as exc:
-            raise ApiError(503, f"usage ledger unavailable ({type(exc).__name__}); the request was not billed",
-                           error="ledger_unavailable",
-                           headers={"Retry-After": str(self.settings.retry_after_s)}) from None
+            return await asyncio.wait_for(future, self.settings.ledger_timeout_s)
+        except (SQLAlchemyError, TimeoutError) as exc:
+            self.mark_down(exc)
+            raise self.unavailable(self.error or "") from None
+
+    async def read(self, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """A ledger read for a route (``GET /v1/usage``), under the same rules as billing's own calls."""
+        return await self._call(fn, *args, **kwargs)
+
+    def open(self) -> None:
+        """Create the tables if needed, check the database answers and give back expired leases (blocking)."""
+        self.ledger.create()
+        self.ledger.ping()
+        self.start()
+        self.opened, self.error = True, None
+
+    def _recover(self) -> int:
+        """The probe's work (blocking): open or ping the ledger, then give back the leases failures left."""
+        if self.opened:
+            self.ledger.ping()
+        else:
+            self.open()
+        given = 0
+        while self.left_behind:
+            lease = self.left_behind[0]
+            self.ledger.release(lease)
+            self.left_behind.pop(0)
+            given += lease.macs
+        return given
+
+    async def watch(self) -> None:
+        """Keep the ledger's state live (the app's lifespan runs this): every ``ledger_check_s`` a probe on a thread
+        of its own; the ledger is marked down when it fails or is silent, and up (with the leases left behind
+        given back) when it answers again."""
+        while True:
+            await asyncio.sleep(self.settings.ledger_check_s)
+            was = self.error
+            try:
+                given = await self.run(self._probe, self._recover)
+            except ApiError:
+                continue
+            except asyncio.CancelledError:
+                raise
+            if given:
+                log.warning("gave back %d MACs of quota leases held when the ledger failed", given)
+            if was is not None:
+                log.warning("usage ledger %s available again", self.ledger.dialect)
+            self.error = None
+
+    def close(self) -> None:
+        self._threads.shutdown(wait=False, cancel_futures=True)
+        self._probe.shutdown(wait=False, cancel_futures=True)
 
     def start(self) -> int:
         """At start-up (blocking): give back expired leases of processes that died; the MACs given back."""
@@ -160,21 +247,24 @@ class Billing:
                 await self.release(held.lease)
 
     async def release(self, lease: Lease | None) -> None:
-        """Give a lease back (the request was not billed)."""
-        if lease is not None:
+        """Give a lease back (the request was not billed). When the ledger fails, the lease is kept and given back
+        once it answers again (:meth:`watch`), so no tenant stays locked out for a lease's whole life."""
+        if lease is None:
+            return
+        try:
             await self._call(self.ledger.release, lease)
+        except ApiError:
+            self.left_behind.append(lease)
 
     async def settle(self, tenant: str, lease: Lease | None, *, model: str, compute: FrameCompute,
                      request_id: str) -> RequestUsage:
         """Bill the request (its MACs and compute time, ``compute.compute_us``) and end its lease; the tenant's
-        day after it. ApiError 429 (nothing billed) when its actual MACs no longer fit the quota."""
+        day after it. What ran is billed, even past the quota (the reservation admitted it while the quota covered
+        its estimate)."""
         quota = self.settings.quota_for(tenant)
         billed = await self._call(
             self.ledger.settle, tenant, model=model, macs=compute.macs_total, compute_us=compute.compute_us,
-            roi_voxels=compute.roi_voxels, lease=lease, limit=quota, request_id=request_id)
-        if isinstance(billed, QuotaExceeded):
-            self.metrics.rejected.labels(model, "quota_at_settlement").inc()
-            raise quota_error(billed)
+            roi_voxels=compute.roi_voxels, lease=lease, limit=None, request_id=request_id)
         return request_usage(billed, quota)
 
 

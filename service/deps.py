@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import Depends, Request, Security
@@ -29,7 +29,11 @@ class ServiceState:
     metrics: ServiceMetrics
     auth: Authenticator
     uploads: UploadGate
-    ledger_error: str | None = field(default="not opened yet")
+
+    @property
+    def ledger_error(self) -> str | None:
+        """Why the usage ledger cannot be used now (None when it can): its state, kept live by the billing."""
+        return self.billing.error
 
 
 def get_state(request: Request) -> ServiceState:

@@ -142,7 +142,8 @@ class Ledger:
     """Per-tenant, per-day usage counters and a row per billed request, in tables named ``{prefix}usage``
     and ``{prefix}requests``."""
 
-    def __init__(self, url: str, *, table_prefix: str = "radarseg_", pool_size: int = 8) -> None:
+    def __init__(self, url: str, *, table_prefix: str = "radarseg_", pool_size: int = 8,
+                 timeout_s: float = 3.0) -> None:
         self.url = url
         self.table_prefix = table_prefix
         self.dialect = make_url(url).get_backend_name()
@@ -150,8 +151,16 @@ class Ledger:
             self.engine = _sqlite_engine(url)
             self._insert = sqlite.insert
         elif self.dialect == "postgresql":
-            pool = {"pool_size": pool_size, "max_overflow": pool_size, "pool_pre_ping": True}
-            self.engine = create_engine(url, **pool) if pool_size else create_engine(url, poolclass=NullPool)
+            pool = {"pool_size": pool_size, "max_overflow": pool_size, "pool_pre_ping": True,
+                    "pool_timeout": timeout_s}
+            # a database that is down or silent fails a call within seconds: the connect timeout, unacknowledged
+            # data (tcp_user_timeout) and keepalives, in libpq's terms
+            wait_ms = int(timeout_s * 1000)
+            connect_args = {"connect_timeout": max(1, int(round(timeout_s))), "tcp_user_timeout": wait_ms,
+                            "keepalives": 1, "keepalives_idle": max(1, int(timeout_s)), "keepalives_interval": 1,
+                            "keepalives_count": 3}
+            self.engine = (create_engine(url, connect_args=connect_args, **pool) if pool_size
+                           else create_engine(url, connect_args=connect_args, poolclass=NullPool))
             self._insert = postgresql.insert
         else:
             raise ValueError(f"ledger URL must be sqlite or postgresql, got {self.dialect!r}")

@@ -11,6 +11,7 @@ service imports and loading the models in the background (``create_app(..., load
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import threading
 from collections.abc import AsyncIterator
@@ -47,14 +48,11 @@ or `X-API-Key: KEY` when configured."""
 
 
 def _open_ledger(state: ServiceState) -> None:
+    """At start-up: open the ledger (a database that is down is noted, and the watch finds it back later)."""
     try:
-        state.ledger.create()
-        state.ledger.ping()
-        state.billing.start()
-        state.ledger_error = None
+        state.billing.open()
     except SQLAlchemyError as exc:
-        state.ledger_error = f"{type(exc).__name__}: {str(exc).splitlines()[0]}"
-        log.error("usage ledger %s unavailable: %s", state.ledger.dialect, state.ledger_error)
+        state.billing.mark_down(exc)
 
 
 def _load(state: ServiceState) -> None:
@@ -74,7 +72,8 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     (``/healthz`` 200, ``/readyz`` 503 ``loading`` with each model's stage, ``/v1/segment`` 503 not ready);
     otherwise start-up waits for them (the test client, Ray Serve replicas)."""
     settings = settings or Settings()
-    ledger = Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix)
+    ledger = Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix,
+                    timeout_s=settings.ledger_timeout_s)
     metrics_ = ServiceMetrics()
     state = ServiceState(settings=settings, pool=ModelPool(settings), ledger=ledger,
                          billing=Billing(ledger, settings, metrics_), metrics=metrics_, auth=Authenticator(settings),
@@ -87,12 +86,15 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
             loading.start()
         else:
             await run_in_threadpool(_load, state)
+        watch = asyncio.create_task(state.billing.watch(), name="radarseg-ledger-watch")
         try:
             yield
         finally:
+            watch.cancel()
             if loading.is_alive():
                 await run_in_threadpool(loading.join)
             state.pool.close()
+            state.billing.close()
             state.ledger.dispose()
 
     app = FastAPI(title="radarseg", version="0.1.0", description=DESCRIPTION, lifespan=lifespan, docs_url=None,

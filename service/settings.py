@@ -112,6 +112,13 @@ class Settings(BaseSettings):
     lease_s: Annotated[float, Field(ge=1, le=86400)] = 300.0
     reservation_headroom: Annotated[float, Field(ge=1.0, le=100.0)] = 1.5  # times the largest segmenter MACs known
 
+    # the ledger's database: its calls run on ledger_threads threads of their own (never the threads the plain
+    # routes use), each at most ledger_timeout_s (a silent database is a 503 then, not a hung request); while it
+    # is down, requests that need it answer 503 at once and a probe every ledger_check_s finds it back
+    ledger_threads: Annotated[int, Field(ge=1, le=64)] = 4
+    ledger_timeout_s: Annotated[float, Field(gt=0, le=60)] = 3.0
+    ledger_check_s: Annotated[float, Field(gt=0, le=60)] = 1.0
+
     data_dir: Path = Path("data/service")  # relative to the working directory
     ledger_url: str | None = None  # None: SQLite (WAL) file ledger.sqlite3 under data_dir
     ledger_table_prefix: str = "radarseg_"

@@ -75,7 +75,8 @@ def _served_model(state: ServiceState, name: str | None) -> ServedModel:
         raise ApiError(503, f"model {served.spec.name!r} is not ready ({served.stage}): {served.error}",
                        error="not_ready", headers=retry)
     if state.ledger_error is not None:
-        raise ApiError(503, f"usage ledger unavailable: {state.ledger_error}", error="not_ready", headers=retry)
+        raise ApiError(503, f"usage ledger unavailable ({state.ledger_error}); the request was not billed",
+                       error="ledger_unavailable", headers=retry)
     return served
 
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Annotated
 
 from fastapi import APIRouter, Query
-from starlette.concurrency import run_in_threadpool
 
 from service.deps import Caller, State
 from service.errors import ApiError
@@ -37,14 +36,13 @@ async def usage(
         raise ApiError(403, f"tenant {caller.tenant!r} may read its own usage only (other tenants need an admin key)")
     else:
         tenants = None if tenant == "all" else [tenant]
-    if state.ledger_error is not None:
-        raise ApiError(503, f"usage ledger unavailable: {state.ledger_error}", error="not_ready",
-                       headers={"Retry-After": str(state.settings.retry_after_s)})
-    by_tenant = await run_in_threadpool(state.ledger.days, tenants, limit_days=days)
-    all_time = await run_in_threadpool(state.ledger.all_time, tenants)
+    # on the ledger's own threads, each call bounded: a database that is down or silent is a 503, never a 500
+    read = state.billing.read
+    by_tenant = await read(state.ledger.days, tenants, limit_days=days)
+    all_time = await read(state.ledger.all_time, tenants)
     names = sorted(set(by_tenant) | set(tenants or state.settings.tenants))
     today = utc_today()
-    held = await run_in_threadpool(lambda: {name: state.ledger.held(name, today) for name in names})
+    held = await read(lambda: {name: state.ledger.held(name, today) for name in names})
     out = []
     for name in names:
         listed = by_tenant.get(name, [])
