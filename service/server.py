@@ -119,6 +119,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
     header_timeout_s = 30.0
     max_connections = DEFAULT_MAX_CONNECTIONS
     linger_s = 2.0  # after refusing, read and drop what the client still sends for this long before closing
+    write_timeout_s = 60.0  # an answer the client stops taking must be taken within this from that moment
     refusals = RefusalCounter()
 
     def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003 (uvicorn's signature)
@@ -131,6 +132,28 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
         self._url_bytes = 0
         self._refused = False
         self._head_timer: asyncio.TimerHandle | None = None
+        self._write_timer: asyncio.TimerHandle | None = None
+
+    def pause_writing(self) -> None:
+        """The client stopped taking the answer (the transport's buffer is full): its deadline starts now."""
+        super().pause_writing()
+        if self._write_timer is None:
+            self._write_timer = self.loop.call_later(self.write_timeout_s, self._write_timed_out)
+
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        if self.cycle is None or self.cycle.response_complete:  # the whole answer left the buffer's high mark
+            self._cancel_write_timer()
+
+    def _cancel_write_timer(self) -> None:
+        if self._write_timer is not None:
+            self._write_timer.cancel()
+            self._write_timer = None
+
+    def _write_timed_out(self) -> None:
+        self._write_timer = None
+        self.refusals.count("write_timeout")
+        self.transport.abort()
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
@@ -157,6 +180,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._cancel_head_timer()
+        self._cancel_write_timer()
         super().connection_lost(exc)
 
     def _arm_head_timer(self) -> None:
@@ -293,6 +317,7 @@ def guarded_protocol(settings: Settings, refusals: RefusalCounter | None = None)
     return type("ServiceHttpProtocol", (GuardedHttpToolsProtocol,),
                 {"max_header_bytes": settings.max_header_bytes, "max_headers": settings.max_headers,
                  "header_timeout_s": settings.header_timeout_s, "max_connections": connection_cap(settings),
+                 "write_timeout_s": settings.write_timeout_s,
                  "refusals": refusals or RefusalCounter()})
 
 

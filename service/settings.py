@@ -94,6 +94,9 @@ class Settings(BaseSettings):
     max_header_bytes: Annotated[int, Field(ge=1024, le=2**20)] = 65536  # request line and headers together
     max_headers: Annotated[int, Field(ge=8, le=1000)] = 100
     header_timeout_s: Annotated[float, Field(ge=0.5, le=600)] = 30.0  # a request head complete within this (408)
+    # writing one answer: from the first time the client's socket stops taking it, the answer must be taken within
+    # this, or the connection is cut (a client reading at 100 bytes/s holds no buffer for long)
+    write_timeout_s: Annotated[float, Field(ge=0.5, le=3600)] = 60.0
     # Connections (the `service.server` runner): at most this many open at once; a new one beyond closes the
     # connection that has waited longest for a request head (idle keep-alive or a stalled head), or is refused
     # with 503 when every one is busy. None: the process's file limit (RLIMIT_NOFILE, raised to its hard limit

@@ -36,7 +36,7 @@ LIMITS = {  # small limits so that slow clients are cut off within seconds
     "RADARSEG_BODY_GRACE_S": "1", "RADARSEG_BODY_MIN_RATE": "65536", "RADARSEG_BODY_TIMEOUT_S": "4",
     "RADARSEG_MAX_UPLOADS": "14", "RADARSEG_MAX_TENANT_UPLOADS": "14", "RADARSEG_MAX_HEADER_BYTES": "16384",
     "RADARSEG_MAX_HEADERS": "50",
-    "RADARSEG_HEADER_TIMEOUT_S": "3",
+    "RADARSEG_HEADER_TIMEOUT_S": "3", "RADARSEG_WRITE_TIMEOUT_S": "2",
 }
 
 
@@ -249,3 +249,26 @@ def test_schemathesis_finds_no_server_error_and_no_schema_mismatch(server):
         except Exception as exc:  # noqa: BLE001 (collect every operation's failure, then report them all)
             failures[operation.label] = f"{type(exc).__name__}: {str(exc)[:1500]}"
     assert len(operations) >= 6 and not failures, failures
+
+
+def test_a_client_that_stops_reading_its_answer_is_cut_off_after_the_write_timeout(server):
+    """An answer of several MB to a client that never reads: the server's buffer fills, and the connection is cut
+    once the write timeout has passed since it stopped taking the answer (the answer is not held for ever)."""
+    with socket.socket() as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # before connecting: a small window
+        sock.connect(("127.0.0.1", server.port))
+        sock.sendall(http_head("/v1/examples/1", ACME, method="GET"))
+        time.sleep(2 + 3)  # the write timeout (2 s) and margin, reading nothing
+        sock.settimeout(10)
+        received, started = 0, time.monotonic()
+        try:
+            while chunk := sock.recv(65536):
+                received += len(chunk)
+        except (ConnectionResetError, TimeoutError):
+            pass
+        assert time.monotonic() - started < 10
+    length = len(httpx.get(f"{server.url}/v1/examples/1", headers=ACME, timeout=30).content)
+    assert length > 1_000_000 and received < length  # cut before the whole answer was taken
+    metrics = httpx.get(f"{server.url}/metrics", headers=ADMIN, timeout=30).text
+    assert 'radarseg_server_refusals_total{reason="write_timeout"}' in metrics
+
