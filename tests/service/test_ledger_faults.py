@@ -20,6 +20,8 @@ from sqlalchemy import func, select
 from tests.service.conftest import NPY
 from tests.service.tcp_proxy import TcpProxy
 
+pytestmark = pytest.mark.slow  # seconds of faults each (make test runs them; make test-fast does not)
+
 KEY = "fault-test-key-0123456789"
 TENANT = "acme"
 

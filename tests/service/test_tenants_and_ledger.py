@@ -306,3 +306,29 @@ def test_a_quota_hold_is_given_back_on_any_way_out_but_settlement(tmp_path):
     asyncio.run(cancelled())
     assert reserved() == 0 and billing.ledger.held("anonymous").leases == 0
     billing.ledger.dispose()
+
+
+def test_compute_that_ran_is_billed_even_past_the_quota_and_the_next_request_is_refused(tmp_path):
+    """a request admitted on its estimate that cost more than the quota had left ran for free (429 at settlement,
+    nothing billed); now what ran is billed, and the tenant is refused from then on: at most one frame beyond."""
+    import asyncio
+
+    from models.erasenet.compute_report import FrameCompute
+    from service.errors import ApiError
+
+    billing, served = _billing(tmp_path, daily_mac_quota=20_000)  # the first estimate (16,000) fits
+
+    async def one_request(macs: int):  # noqa: ANN202
+        async with billing.hold("anonymous", served) as quota:
+            compute = FrameCompute(detect_macs=1000, segment_macs=macs - 1000, segment_executed_macs=macs - 1000,
+                                   detector_params=1, segmenter_params=1, seconds={"segment": 0.01})
+            return await quota.settle(model="m", compute=compute, request_id=f"r{macs}")
+
+    usage = asyncio.run(one_request(50_000))  # a crafted cube: 2.5x the quota's room
+    assert usage.macs == 50_000 and usage.remaining_macs == 0
+    totals = billing.ledger.day_totals("anonymous")
+    assert totals.macs == 50_000 and totals.requests == 1 and totals.reserved_macs == 0
+    with pytest.raises(ApiError) as refused:
+        asyncio.run(one_request(1000))
+    assert refused.value.status == 429
+    billing.ledger.dispose()
