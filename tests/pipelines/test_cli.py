@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from pipelines.cli import main
 from pipelines.demo.demo import run_demo
 
@@ -27,11 +29,19 @@ def test_cli_errors_are_one_clear_line(tmp_path, capsys):
     assert main(["simulate", "--sequences", "0", "--frames", "1", "--out", str(tmp_path / "x")]) == 2
 
 
-def test_demo_writes_pictures(tmp_path):
-    result = run_demo(tmp_path / "demo", sequences=1, frames=2, pictures=2)
+@pytest.mark.slow
+def test_the_demo_runs_every_step_and_shows_each_result(tmp_path):
+    """Pictures of the simulated frames, the store, the shipped model's scores on every frame and the service's
+    answer (the store in this process: Ray's start-up is make demo's, which test_readme_commands runs)."""
+    result = run_demo(tmp_path / "demo", sequences=1, frames=2, pictures=2, in_process=True)
     assert len(result["pictures"]) == 2
     for path in result["pictures"]:
         assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
+    assert (result["store"] / "zarr.json").is_file() and result["frames"] == 2
+    segmentation = result["segmentation"]
+    assert segmentation["frames"] == 2 and segmentation["report"].is_file()
+    assert 0.0 <= segmentation["metrics"]["segmentation"]["RA"]["mIoU"] <= 1.0
+    assert "objects" in result["service"]
 
 
 def test_job_commands_hand_their_arguments_to_the_jobs_parsers(capsys):
