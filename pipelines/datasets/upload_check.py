@@ -25,6 +25,7 @@ class UploadTooLargeError(UserError):
 
 def upload_files(root: str | Path, excludes: tuple[str, ...] = ()) -> list[tuple[Path, int]]:
     """``(path relative to root, bytes)`` of every file ``--working-dir root`` would upload, largest first."""
+    from ray._private.ray_constants import get_runtime_env_default_excludes
     from ray._private.runtime_env.packaging import _dir_travel, _get_excludes
 
     root = Path(root).resolve()
@@ -36,8 +37,10 @@ def upload_files(root: str | Path, excludes: tuple[str, ...] = ()) -> list[tuple
         if path.is_file() and not path.is_symlink():
             found.append((path.relative_to(root), path.stat().st_size))
 
-    # The same walk as ray.job_submission's upload (packaging.get_uri_for_directory), .gitignore included.
-    _dir_travel(root, [_get_excludes(root, list(excludes))], visit, include_gitignore=True,
+    # The same walk as ray.job_submission's upload (packaging.get_uri_for_directory), .gitignore included, and with
+    # Ray's own default excludes (.git, .venv, __pycache__: RAY_OVERRIDE_RUNTIME_ENV_DEFAULT_EXCLUDES changes them).
+    everything = [*get_runtime_env_default_excludes(), *excludes]
+    _dir_travel(root, [_get_excludes(root, everything)], visit, include_gitignore=True,
                 logger=logging.getLogger(__name__))
     return sorted(found, key=lambda item: -item[1])
 

@@ -37,6 +37,9 @@ def test_an_oversized_working_dir_is_one_line_naming_the_largest_file(tmp_path, 
     # The excludes of --runtime-env-json, or .gitignore, take it out of the upload.
     assert main(["upload-check", str(tmp_path), "--limit-mib", "0.25", "--exclude", "runs/"]) == 0
     assert check_upload(tmp_path)["files"] == 3  # nothing excluded: code, .gitignore, last.pt
+    (tmp_path / ".git").mkdir()  # Ray never uploads .git (nor .venv, __pycache__), and neither does the check
+    (tmp_path / ".git" / "pack").write_bytes(b"\0" * 300_000)
+    assert check_upload(tmp_path)["files"] == 3
     (tmp_path / ".gitignore").write_text("runs/\n")
     assert check_upload(tmp_path, limit_bytes=250_000)["files"] == 2
 
