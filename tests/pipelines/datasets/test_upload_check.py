@@ -15,7 +15,8 @@ REPO = Path(__file__).resolve().parents[3]
 
 
 @pytest.mark.skipif(shutil.which("git") is None, reason="needs git")
-@pytest.mark.parametrize("path", ["runs/det/last.pt", "cube.npy", "frame_adc.npy", "frame_rad.npy", "my_radar.toml", "viewer.png",
+@pytest.mark.parametrize("path", ["runs/det/last.pt", "cube.npy", "frame_adc.npy", "frame_rad.npy", "my_radar.toml",
+                                  "viewer.png",
                                   "out/train/x.zarr", "data/small.zarr"])
 def test_what_the_readme_commands_write_is_ignored(path):
     assert subprocess.run(["git", "check-ignore", "-q", path], cwd=REPO).returncode == 0, path
