@@ -218,9 +218,10 @@ def test_a_lock_left_by_a_killed_build_does_not_block_the_next_process():
     script = ("from models.sparse import compiled\n"
               "d = compiled.build_root() / f'radarseg_sparse_{compiled.build_key(\"native\")}'\n"
               "d.mkdir(parents=True, exist_ok=True)\n"
-              "(d / 'lock').touch()\n"
+              "(d / 'lock').write_text('left by a killed build')\n"
               "compiled.build('native')\n"
-              "print('loaded', (d / 'lock').exists())\n")
+              "lock = d / 'lock'\n"  # another worker's own load may hold a fresh (empty) lock by now
+              "print('loaded', lock.exists() and lock.read_text() == 'left by a killed build')\n")
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600,
                           cwd=Path(__file__).resolve().parents[3])
     assert done.returncode == 0, done.stderr[-2000:]
