@@ -32,19 +32,21 @@ def _branch(in_channels: int, head_channels: int, out_channels: int, *, separabl
     return nn.Sequential(hidden, nn.Conv2d(head_channels, out_channels, 1))
 
 
-def focal_loss(heatmap_logits: torch.Tensor, target: torch.Tensor, *, alpha: float = 2.0, beta: float = 4.0):
+def focal_loss(heatmap_logits: torch.Tensor, target: torch.Tensor, *, alpha: float = 2.0, beta: float = 4.0,
+               peak_weight: torch.Tensor | None = None):
     """CenterNet's penalty-reduced pixel-wise focal loss, summed and divided by the positives.
 
     ``heatmap_logits`` and ``target`` are ``(B, 1, H, W)``; cells where ``target == 1`` are positives.
-    ``loss = -(sum_pos (1-p)^alpha log p + sum_neg (1-y)^beta p^alpha log(1-p)) / max(n_pos, 1)``,
-    with ``p = sigmoid(logits)`` evaluated through ``logsigmoid`` for stability.
+    ``loss = -(sum_pos w (1-p)^alpha log p + sum_neg (1-y)^beta p^alpha log(1-p)) / max(n_pos, 1)``,
+    with ``p = sigmoid(logits)`` evaluated through ``logsigmoid`` for stability; ``w`` is ``peak_weight`` at the
+    positives (``(B, 1, H, W)``, e.g. a class's weight at its objects' centres; 1 without it).
     """
     prob = torch.sigmoid(heatmap_logits)
     log_p = F.logsigmoid(heatmap_logits)
     log_not_p = F.logsigmoid(-heatmap_logits)
     positive = target.eq(1).to(heatmap_logits.dtype)
     negative = 1.0 - positive
-    pos_loss = (1 - prob).pow(alpha) * log_p * positive
+    pos_loss = (1 - prob).pow(alpha) * log_p * (positive if peak_weight is None else positive * peak_weight)
     neg_loss = (1 - target).pow(beta) * prob.pow(alpha) * log_not_p * negative
     num_pos = positive.sum().clamp(min=1.0)
     return -(pos_loss.sum() + neg_loss.sum()) / num_pos
@@ -121,7 +123,8 @@ class CentreNetHead(nn.Module):
                 f"target heatmap shape {tuple(targets['heatmap'].shape)} does not match the output "
                 f"{tuple(logits.shape)}"
             )
-        heatmap_loss = focal_loss(logits, targets["heatmap"], alpha=self.focal_alpha, beta=self.focal_beta)
+        heatmap_loss = focal_loss(logits, targets["heatmap"], alpha=self.focal_alpha, beta=self.focal_beta,
+                                  peak_weight=targets.get("peak_weight"))
         mask = targets["mask"].to(logits.dtype)  # (B, K)
         num_objects = mask.sum()
         indices = targets["indices"]

@@ -19,7 +19,7 @@ A centre cell is ``floor(bin / S)`` (output cell ``i`` is centred on input bin `
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TypedDict
+from typing import NotRequired, TypedDict
 
 import numpy as np
 import torch
@@ -37,6 +37,7 @@ class CentreTargets(TypedDict):
     offsets: torch.Tensor  # (B, K, 2) float32, (range, angle) in cells
     doppler: torch.Tensor  # (B, K) float32, Doppler bins
     mask: torch.Tensor  # (B, K) bool
+    peak_weight: NotRequired[torch.Tensor]  # (B, 1, H, W) float32: the focal loss's weight at each object's centre
 
 
 def output_grid(grid_shape: tuple[int, int], output_stride: int = OUTPUT_STRIDE) -> tuple[int, int]:
@@ -115,8 +116,12 @@ def build_centre_targets(
     max_objects: int = MAX_OBJECTS,
     sigma: tuple[float, float] = GAUSSIAN_SIGMA,
     radius: int = GAUSSIAN_RADIUS,
+    centre_weights: Sequence[np.ndarray] | None = None,
 ) -> CentreTargets:
     """Targets of a batch (format in the module docstring) from per-frame centres.
+
+    ``centre_weights[b]`` (optional, ``(N_b,)``): the focal loss's weight at each object's centre cell
+    (``peak_weight``; 1 elsewhere), e.g. a weight per class so that a weak class's peaks count more.
 
     ``batch_centres[b]``: ``(N_b, 3)`` fractional (range bin, angle bin, Doppler bin) of frame ``b``'s
     objects on the ``(R, A)`` grid ``grid_shape``. Raises ``ValueError`` when a frame has more than
@@ -148,10 +153,17 @@ def build_centre_targets(
         offsets[b, :n] = sub_cell
         doppler[b, :n] = centres[:, 2]
         mask[b, :n] = True
-    return CentreTargets(
+    targets = CentreTargets(
         heatmap=torch.from_numpy(heatmap),
         indices=torch.from_numpy(indices),
         offsets=torch.from_numpy(offsets),
         doppler=torch.from_numpy(doppler),
         mask=torch.from_numpy(mask),
     )
+    if centre_weights is not None:
+        weight = np.ones((batch, height * width), np.float32)
+        for b, frame_weights in enumerate(centre_weights):
+            n = int(mask[b].sum())
+            weight[b, indices[b, :n]] = np.asarray(frame_weights, np.float32)[:n]
+        targets["peak_weight"] = torch.from_numpy(weight.reshape(batch, 1, height, width))
+    return targets

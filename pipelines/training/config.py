@@ -44,6 +44,7 @@ class Hyper:
     val_frames: int = 0  # frames (windows) of the validation split scored per epoch, evenly spread (0 = all)
     jitter_std: tuple[float, float, float] = DEFAULT_JITTER_STD  # segmenter, bins, when no detector is given
     lovasz_weight: float = 0.0  # segmenter: weight of the Lovasz-softmax term beside weighted cross entropy
+    class_weights: tuple[float, ...] = ()  # detector: the focal loss's weight at each foreground class's centres
 
 
 PROFILES: dict[str, dict[str, Hyper]] = {
@@ -103,6 +104,7 @@ class TrainConfig:
     slim_lambda: float = 0.0  # network slimming: weight of the L1 penalty on every BatchNorm scale
     init: str | None = None  # start from this checkpoint's architecture and weights (fine-tuning)
     lovasz_weight: float | None = None  # segmenter: Lovasz-softmax beside the weighted cross entropy
+    class_weights: tuple[float, ...] | None = None  # detector: focal weight per foreground class at its centres
     val_frames: int | None = None  # validation frames per epoch instead of the profile's (0 = all)
     curve_every: int = 0  # validate every this many steps too, into curve.jsonl (learning curves; 0 = off)
 
@@ -134,6 +136,9 @@ class TrainConfig:
             raise ValueError(f"lovasz_weight must be >= 0, got {self.lovasz_weight}")
         if self.lovasz_weight and self.stage != "segmenter":
             raise ValueError(f"lovasz_weight is a segmenter loss, not for the {self.stage} stage")
+        if self.class_weights is not None and (self.stage != "detector" or not all(w > 0 for w in self.class_weights)):
+            raise ValueError(f"class_weights are positive weights of the detector's centre loss, got "
+                             f"{self.class_weights} for the {self.stage} stage")
         if not self.slim_lambda >= 0:
             raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
         if self.ray_workers < 0 or self.workers < 0:
@@ -168,6 +173,8 @@ class TrainConfig:
             overrides["model_config"] = {}
         if self.jitter_std is not None:
             overrides["jitter_std"] = tuple(self.jitter_std)
+        if self.class_weights is not None:
+            overrides["class_weights"] = tuple(self.class_weights)
         return dataclasses.replace(base, **overrides)
 
     def to_dict(self) -> dict[str, Any]:
@@ -179,12 +186,14 @@ class TrainConfig:
         if unknown:
             raise ValueError(f"unknown training config keys {sorted(unknown)}")
         data = dict(data)
-        if data.get("jitter_std") is not None:
-            data["jitter_std"] = tuple(data["jitter_std"])
+        for key in ("jitter_std", "class_weights"):
+            if data.get(key) is not None:
+                data[key] = tuple(data[key])
         return cls(**data)
 
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run it continues."""
         keep = ("stage", "store", "profile", "model", "view", "model_config", "batch_size", "lr", "seed",
-                "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer", "lovasz_weight")
+                "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer", "lovasz_weight",
+                "class_weights")
         return {k: v for k, v in self.to_dict().items() if k in keep}

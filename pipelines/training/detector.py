@@ -7,15 +7,17 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import Dataset
 
 from models.capabilities import Stage
 from models.detector.targets import build_centre_targets
-from pipelines.datasets.store import StoreDataset
+from pipelines.datasets.store import OBJECT_COLUMN, StoreDataset
 from pipelines.evaluation.scoring import frame_centres, score_detector
 from pipelines.training.task import Task, unwrap
+from radar.errors import UserError
 
 
 class DetectorTask(Task):
@@ -34,7 +36,21 @@ class DetectorTask(Task):
         log_power = torch.stack([s["input"] for s in samples])
         stats = self.store.normalisation
         return {"input": (log_power - stats["mean"]) / stats["std"],
-                "targets": build_centre_targets([frame_centres(s) for s in samples], grid)}
+                "targets": build_centre_targets([frame_centres(s) for s in samples], grid,
+                                                centre_weights=self._centre_weights(samples))}
+
+    def _centre_weights(self, samples: list[dict[str, Any]]) -> list[np.ndarray] | None:
+        """Each object's weight in the centre loss: its class's ``class_weights`` entry (None: all 1)."""
+        weights = self.hyper.class_weights
+        if not weights:
+            return None
+        n_classes = len(self.store.class_names) - 1
+        if len(weights) != n_classes:
+            raise UserError(f"--class-weights: {len(weights)} weights for {n_classes} classes "
+                            f"{list(self.store.class_names[1:])}")
+        table = np.asarray([1.0, *weights], np.float32)  # class id 0 (background) never has a centre
+        return [table[np.asarray(s["objects"][:int(s["n_objects"]), OBJECT_COLUMN["class_id"]], np.int64)]
+                for s in samples]
 
     def loss(self, model: nn.Module, batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
         outputs = model(batch["input"].to(device))

@@ -40,6 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         sub = stages.add_parser(stage, help=f"train the {stage} from a store")
         sub.add_argument("--model", help="registered model name (default: the profile's)")
         add_common_arguments(sub)
+        if stage is Stage.DETECTOR:
+            sub.add_argument("--class-weights", type=float, nargs="+", metavar="W",
+                             help="the centre loss's weight at each foreground class's centres, in the store's "
+                                  "class order (e.g. 3 1 1: pedestrians' peaks count 3x; default: 1 each)")
         if stage is Stage.SEGMENTER:
             sub.add_argument("--jitter-from", help="detector checkpoint whose errors (measured on the validation "
                                                    "split) jitter the training seeds")
@@ -59,7 +63,9 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig:
     jitter_std = getattr(args, "jitter_std", None)
     return TrainConfig(stage=args.stage, model=args.model, jitter_from=getattr(args, "jitter_from", None),
                        jitter_std=tuple(jitter_std) if jitter_std else None,
-                       lovasz_weight=getattr(args, "lovasz_weight", None), **common_config(args))
+                       lovasz_weight=getattr(args, "lovasz_weight", None),
+                       class_weights=tuple(args.class_weights) if getattr(args, "class_weights", None) else None,
+                       **common_config(args))
 
 
 def main(cfg: TrainConfig | ExportConfig) -> dict[str, Any]:

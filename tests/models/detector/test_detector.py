@@ -264,3 +264,22 @@ def test_frozen_detector_equals_the_eager_one_and_folds_every_batch_norm():
         torch.testing.assert_close(got[name], expected[name], rtol=1e-4, atol=1e-5)
     with pytest.raises(ValueError, match="traced for input"):
         frozen(torch.randn(1, 32, 64, 128))
+
+
+def test_centre_weights_scale_only_the_positives_of_the_focal_loss():
+    """``--class-weights``: a weight per object at its centre cell (1 elsewhere) multiplies the positive term."""
+    from models.detector.centernet import focal_loss
+    from models.detector.targets import build_centre_targets
+
+    centres = [np.array([[10.0, 20.0, 3.0], [40.0, 8.0, 5.0]])]
+    plain = build_centre_targets(centres, (64, 64))
+    weighted = build_centre_targets(centres, (64, 64), centre_weights=[np.array([3.0, 1.0])])
+    weight = weighted["peak_weight"]
+    assert weight.shape == plain["heatmap"].shape and "peak_weight" not in plain
+    assert sorted(weight.unique().tolist()) == [1.0, 3.0] and int((weight == 3.0).sum()) == 1
+    assert weight.flatten()[plain["indices"][0, 0]] == 3.0  # at the first object's centre cell
+    logits = torch.zeros_like(plain["heatmap"])  # p = 0.5 everywhere
+    base = focal_loss(logits, plain["heatmap"])
+    heavier = focal_loss(logits, plain["heatmap"], peak_weight=weight)
+    positive_term = 0.5 ** 2 * np.log(2.0) / 2  # one positive's share: (1 - p)^2 * -log p / n_pos
+    assert float(heavier - base) == pytest.approx(2 * positive_term, rel=1e-5)
