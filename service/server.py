@@ -110,6 +110,12 @@ class HeadRefused(Exception):
         self.detail = detail
 
 
+def _cancelled(timer: asyncio.TimerHandle | None) -> None:
+    """Cancel ``timer`` if there is one; what its holder keeps instead (None)."""
+    if timer is not None:
+        timer.cancel()
+
+
 class GuardedHttpToolsProtocol(HttpToolsProtocol):
     """uvicorn's httptools protocol with bounded request heads, bounded connections, lingering closes and JSON
     answers to malformed requests. The limits are set on the subclass :func:`guarded_protocol` builds."""
@@ -146,9 +152,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self._cancel_write_timer()
 
     def _cancel_write_timer(self) -> None:
-        if self._write_timer is not None:
-            self._write_timer.cancel()
-            self._write_timer = None
+        self._write_timer = _cancelled(self._write_timer)
 
     def _write_timed_out(self) -> None:
         self._write_timer = None
@@ -189,9 +193,7 @@ class GuardedHttpToolsProtocol(HttpToolsProtocol):
             self._head_timer = self.loop.call_later(self.header_timeout_s, self._head_timed_out)
 
     def _cancel_head_timer(self) -> None:
-        if self._head_timer is not None:
-            self._head_timer.cancel()
-            self._head_timer = None
+        self._head_timer = _cancelled(self._head_timer)
 
     def _head_timed_out(self) -> None:
         self._head_timer = None
