@@ -763,8 +763,8 @@ def main(argv=None) -> None:
     torch.set_num_threads(args.threads)
     started = time.perf_counter()
     info = {"machine_start": machine()}
-    net = EraseNet.from_checkpoints(load_checkpoint(args.detector, stage="detector", role="--detector"),
-                                         load_checkpoint(args.segmenter, stage="segmenter", role="--segmenter"))
+    net = EraseNet.from_checkpoints(load_checkpoint(args.detector, stage="detector", option="--detector"),
+                                         load_checkpoint(args.segmenter, stage="segmenter", option="--segmenter"))
     freeze_loaded_heap()
     class_names = list(open_store(args.store[0]).attrs["class_names"])
     if tuple(class_names) != tuple(net.class_names):
