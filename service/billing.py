@@ -173,8 +173,6 @@ class Billing:
                 given = await self.run(self._probe, self._recover)
             except ApiError:
                 continue
-            except asyncio.CancelledError:
-                raise
             if given:
                 log.warning("gave back %d MACs of quota leases held when the ledger failed", given)
             if was is not None:

@@ -14,10 +14,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD, Centres
+from radar.detections import MAX_OBJECTS, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
-
-__all__ = ["MAX_OBJECTS", "SCORE_THRESHOLD", "decode_centres", "detect_centres", "normalise_log_power"]
 
 
 def normalise_log_power(log_power_db: torch.Tensor, mean_db: float, std_db: float) -> torch.Tensor:

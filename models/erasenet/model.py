@@ -23,9 +23,9 @@ from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_ch
 from models.compute import ComputeCounter, MacRecorder, count_params, counted_layers
 from models.detector.inference import FrozenDetector
 from models.erasenet.compute_report import STEPS, FrameCompute
-from models.erasenet.detection import MAX_OBJECTS, SCORE_THRESHOLD, decode_centres, normalise_log_power
+from models.erasenet.detection import decode_centres, normalise_log_power
 from radar import transforms
-from radar.detections import Centres
+from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
 from radar.profiles import RadarProfile, get_profile

@@ -46,6 +46,11 @@ class DataSource:
         return str(self.kind) if self.location is None else f"{self.kind}:{self.location}"
 
 
+def _dest(kind: SourceKind) -> str:
+    """The argparse destination of a kind's typed option (``--adc-recording`` -> ``source_adc_recording``)."""
+    return f"source_{kind.replace('-', '_')}"
+
+
 def expected(kinds: Sequence[SourceKind]) -> str:
     """``'sim', 'recording:DIR' or 'carrada:ROOT'``: the spellings ``kinds`` accept, for messages and help."""
     spelled = [f"'{k}'" if k is SourceKind.SIM else f"'{k}:{METAVAR[k]}'" for k in kinds]
@@ -65,11 +70,10 @@ def add_source_arguments(parser: argparse.ArgumentParser, kinds: Sequence[Source
     group = parser.add_mutually_exclusive_group(required=True)
     group.add_argument("--source", help=f"the source in one string: {expected(kinds)}")
     for kind in kinds:
-        dest = f"source_{kind.replace('-', '_')}"
         if kind is SourceKind.SIM:
-            group.add_argument(f"--{kind}", dest=dest, action="store_true", help=HELP[kind])
+            group.add_argument(f"--{kind}", dest=_dest(kind), action="store_true", help=HELP[kind])
         else:
-            group.add_argument(f"--{kind}", dest=dest, metavar=METAVAR[kind], help=HELP[kind])
+            group.add_argument(f"--{kind}", dest=_dest(kind), metavar=METAVAR[kind], help=HELP[kind])
 
 
 def source_from_args(args: argparse.Namespace, kinds: Sequence[SourceKind]) -> str:
@@ -78,7 +82,7 @@ def source_from_args(args: argparse.Namespace, kinds: Sequence[SourceKind]) -> s
     if args.source is not None:
         return parse_source(args.source, kinds).spelling()
     for kind in kinds:
-        value = getattr(args, f"source_{kind.replace('-', '_')}")
+        value = getattr(args, _dest(kind))
         if value:
             return DataSource(kind, None if kind is SourceKind.SIM else value).spelling()
     raise UserError(f"a source is required: {expected(kinds)}")

@@ -152,6 +152,11 @@ def encode_frame(frame: RadarFrame, layout: StoreLayout) -> dict[str, np.ndarray
 
 
 # --------------------------------------------------------------------------- reading
+def store_profile(attrs: dict, path: str | Path) -> RadarProfile:
+    """The radar of a store from its attributes: a built-in preset by name, or the file form it keeps."""
+    return resolve_profile(attrs["preset"], attrs.get("radar_file"), source=f"store {path}")
+
+
 def open_store(path: str | Path, *, require_complete: bool = True) -> zarr.Group:
     """Open a store read-only; raise DataError when it is not a (finished) radarseg store."""
     return open_sharded_store(path, store_format=FORMAT, version=VERSION, require_complete=require_complete,
@@ -231,7 +236,7 @@ class StoreDataset(torch.utils.data.Dataset):
         self.path = Path(path)
         root = open_store(self.path)
         attrs = root.attrs.asdict()
-        self.profile = resolve_profile(attrs["preset"], attrs.get("radar_file"), source=f"store {self.path}")
+        self.profile = store_profile(attrs, self.path)
         self.output_stride = int(attrs["layout"]["output_stride"])
         self.frames = frames_of_split(root, split)
         self.split = split

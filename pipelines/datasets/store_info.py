@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from pipelines.datasets.store import open_store
+from pipelines.datasets.store import open_store, store_profile
 from radar.errors import UserError
-from radar.profiles import RadarProfile, resolve_profile
+from radar.profiles import RadarProfile
 
 
 @dataclass(frozen=True)
@@ -28,7 +28,7 @@ class StoreInfo:
         normalisation = {"mean": float(stats["mean"]), "std": float(stats["std"]),
                          "mean_per_doppler": [float(v) for v in stats["mean_per_doppler"]],
                          "std_per_doppler": [float(v) for v in stats["std_per_doppler"]]}
-        profile = resolve_profile(attrs["preset"], attrs.get("radar_file"), source=f"store {path}")
+        profile = store_profile(attrs, path)
         names = tuple(attrs.get("class_names") or profile.all_class_names)
         if len(names) != profile.num_classes:
             raise UserError(f"store {path}: {len(names)} class names, preset {profile.name} has "
