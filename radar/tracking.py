@@ -1,4 +1,4 @@
-"""Multi-object tracking of a radar's objects over a sequence (docs/design.md section 14).
+"""Multi-object tracking of a radar's objects over a sequence (docs/design.md section 16).
 
 An extended Kalman filter per track in Cartesian coordinates, state ``[x, y, vx, vy]`` (m, m/s; x lateral,
 positive to the right, y forward), with a constant-velocity motion model driven by white acceleration noise.
