@@ -15,9 +15,10 @@ from radar.profiles import RadarProfile
 class ObjectRecord:
     """One object of one frame.
 
-    The ``true_*`` fields give the object's reference point as the scene placed it (simulator) or as
-    annotated (readers); the ``centre_*`` and ``doppler_bin`` fields are computed from the object's
-    labelled voxels (mean Cartesian position, circular-mean Doppler bin), NaN when it has none.
+    The ``true_*`` fields give the object's reference point and velocity as the scene placed and moved it
+    (simulator) or as annotated (readers; NaN where a data set has none); the ``centre_*`` and
+    ``doppler_bin`` fields are computed from the object's labelled voxels (mean Cartesian position,
+    circular-mean Doppler bin), NaN when it has none.
     """
 
     instance_id: int  # value in the instance cube (1..N within the frame)
@@ -33,7 +34,9 @@ class ObjectRecord:
     true_angle_deg: float = float("nan")
     true_velocity_mps: float = float("nan")  # radial, positive receding
     rcs_dbsm: float = float("nan")
-    track_id: int = -1
+    track_id: int = -1  # the object's identity across the frames of its sequence (-1: unknown)
+    true_vx: float = float("nan")  # velocity vector (m/s; x lateral, y forward) as the scene moved it
+    true_vy: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         return {k: (None if isinstance(v, float) and np.isnan(v) else v) for k, v in asdict(self).items()}

@@ -55,7 +55,10 @@ SPLITS = ("train", "val", "test")
 SPLIT_CODE = {name: code for code, name in enumerate(SPLITS)}
 NO_SPLIT = 255
 OBJECT_FIELDS = ("instance_id", "class_id", "range_bin", "angle_bin", "doppler_bin",
-                 "offset_range", "offset_angle", "x", "y", "n_voxels")
+                 "offset_range", "offset_angle", "x", "y", "n_voxels", "track_id", "vx", "vy")
+"""Columns of the object table. The last three (the simulator's track id and velocity vector, m/s; NaN from
+data sets without them) are the truth for tracking; a store made before them has the first ten."""
+TRACKING_FIELDS = ("track_id", "vx", "vy")
 OBJECT_COLUMN = {name: i for i, name in enumerate(OBJECT_FIELDS)}  # column of each field in ``objects``
 CENTRE_COLUMNS = [OBJECT_COLUMN["range_bin"], OBJECT_COLUMN["angle_bin"], OBJECT_COLUMN["doppler_bin"]]
 
@@ -137,7 +140,8 @@ def encode_frame(frame: RadarFrame, layout: StoreLayout) -> dict[str, np.ndarray
     offsets = scaled - np.floor(scaled)
     for k, o in enumerate(objects):
         table[k] = (o.instance_id, o.class_id, o.centre_range_bin, o.centre_angle_bin, o.doppler_bin,
-                    offsets[k, 0], offsets[k, 1], o.centre_x, o.centre_y, o.n_voxels)
+                    offsets[k, 0], offsets[k, 1], o.centre_x, o.centre_y, o.n_voxels,
+                    o.track_id if o.track_id >= 0 else np.nan, o.true_vx, o.true_vy)
     heatmap = render_heatmap(centres, (profile.n_range, profile.n_angle), output_stride=layout.output_stride)
     return {
         "input": log_power.astype(np.float16),
@@ -161,6 +165,16 @@ def open_store(path: str | Path, *, require_complete: bool = True) -> zarr.Group
     """Open a store read-only; raise DataError when it is not a (finished) radarseg store."""
     return open_sharded_store(path, store_format=FORMAT, version=VERSION, require_complete=require_complete,
                               what="store", writer="preprocessing job")
+
+
+def tracking_truth_problem(root: zarr.Group, path: str | Path) -> str | None:
+    """Why the store cannot be the truth for tracking, in one line (None when it can): a store made before
+    the object table had its track id and velocity columns, or one whose source has no track ids."""
+    width = root["objects"].shape[-1]
+    if width < len(OBJECT_FIELDS):
+        return (f"store {path} predates tracking truth (object table of {width} columns, not {len(OBJECT_FIELDS)}):"
+                f" run radarseg preprocess again to get track ids and velocities")
+    return None
 
 
 def frames_of_split(root: zarr.Group, split: str | None) -> np.ndarray:
@@ -197,6 +211,8 @@ def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: 
         angle = n_angle - table[:n, OBJECT_COLUMN["angle_bin"]].double()
         table[:n, OBJECT_COLUMN["angle_bin"]] = angle.float()
         table[:n, OBJECT_COLUMN["x"]] = -table[:n, OBJECT_COLUMN["x"]]
+        if table.shape[-1] > OBJECT_COLUMN["vx"]:  # a store made before tracking truth has no velocity
+            table[:n, OBJECT_COLUMN["vx"]] = -table[:n, OBJECT_COLUMN["vx"]]
         table[:n, OBJECT_COLUMN["offset_angle"]] = (angle / output_stride - torch.floor(angle / output_stride)).float()
         out["objects"] = table
         if "heatmap" in sample:

@@ -35,10 +35,19 @@ class ObjectState:
         return float(np.degrees(np.arctan2(self.x, self.y)))
 
     @property
+    def vx(self) -> float:
+        """Velocity across the line of sight at boresight (m/s, x lateral)."""
+        return float(self.speed * np.cos(self.heading))
+
+    @property
+    def vy(self) -> float:
+        """Velocity forward (m/s)."""
+        return float(self.speed * np.sin(self.heading))
+
+    @property
     def radial_velocity(self) -> float:
         """Radial velocity of the object's centre (m/s, positive receding)."""
-        vx, vy = self.speed * np.cos(self.heading), self.speed * np.sin(self.heading)
-        return float((self.x * vx + self.y * vy) / max(self.range_m, 1e-6))
+        return float((self.x * self.vx + self.y * self.vy) / max(self.range_m, 1e-6))
 
 
 @dataclass(frozen=True)

@@ -118,7 +118,7 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
                 centre_y=float(stats.y[i + 1]), centre_range_bin=float(stats.range_bin[i + 1]),
                 centre_angle_bin=float(stats.angle_bin[i + 1]), doppler_bin=float(stats.doppler_bin[i + 1]),
                 true_range_m=s.range_m, true_angle_deg=s.angle_deg, true_velocity_mps=s.radial_velocity,
-                rcs_dbsm=rcs_totals[i], track_id=s.track_id,
+                rcs_dbsm=rcs_totals[i], track_id=s.track_id, true_vx=s.vx, true_vy=s.vy,
             )
             for i, s in enumerate(states)
         )

@@ -209,6 +209,8 @@ def assert_store_matches_simulator(path, *, preset: str, sequences: int, frames:
                 np.testing.assert_allclose(row[[col["offset_range"], col["offset_angle"]]],
                                            cells - np.floor(cells), atol=1e-5)
                 assert row[col["n_voxels"]] == o.n_voxels
+                assert row[col["track_id"]] == o.track_id >= 1  # tracking truth: identity and velocity
+                np.testing.assert_allclose(row[[col["vx"], col["vy"]]], [o.true_vx, o.true_vy], rtol=1e-6, atol=1e-6)
             centres = [[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin] for o in targets]
             expected = render_heatmap(np.array(centres).reshape(-1, 3), frame.cube.shape[:2])
             np.testing.assert_array_equal(root["heatmap"][slot], expected.astype(np.float16))

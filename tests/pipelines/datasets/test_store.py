@@ -117,9 +117,10 @@ def test_angle_flip_mirrors_x_and_never_range(small_store):
         np.testing.assert_array_equal(f["rd_mask"].numpy(), p["rd_mask"].numpy())  # no angle axis
         n = int(p["n_objects"])
         pt, ft = p["objects"].numpy()[:n], f["objects"].numpy()[:n]
-        for name in ("range_bin", "doppler_bin", "y", "offset_range", "class_id", "n_voxels"):
+        for name in ("range_bin", "doppler_bin", "y", "offset_range", "class_id", "n_voxels", "track_id", "vy"):
             np.testing.assert_array_equal(ft[:, COL[name]], pt[:, COL[name]])  # range never flips
         np.testing.assert_allclose(ft[:, COL["x"]], -pt[:, COL["x"]])
+        np.testing.assert_allclose(ft[:, COL["vx"]], -pt[:, COL["vx"]])  # the lateral velocity mirrors with x
         np.testing.assert_allclose(ft[:, COL["angle_bin"]], A - pt[:, COL["angle_bin"]], atol=1e-4)
         cells = ft[:, COL["angle_bin"]] / 4
         np.testing.assert_allclose(ft[:, COL["offset_angle"]], cells - np.floor(cells), atol=1e-5)
