@@ -14,13 +14,15 @@ from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import ServiceMetrics
 from service.settings import Settings
+from service.stream_store import StreamStore
 from service.tenants import Authenticator, Principal
 from service.upload import UploadGate
 
 
 @dataclass
 class ServiceState:
-    """Everything one app owns: settings, models, ledger and billing, metrics, authenticator, upload gate."""
+    """Everything one app owns: settings, models, ledger and billing, metrics, authenticator, upload gate, and the
+    streams' tracker state (in the ledger's database)."""
 
     settings: Settings
     pool: ModelPool
@@ -29,6 +31,7 @@ class ServiceState:
     metrics: ServiceMetrics
     auth: Authenticator
     uploads: UploadGate
+    streams: StreamStore
 
     @property
     def ledger_error(self) -> str | None:

@@ -30,11 +30,12 @@ from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import MetricsMiddleware, ServiceMetrics
 from service.query import reject_unknown_query
-from service.routes import examples, health, metrics, models, segment, usage, viewer
+from service.routes import examples, health, metrics, models, segment, streams, usage, viewer
 from service.routes.docs import install_docs
 from service.schemas import ErrorBody
 from service.security_headers import SecurityHeaders
 from service.settings import Settings
+from service.stream_store import StreamStore
 from service.tenants import Authenticator
 from service.unread_body import CloseOnUnreadBody
 from service.upload import UploadGate
@@ -43,7 +44,9 @@ log = logging.getLogger(__name__)
 
 DESCRIPTION = """ERASE-Net radar semantic segmentation. `POST /v1/segment` takes a `.npy` RAD cube and returns
 objects, RA/RD masks and optionally the labelled RAD voxels, with per-request compute accounting (MACs per
-stage, parameters, latency per stage, ROI voxels) and the tenant's usage. Keys: `Authorization: Bearer KEY`
+stage, parameters, latency per stage, ROI voxels) and the tenant's usage. `POST /v1/streams` opens a stream whose
+frames (`POST /v1/streams/{id}/frames?seq=N`) are segmented the same way and tracked across frames: each object's
+track id and velocity vector, and the stream's tracks. Keys: `Authorization: Bearer KEY`
 or `X-API-Key: KEY` when configured."""
 
 
@@ -75,9 +78,11 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     ledger = Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix,
                     timeout_s=settings.ledger_timeout_s)
     metrics_ = ServiceMetrics()
+    stream_store = StreamStore(ledger, idle_s=settings.stream_idle_s, claim_s=settings.stream_claim_s,
+                               max_per_tenant=settings.max_streams_per_tenant)  # its table beside the ledger's
     state = ServiceState(settings=settings, pool=ModelPool(settings), ledger=ledger,
                          billing=Billing(ledger, settings, metrics_), metrics=metrics_, auth=Authenticator(settings),
-                         uploads=UploadGate(settings))
+                         uploads=UploadGate(settings), streams=stream_store)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -106,6 +111,7 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     # The API routes refuse query parameters they do not take (service.query); the viewer page reads its own.
     strict = [Depends(reject_unknown_query)]
     app.include_router(segment.router, max_body_size=settings.max_body_bytes, dependencies=strict)
+    app.include_router(streams.router, max_body_size=settings.max_body_bytes, dependencies=strict)
     for router in (models.router, usage.router, examples.router):
         app.include_router(router, dependencies=strict)
     for router in (viewer.router, health.router, metrics.router):

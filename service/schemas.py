@@ -248,3 +248,60 @@ class ExampleInfo(BaseModel):
 class ExamplesResponse(BaseModel):
     model: str
     examples: list[ExampleInfo]
+
+
+class TrackedObjectOut(ObjectOut):
+    """An object of a stream's frame with the track it belongs to and the track's velocity vector."""
+
+    track_id: int
+    vx: float = Field(description="lateral velocity of its track (m/s, positive to the right)")
+    vy: float = Field(description="forward velocity of its track (m/s, positive away from the radar)")
+
+
+class TrackOut(BaseModel):
+    """One track of a stream (radar.tracking): filtered position and velocity vector, voted class."""
+
+    track_id: int
+    class_id: int
+    class_name: str
+    status: str = Field(description="tentative (fewer than the hits that confirm it), confirmed, or lost (coasted "
+                                    "through missed frames)")
+    x: float = Field(description="lateral position (m)")
+    y: float = Field(description="forward position (m)")
+    vx: float = Field(description="m/s")
+    vy: float = Field(description="m/s")
+    speed: float = Field(description="m/s")
+    heading_deg: float = Field(description="direction of motion, degrees from +x (lateral), counter-clockwise")
+    age: int = Field(description="frames since the track started")
+    hits: int = Field(description="frames with an object assigned")
+    misses: int = Field(description="consecutive frames without one")
+
+
+class StreamInfo(BaseModel):
+    """A stream: its model, its last frame and its confirmed (and coasted) tracks."""
+
+    id: str
+    model: str
+    created_at: str
+    updated_at: str
+    expires_at: str = Field(description="when the stream expires unless a frame comes before")
+    last_seq: int | None = Field(description="the last frame's ?seq= (null before the first frame)")
+    frames: int
+    tracks: list[TrackOut] = Field(description="confirmed and lost (coasted) tracks")
+
+
+class StreamCreate(BaseModel):
+    """Optional body of POST /v1/streams."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: str | None = Field(None, max_length=64, description="served model name; the default model if omitted")
+
+
+class StreamFrameResponse(SegmentResponse):
+    """The /v1/segment answer for a stream's frame: its objects with their ``track_id`` and velocity vector, and
+    the stream after the frame."""
+
+    objects: list[TrackedObjectOut] | None = None
+    seq: int
+    stream: StreamInfo

@@ -122,6 +122,13 @@ class Settings(BaseSettings):
     ledger_timeout_s: Annotated[float, Field(gt=0, le=60)] = 3.0
     ledger_check_s: Annotated[float, Field(gt=0, le=60)] = 1.0
 
+    # streams (POST /v1/streams): their tracker state lives in the ledger's database, so any replica serves the
+    # next frame; a stream unused this long has expired; a frame holds its stream at most stream_claim_s (a
+    # replica that dies mid-frame frees it then); a tenant holds at most max_streams_per_tenant live streams
+    stream_idle_s: Annotated[float, Field(ge=1, le=86400)] = 300.0
+    stream_claim_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
+    max_streams_per_tenant: Annotated[int, Field(ge=1, le=10000)] = 16
+
     data_dir: Path = Path("data/service")  # relative to the working directory
     ledger_url: str | None = None  # None: SQLite (WAL) file ledger.sqlite3 under data_dir
     ledger_table_prefix: str = "radarseg_"

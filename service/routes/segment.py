@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import time
 import uuid
+from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
+from pydantic import BaseModel
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
@@ -26,11 +28,14 @@ from service.routes.errors_doc import error_responses
 from service.schemas import (
     Compute,
     InputKind,
+    InputViews,
     MaskEncoding,
     ObjectOut,
+    RequestUsage,
     SegmentResponse,
     VoxelsOut,
 )
+from service.tenants import Principal
 from service.upload import ExpectedCube, check_declared_length, paced, read_cube
 
 router = APIRouter(tags=["segmentation"])
@@ -107,10 +112,12 @@ def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind, 
         raise ApiError(422, str(exc), error="schema_mismatch") from None
 
 
-def _encode(body: SegmentResponse, result: SegmentationResult, outputs: set[str], encoding: MaskEncoding) -> bytes:
-    """Fill the chosen outputs and serialise (runs on a worker thread: masks and voxels can be large)."""
+def _encode(body: SegmentResponse, result: SegmentationResult, outputs: set[str], encoding: MaskEncoding,
+            objects: list[BaseModel] | None = None) -> bytes:
+    """Fill the chosen outputs and serialise (runs on a worker thread: masks and voxels can be large).
+    ``objects``: the objects as answered (default: ``ObjectOut`` of the result's)."""
     if "objects" in outputs:
-        body.objects = [ObjectOut(**obj.to_dict()) for obj in result.objects]
+        body.objects = objects if objects is not None else [ObjectOut(**obj.to_dict()) for obj in result.objects]
     if "masks" in outputs:
         body.ra_mask = encode_array(result.ra_mask, encoding)
         body.rd_mask = encode_array(result.rd_mask, encoding)
@@ -209,26 +216,74 @@ async def segment(
     cannot cover the request (429), before the body is read. The body is read next (a slow upload holds no model
     slot), then the request takes a model slot and a lease on the tenant's quota, runs, and is billed; the lease is
     given back on any other way out."""
+    admitted = await admit(request, state, caller, model, input_kind, outputs, cube_schema)
+    cube, decode_s = await read_body(request, state, caller, admitted)
+    billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding)
+    net = admitted.served.net
+    body = SegmentResponse(request_id=billed.request_id, model=admitted.name, preset=net.profile.name,
+                           shape=list(net.profile.shape), class_names=list(net.class_names), views=billed.views,
+                           compute=billed.compute, usage=billed.usage)
+    return await respond(body, billed, admitted, encoding, state, caller)
+
+
+@dataclass
+class Admitted:
+    """A request checked before its body is read: the outputs it asks for, the model, what cube it must send."""
+
+    chosen: set[str]
+    served: ServedModel
+    expected: ExpectedCube
+    content_length: int | None
+
+    @property
+    def name(self) -> str:
+        return self.served.spec.name
+
+
+@dataclass
+class Billed:
+    """One cube segmented and billed: the result, the request's compute block, its id and the tenant's usage."""
+
+    result: SegmentationResult
+    compute: Compute
+    request_id: str
+    usage: RequestUsage
+    views: InputViews | None
+
+
+async def admit(request: Request, state: ServiceState, caller: Principal, model: str | None, input_kind: InputKind,
+                outputs: str, cube_schema: str | None) -> Admitted:
+    """Every check made before the body is read: outputs, content type and length, the model (ready, ledger up),
+    the cube schema, a length no cube of the model can have (413) and the tenant's quota (429)."""
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
     content_length = _content_length(request)
     served = _served_model(state, model)
     if cube_schema is not None:
         _check_cube_schema(cube_schema, served, input_kind, state.settings.max_json_depth)
-    name, metrics = served.spec.name, state.metrics
     profile = served.net.profile
-    accepted = {kind: ExpectedCube(name, adc_shape(profile) if kind is InputKind.adc else profile.shape, kind)
-                for kind in InputKind}
+    accepted = {kind: ExpectedCube(served.spec.name, adc_shape(profile) if kind is InputKind.adc else profile.shape,
+                                   kind) for kind in InputKind}
     check_declared_length(content_length, list(accepted.values()))
-    expected = accepted[input_kind]
     await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
-    cube, decode_s = await _read_body(request, state, caller.tenant, expected, content_length)
+    return Admitted(chosen, served, accepted[input_kind], content_length)
 
+
+async def read_body(request: Request, state: ServiceState, caller: Principal,
+                    admitted: Admitted) -> tuple[np.ndarray, float]:
+    """The checked cube and the seconds spent receiving and decoding it (before any model slot is taken)."""
+    return await _read_body(request, state, caller.tenant, admitted.expected, admitted.content_length)
+
+
+async def run_billed(state: ServiceState, caller: Principal, admitted: Admitted, cube: np.ndarray, decode_s: float,
+                     input_kind: InputKind, tdm_compensation: bool, encoding: MaskEncoding) -> Billed:
+    """Take a model slot and a lease on the tenant's quota, run, bill (the lease given back on any other way out)."""
+    served, name, metrics = admitted.served, admitted.name, state.metrics
     _take_slot(served, state)  # a saturated model answers 503 before the quota is touched (no ledger round trips)
     # reserved (the slot given back if refused); the lease is given back unless settled
     async with state.billing.hold(caller.tenant, served, on_refused=served.release) as quota:
         # the views come from the model's own log power (ADC processed once), inside the compute that is billed
-        result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in chosen)
+        result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in admitted.chosen)
         del cube
         views = None if result.views is None else input_views(*result.views, served.net.profile, encoding)
         report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included
@@ -242,13 +297,15 @@ async def segment(
     for stage, seconds in compute.seconds.model_dump().items():
         if stage != "total":
             metrics.stage_seconds.labels(name, stage).observe(seconds)
+    return Billed(result, compute, request_id, usage, views)
 
-    net = served.net
-    body = SegmentResponse(request_id=request_id, model=name, preset=net.profile.name, shape=list(net.profile.shape),
-                           class_names=list(net.class_names), views=views, compute=compute, usage=usage)
+
+async def respond(body: SegmentResponse, billed: Billed, admitted: Admitted, encoding: MaskEncoding,
+                  state: ServiceState, caller: Principal, objects: list[BaseModel] | None = None) -> Response:
+    """The answer: the chosen outputs encoded on a worker thread, the compute headers."""
     start = time.perf_counter()
-    payload = await run_in_threadpool(_encode, body, result, chosen, encoding)
+    payload = await run_in_threadpool(_encode, body, billed.result, admitted.chosen, encoding, objects)
     encode_s = time.perf_counter() - start
-    metrics.stage_seconds.labels(name, "encode").observe(encode_s)
+    state.metrics.stage_seconds.labels(admitted.name, "encode").observe(encode_s)
     return Response(payload, media_type="application/json",
-                    headers=_headers(request_id, name, caller.tenant, compute, encode_s))
+                    headers=_headers(billed.request_id, admitted.name, caller.tenant, billed.compute, encode_s))

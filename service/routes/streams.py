@@ -1,0 +1,190 @@
+"""Streams: a radar's frames in order, segmented as by POST /v1/segment and tracked across frames (radar.tracking).
+
+``POST /v1/streams`` opens one (201 ``{"id": ...}``), ``POST /v1/streams/{id}/frames?seq=N`` takes a cube and
+answers the /v1/segment answer with each object's ``track_id`` and velocity vector and the stream's tracks,
+``GET /v1/streams/{id}`` shows it, ``DELETE /v1/streams/{id}`` closes it. The tracker's state lives in the ledger's
+database (:mod:`service.stream_store`): any replica serves the next frame, and one restarted mid-stream loses no
+track. A frame is billed as a /v1/segment request.
+
+Order: ``seq`` must be after the stream's last frame (a repeated or older one is a 409); a gap of ``k`` frames is
+coasted (every track predicted over ``k`` frame periods). Two frames of one stream never run at once: the second
+is a 409 with Retry-After while the first holds the stream.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Header, Path, Query, Request, Response
+
+from radar.tracking import Measurements, Track, Tracker, TrackerConfig, TrackerStep, TrackStatus
+from service.deps import Caller, ServiceState, State
+from service.errors import ApiError
+from service.ledger import utc_now
+from service.routes.errors_doc import error_responses
+from service.routes.segment import REQUEST_BODY, admit, read_body, respond, run_billed
+from service.schemas import (
+    InputKind,
+    MaskEncoding,
+    ObjectOut,
+    StreamCreate,
+    StreamFrameResponse,
+    StreamInfo,
+    TrackedObjectOut,
+    TrackOut,
+)
+from service.stream_store import Claim, Refusal, StreamRow, StreamStore
+
+router = APIRouter(tags=["streams"])
+
+StreamId = Annotated[str, Path(pattern=r"^[0-9a-f]{32}$", description="the id POST /v1/streams answered")]
+
+
+def _store(state: ServiceState) -> StreamStore:
+    return state.streams
+
+
+def _refused(refusal: Refusal, state: ServiceState, stream_id: str, seq: int | None = None) -> ApiError:
+    retry = {"Retry-After": str(state.settings.retry_after_s)}
+    return {
+        Refusal.missing: lambda: ApiError(404, f"no stream {stream_id!r} for this tenant (never opened, or closed)"),
+        Refusal.expired: lambda: ApiError(404, f"stream {stream_id!r} expired: no frame for "
+                                               f"{state.settings.stream_idle_s:g} s (stream_idle_s)",
+                                          error="stream_expired"),
+        Refusal.busy: lambda: ApiError(409, f"another frame of stream {stream_id!r} is in flight; frames of a stream "
+                                            "run one at a time", error="stream_busy", headers=retry),
+        Refusal.stale: lambda: ApiError(409, f"frame seq={seq} is not after the stream's last frame; send frames in "
+                                             "order with increasing ?seq=", error="stream_order"),
+        Refusal.too_many: lambda: ApiError(429, f"the tenant holds {state.settings.max_streams_per_tenant} open "
+                                                "streams (max_streams_per_tenant): close one (DELETE) or let one "
+                                                "expire", error="too_many_streams", headers=retry),
+    }[refusal]()
+
+
+def _tracker_config(state: ServiceState, model: str) -> TrackerConfig:
+    return TrackerConfig.for_profile(state.pool.get(model).net.profile)
+
+
+def _track_out(summary: dict[str, Any], class_names: tuple[str, ...]) -> TrackOut:
+    class_id = summary["class_id"]
+    name = class_names[class_id] if 0 <= class_id < len(class_names) else str(class_id)
+    return TrackOut(class_name=name, **summary)
+
+
+def _info(stream: StreamRow, state: ServiceState) -> StreamInfo:
+    served = state.pool.models.get(stream.model)
+    names = served.net.class_names if served is not None and served.ready else ()
+    kept = [] if stream.state is None else [Track.from_state(t) for t in stream.state["tracks"]]
+    tracks = [_track_out(t.summary(), names) for t in kept if t.status is not TrackStatus.tentative]
+    return StreamInfo(id=stream.id, model=stream.model, created_at=stream.created_at.isoformat(),
+                      updated_at=stream.updated_at.isoformat(),
+                      expires_at=stream.expires_at(state.settings.stream_idle_s).isoformat(),
+                      last_seq=stream.last_seq, frames=stream.frames, tracks=tracks)
+
+
+@router.post("/v1/streams", status_code=201, response_model=StreamInfo, summary="Open a stream of frames",
+             responses=error_responses(401, 422, 429, 503))
+async def create_stream(state: State, caller: Caller,
+                        body: Annotated[StreamCreate | None, Body()] = None) -> StreamInfo:
+    """A new stream on ``model`` (the default model if omitted); its frames are tracked together. At most
+    ``max_streams_per_tenant`` live streams per tenant (429 beyond)."""
+    try:
+        served = state.pool.get(None if body is None else body.model)
+    except KeyError as exc:
+        raise ApiError(422, exc.args[0], error="unknown_model") from None
+    stream = await state.billing.read(_store(state).create, caller.tenant, served.spec.name)
+    if isinstance(stream, Refusal):
+        raise _refused(stream, state, "")
+    return _info(stream, state)
+
+
+@router.get("/v1/streams/{stream_id}", response_model=StreamInfo, summary="A stream and its tracks",
+            responses=error_responses(401, 404, 503))
+async def get_stream(stream_id: StreamId, state: State, caller: Caller) -> StreamInfo:
+    stream = await state.billing.read(_store(state).get, caller.tenant, stream_id)
+    if isinstance(stream, Refusal):
+        raise _refused(stream, state, stream_id)
+    return _info(stream, state)
+
+
+@router.delete("/v1/streams/{stream_id}", status_code=204, summary="Close a stream",
+               responses=error_responses(401, 404, 503))
+async def delete_stream(stream_id: StreamId, state: State, caller: Caller) -> Response:
+    if not await state.billing.read(_store(state).delete, caller.tenant, stream_id):
+        raise _refused(Refusal.missing, state, stream_id)
+    return Response(status_code=204)
+
+
+def _track(claim: Claim, result_objects: list[Any], state: ServiceState) -> tuple[Tracker, TrackerStep]:
+    """The stream's tracker after this frame (the gap since its last frame coasted)."""
+    config = _tracker_config(state, claim.stream.model)
+    tracker = (Tracker(config) if claim.stream.state is None
+               else Tracker.from_state(config, claim.stream.state))
+    return tracker, tracker.step(Measurements.from_objects(result_objects), frames=claim.gap)
+
+
+@router.post("/v1/streams/{stream_id}/frames", response_model=StreamFrameResponse, summary="Segment and track a frame",
+             responses=error_responses(400, 401, 404, 408, 409, 413, 415, 422, 429, 503), openapi_extra=REQUEST_BODY)
+async def stream_frame(
+    request: Request,
+    stream_id: StreamId,
+    state: State,
+    caller: Caller,
+    seq: Annotated[int, Query(ge=0, le=2**62, description="the frame's number in the stream: after the last one; "
+                                                          "a gap is coasted")],
+    input_kind: Annotated[InputKind, Query(alias="input", description="what the cube holds")] = InputKind.complex,
+    outputs: Annotated[str, Query(description="as for POST /v1/segment", max_length=64)] = "objects,masks",
+    encoding: Annotated[MaskEncoding, Query(description="encoding of masks and voxels")] = MaskEncoding.rle,
+    tdm_compensation: Annotated[bool, Query(description="?input=adc: compensate TDM Doppler-angle coupling")] = True,
+    cube_schema: Annotated[str | None, Header(alias="X-Cube-Schema", max_length=8192,
+                                              description="as for POST /v1/segment")] = None,
+) -> Response:
+    """The /v1/segment answer for this frame (billed as one), each object with its ``track_id``, ``vx`` and ``vy``,
+    and the stream after the frame with its confirmed and coasted tracks. Checked before the body is read: the
+    stream (404), the order (409), then everything /v1/segment checks."""
+    store = _store(state)
+    stream = await state.billing.read(store.check, caller.tenant, stream_id, seq)
+    if isinstance(stream, Refusal):
+        raise _refused(stream, state, stream_id, seq)
+    admitted = await admit(request, state, caller, stream.model, input_kind, outputs, cube_schema)
+    cube, decode_s = await read_body(request, state, caller, admitted)
+    claim = await state.billing.read(store.claim, caller.tenant, stream_id, seq)
+    if isinstance(claim, Refusal):
+        raise _refused(claim, state, stream_id, seq)
+    committed = False
+    try:
+        billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding)
+        start = time.perf_counter()
+        tracker, step = _track(claim, billed.result.objects, state)
+        track_s = time.perf_counter() - start
+        committed = await state.billing.read(store.commit, claim, tracker.to_state())
+    finally:
+        if not committed:
+            await _release(state, claim)
+    if not committed:
+        raise ApiError(409, f"stream {stream_id!r} was taken by another frame while this one ran (its hold of "
+                            f"{state.settings.stream_claim_s:g} s ran out); the frame was billed, its tracks not kept",
+                       error="stream_busy")
+    state.metrics.stage_seconds.labels(admitted.name, "track").observe(track_s)
+    row = StreamRow(claim.stream.id, claim.stream.tenant, claim.stream.model, claim.stream.created_at,
+                    utc_now(), seq, claim.stream.frames + 1, tracker.to_state())
+    net = admitted.served.net
+    objects = [TrackedObjectOut(**ObjectOut(**obj.to_dict()).model_dump(), track_id=int(step.track_ids[k]),
+                                vx=float(step.track_of(k).mean[2]), vy=float(step.track_of(k).mean[3]))
+               for k, obj in enumerate(billed.result.objects)]
+    body = StreamFrameResponse(request_id=billed.request_id, model=admitted.name, preset=net.profile.name,
+                               shape=list(net.profile.shape), class_names=list(net.class_names), views=billed.views,
+                               compute=billed.compute, usage=billed.usage, seq=seq, stream=_info(row, state))
+    response = await respond(body, billed, admitted, encoding, state, caller, objects)
+    response.headers["X-Stream-Id"] = stream_id
+    return response
+
+
+async def _release(state: ServiceState, claim: Claim) -> None:
+    """Give the stream back after a frame that failed (a failure to do so leaves the claim to expire)."""
+    try:
+        await state.billing.read(_store(state).release, claim)
+    except ApiError:
+        pass
+
