@@ -243,6 +243,7 @@ class ExampleInfo(BaseModel):
     dtype: str
     url: str
     objects: list[ExampleObject]
+    frames: int = Field(description="frames of its sequence: GET url&frame=K for K < frames")
 
 
 class ExamplesResponse(BaseModel):

@@ -25,6 +25,7 @@ router = APIRouter(tags=["examples"])
 # Example n is the first frame of the sequence simulated with EXAMPLE_SEEDS[n - 1]; seeds chosen for scenes
 # that hold every class of the small preset between them (seed 2: a car, two cyclists and a pedestrian).
 EXAMPLE_SEEDS = (2, 7, 10)
+EXAMPLE_FRAMES = 10  # frames of each example's sequence (?frame=K): the viewer plays them as a stream
 MIN_VOXELS = 20  # objects with fewer labelled voxels are barely visible; the example's listing leaves them out
 
 NPY_RESPONSE = {200: {"description": "the example's complex64 RAD cube (R, A, D) as a .npy file",
@@ -38,6 +39,17 @@ ModelName = Annotated[str | None, Query(description="served model whose preset t
 def example_frame(profile: RadarProfile, seed: int) -> RadarFrame:
     """The first frame of the sequence simulated for ``profile`` with ``seed`` (about 0.2 s for ``small``)."""
     return next(simulate_sequence(profile, 1, seed=seed))
+
+
+@lru_cache(maxsize=2)  # two sequences' cubes: 80 MB at ``small``
+def example_cubes(profile: RadarProfile, seed: int) -> tuple[bytes, ...]:
+    """The .npy bytes of every frame of the example sequence (frame 0 equals :func:`example_frame`'s)."""
+    cubes = []
+    for frame in simulate_sequence(profile, EXAMPLE_FRAMES, seed=seed):
+        buffer = io.BytesIO()
+        np.save(buffer, frame.cube)
+        cubes.append(buffer.getvalue())
+    return tuple(cubes)
 
 
 def _served(state: State, name: str | None) -> ServedModel:
@@ -65,7 +77,8 @@ def _info(n: int, served: ServedModel) -> ExampleInfo:
                              n_voxels=o.n_voxels)
                for o in frame.objects if o.n_voxels >= MIN_VOXELS]
     return ExampleInfo(n=n, seed=_seed(n), preset=profile.name, shape=list(frame.cube.shape),
-                       dtype=frame.cube.dtype.name, url=f"/v1/examples/{n}?model={served.spec.name}", objects=objects)
+                       dtype=frame.cube.dtype.name, url=f"/v1/examples/{n}?model={served.spec.name}", objects=objects,
+                       frames=EXAMPLE_FRAMES)
 
 
 @router.get("/v1/examples", response_model=ExamplesResponse, responses=error_responses(401, 422, 503))
@@ -80,13 +93,19 @@ def list_examples(state: State, caller: Caller, model: ModelName = None) -> Exam
 @router.get("/v1/examples/{n}", response_class=Response,
             responses={**NPY_RESPONSE, **NOT_FOUND, **error_responses(401, 422, 503)})
 def get_example(state: State, caller: Caller, n: Annotated[int, Path(description="example number, from 1")],
-                model: ModelName = None) -> Response:
-    """Example ``n`` as the .npy bytes ``POST /v1/segment`` takes (complex64 RAD cube of the model's preset)."""
+                model: ModelName = None,
+                frame: Annotated[int, Query(ge=0, lt=EXAMPLE_FRAMES, description="frame of the example's sequence "
+                                            "(0: the frame the listing describes)")] = 0) -> Response:
+    """Example ``n`` as the .npy bytes ``POST /v1/segment`` takes (complex64 RAD cube of the model's preset); with
+    ``frame=K``, frame K of its sequence (what ``POST /v1/streams/{id}/frames`` takes in order)."""
     served = _served(state, model)
     seed = _seed(n)
-    frame = example_frame(served.net.profile, seed)
-    buffer = io.BytesIO()
-    np.save(buffer, frame.cube)
-    name = f"example-{n}-{served.net.profile.name}.npy"
-    return Response(buffer.getvalue(), media_type="application/x-npy",
+    if frame == 0:
+        buffer = io.BytesIO()
+        np.save(buffer, example_frame(served.net.profile, seed).cube)
+        payload = buffer.getvalue()
+    else:
+        payload = example_cubes(served.net.profile, seed)[frame]
+    name = f"example-{n}-{served.net.profile.name}{f'-frame-{frame}' if frame else ''}.npy"
+    return Response(payload, media_type="application/x-npy",
                     headers={"Content-Disposition": f'attachment; filename="{name}"', "X-Example-Seed": str(seed)})

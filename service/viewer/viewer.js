@@ -1,7 +1,9 @@
 // radarseg viewer: segments a .npy RAD cube with this service and draws what came back.
-// Talks only to the documented API: GET /v1/models, GET /v1/examples[/{n}] and
-// POST /v1/segment?outputs=objects,masks,views&encoding=zlib. State the tests read: body[data-state]
-// (idle | loading | done | error), #message, canvas[data-drawn], #objects rows, #compute.
+// Talks only to the documented API: GET /v1/models, GET /v1/examples[/{n}[?frame=K]],
+// POST /v1/segment?outputs=objects,masks,views&encoding=zlib, and for a sequence POST /v1/streams, then
+// POST /v1/streams/{id}/frames?seq=K, DELETE /v1/streams/{id}. State the tests read: body[data-state]
+// (idle | loading | done | error), #message, canvas[data-drawn], #objects rows, #compute, and after a stream
+// canvas#ra-view[data-frames, data-arrows, data-trails].
 "use strict";
 
 // Class colours of our pictures (pipelines/figures.py CLASS_COLOURS); 0 is the background.
@@ -20,7 +22,8 @@ const STAGES = ["decode", "transform", "detect", "grow", "segment", "project"];
 const MARGIN = { left: 56, right: 74, top: 12, bottom: 46 };
 
 const $ = (id) => document.getElementById(id);
-const page = { key: null, model: null, cube: null, result: null, hover: -1, retry: null };
+const page = { key: null, model: null, cube: null, result: null, hover: -1, retry: null, trails: null };
+const ARROW_SECONDS = 1; // a velocity arrow ends where its object would be after this long
 
 class ApiFailure extends Error {
   constructor(status, body, retryAfter) {
@@ -176,9 +179,52 @@ async function segmentUrl(url) {
   await segment(await response.arrayBuffer(), "the cube from the address");
 }
 
+// ------------------------------------------------------------------ streams
+// Plays example n's sequence as a stream: each frame segmented and tracked by the service, drawn as it comes with
+// each track's trail and velocity arrow; the stream is closed at the end.
+async function playStream(n) {
+  setState("loading");
+  const example = (page.examples || []).find((e) => e.n === n);
+  if (!example) throw new Error(`no example ${n} for model ${page.model}`);
+  $("example").value = String(n);
+  const stream = await (await api("/v1/streams", {
+    method: "POST", body: JSON.stringify({ model: page.model }), headers: { "Content-Type": "application/json" },
+  })).json();
+  page.trails = new Map();
+  page.cube = null;
+  try {
+    for (let k = 0; k < example.frames; k++) {
+      say("info", `Stream of example ${n}: frame ${k + 1} of ${example.frames}…`);
+      const bytes = await (await api(`${example.url}&frame=${k}`)).arrayBuffer();
+      const query = new URLSearchParams({ seq: String(k), outputs: "objects,masks,views", encoding: "zlib" });
+      const response = await api(`/v1/streams/${stream.id}/frames?${query}`, {
+        method: "POST", body: bytes, headers: { "Content-Type": "application/x-npy" },
+      });
+      const answer = await response.json();
+      const [ra, rd, raMask, rdMask] = await Promise.all([answer.views.ra.array, answer.views.rd.array,
+        answer.ra_mask, answer.rd_mask].map(decodeArray));
+      for (const o of answer.objects) {
+        if (!page.trails.has(o.track_id)) page.trails.set(o.track_id, []);
+        page.trails.get(o.track_id).push({ x: o.x, y: o.y });
+      }
+      page.result = { answer, ra, rd, raMask, rdMask };
+      page.hover = -1;
+      render();
+      $("ra-view").dataset.frames = String(k + 1);
+    }
+  } finally {
+    await api(`/v1/streams/${stream.id}`, { method: "DELETE" }).catch(() => {});
+  }
+  const tracks = page.result.answer.stream.tracks;
+  say("ok", `example ${n} as a stream: ${example.frames} frames, ${tracks.length} track${tracks.length === 1 ? "" : "s"}`
+    + ` confirmed at the end (${tracks.map((t) => `#${t.track_id} ${t.class_name} ${t.speed.toFixed(1)} m/s`).join(", ")})`);
+  setState("done", 200);
+}
+
 // ------------------------------------------------------------------ segmentation
 async function segment(bytes, label) {
   page.cube = { bytes, label };
+  page.trails = null;
   setState("loading");
   const kind = inputKind(bytes);
   say("info", `Segmenting ${label} (${(bytes.byteLength / 2 ** 20).toFixed(1)} MiB, ${kind}) with ${page.model}…`);
@@ -362,6 +408,39 @@ function drawView(canvas, spec) {
     ctx.fillText(hovered ? `${i + 1} ${m.label}` : String(i + 1), x + (hovered ? 16 : 9), y - (hovered ? 8 : 5));
   });
 
+  // Tracks (streams): each track's past positions as a dashed trail, each object's velocity vector as an arrow.
+  ctx.setLineDash([4, 3]);
+  ctx.lineWidth = 1.2;
+  ctx.strokeStyle = "rgba(255,255,255,0.7)";
+  for (const trail of spec.trails || []) {
+    ctx.beginPath();
+    trail.forEach((p, i) => (i ? ctx.lineTo : ctx.moveTo).call(ctx, px(p.col + 0.5), py(p.row + 0.5)));
+    ctx.stroke();
+  }
+  ctx.setLineDash([]);
+  for (const a of spec.arrows || []) {
+    const [x0, y0, x1, y1] = [px(a.from.col + 0.5), py(a.from.row + 0.5), px(a.to.col + 0.5), py(a.to.row + 0.5)];
+    const angle = Math.atan2(y1 - y0, x1 - x0);
+    ctx.strokeStyle = a.colour;
+    ctx.fillStyle = a.colour;
+    ctx.lineWidth = 2;
+    ctx.beginPath();
+    ctx.moveTo(x0, y0);
+    ctx.lineTo(x1, y1);
+    ctx.stroke();
+    ctx.beginPath();
+    ctx.moveTo(x1, y1);
+    ctx.lineTo(x1 - 8 * Math.cos(angle - 0.4), y1 - 8 * Math.sin(angle - 0.4));
+    ctx.lineTo(x1 - 8 * Math.cos(angle + 0.4), y1 - 8 * Math.sin(angle + 0.4));
+    ctx.fill();
+    ctx.font = "bold 11px system-ui, sans-serif";
+    ctx.textAlign = "left";
+    ctx.textBaseline = "top";
+    ctx.fillText(a.label, x1 + 4, y1 + 2);
+  }
+  canvas.dataset.arrows = String((spec.arrows || []).length);
+  canvas.dataset.trails = String((spec.trails || []).length);
+
   canvas.markerPositions = spec.markers.map((m) => ({ x: px(m.col + 0.5), y: py(m.row + 0.5) }));
   canvas.dataset.drawn = "true";
   canvas.dataset.maskCells = String(maskCells);
@@ -379,10 +458,18 @@ function renderViews() {
   for (let v = -Math.floor(vMax / vStep) * vStep; v <= vMax; v += vStep) velocityTicks.push(Number(v.toFixed(2)));
   const objects = answer.objects.map((o) => ({ ...o, colour: CLASS_COLOURS[o.class_id].slice(0, 7),
     label: `${o.class_name} ${o.score.toFixed(2)}` }));
+  // a Cartesian point (m) on the RA view, in bins
+  const raBins = (x, y) => ({ col: binOf(axes.angle_deg, (Math.atan2(x, y) * 180) / Math.PI),
+    row: binOf(axes.range_m, Math.hypot(x, y)) });
+  const tracked = page.trails !== null;
   drawView($("ra-view"), {
     levels: ra, mask: raMask, rows: nRange, cols: nAngle, low: answer.views.ra.low_db, high: answer.views.ra.high_db,
     xAxis: axes.angle_deg, xTicks: [-60, -30, 0, 30, 60], xLabel: "azimuth (°, right > 0)", yAxis: axes.range_m,
     markers: objects.map((o) => ({ ...o, col: binOf(axes.angle_deg, o.angle_deg), row: binOf(axes.range_m, o.range_m) })),
+    arrows: tracked ? objects.map((o) => ({ from: raBins(o.x, o.y), colour: o.colour, label: `#${o.track_id}`,
+      to: raBins(o.x + ARROW_SECONDS * o.vx, o.y + ARROW_SECONDS * o.vy) })) : [],
+    trails: tracked ? [...page.trails.values()].filter((t) => t.length > 1).map((t) => t.map((p) => raBins(p.x, p.y)))
+      : [],
   });
   drawView($("rd-view"), {
     levels: rd, mask: rdMask, rows: nRange, cols: nDoppler, low: answer.views.rd.low_db, high: answer.views.rd.high_db,
@@ -427,7 +514,7 @@ function renderObjects() {
     const row = document.createElement("tr");
     row.className = "empty";
     row.append(cell("no object above the model's score threshold"));
-    row.firstChild.colSpan = 7;
+    row.firstChild.colSpan = 8;
     body.replaceChildren(row);
     return;
   }
@@ -441,7 +528,9 @@ function renderObjects() {
     swatch.style.background = CLASS_COLOURS[o.class_id].slice(0, 7);
     name.prepend(swatch);
     row.append(cell(String(i + 1)), name, cell(o.score.toFixed(2)), cell(o.range_m.toFixed(1)),
-      cell(o.angle_deg.toFixed(1)), cell(o.velocity_mps.toFixed(2)), cell(String(o.n_voxels)));
+      cell(o.angle_deg.toFixed(1)), cell(o.velocity_mps.toFixed(2)), cell(String(o.n_voxels)),
+      o.track_id === undefined ? cell("–") : cell(`#${o.track_id}  ${o.vx.toFixed(1)} ${o.vy.toFixed(1)}`));
+    if (o.track_id !== undefined) row.dataset.track = String(o.track_id);
     row.addEventListener("mouseenter", () => highlight(i));
     row.addEventListener("mouseleave", () => highlight(-1));
     return row;
@@ -536,6 +625,7 @@ function wire() {
     await loadExamples();
     if (page.cube) await segment(page.cube.bytes, page.cube.label);
   }));
+  $("play").addEventListener("click", () => act(() => playStream(Number($("example").value) || 1)));
   $("example").addEventListener("change", (event) => {
     if (event.target.value) act(() => segmentExample(Number(event.target.value)));
   });
@@ -587,6 +677,7 @@ function start() {
     await loadModels(params.get("model"));
     await loadExamples();
     if (params.get("cube")) await segmentUrl(params.get("cube"));
+    else if (params.get("stream")) await playStream(Number(params.get("stream")));
     else if (params.get("example")) await segmentExample(Number(params.get("example")));
     else {
       say("info", "Choose an example or open a .npy cube.");

@@ -114,3 +114,33 @@ def test_viewer_draws_an_example_and_shows_the_services_error_messages(serve, tm
     assert bad_page.attrs["ra-view"]["data-drawn"] == "false"
     assert (missing_page.attrs["body"]["data-state"], missing_page.attrs["body"]["data-status"]) == ("error", "404")
     assert "no example 9" in missing_page.text["message"]
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium is not installed (.ci/run installs it)")
+def test_viewer_plays_an_example_as_a_stream_with_tracks_and_velocity_arrows(serve, tmp_path):
+    assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
+    env = {"RADARSEG_DATA_DIR": str(tmp_path / "data"), "RADARSEG_WARMUP": "false"}
+    with serve(env) as (server,):
+        page = rendered(f"{server.url}/viewer?stream=1", tmp_path / "browser")
+        with httpx.Client(base_url=server.url, timeout=120) as http:  # the same frames as a stream of our own
+            frames = http.get("/v1/examples").json()["examples"][0]["frames"]
+            stream = http.post("/v1/streams").json()["id"]
+            answers = [http.post(f"/v1/streams/{stream}/frames?seq={k}&outputs=objects", headers=NPY,
+                                 content=http.get(f"/v1/examples/1?frame={k}").content).json()
+                       for k in range(frames)]
+            left = http.get(f"/v1/streams/{stream}").json()["frames"]
+
+    assert page.attrs["body"]["data-state"] == "done", page.text.get("message")
+    last = answers[-1]
+    assert last["objects"], "the shipped model found nothing in the example's last frame: nothing to check"
+    canvas = page.attrs["ra-view"]
+    assert int(canvas["data-frames"]) == frames == left
+    assert int(canvas["data-arrows"]) == len(last["objects"])
+    seen: dict[int, int] = {}
+    for answer in answers:
+        for obj in answer["objects"]:
+            seen[obj["track_id"]] = seen.get(obj["track_id"], 0) + 1
+    assert int(canvas["data-trails"]) == sum(1 for count in seen.values() if count > 1) > 0
+    assert [row["data-track"] for row in page.rows] == [str(o["track_id"]) for o in last["objects"]]
+    assert f"{len(last['stream']['tracks'])} track" in page.text["message"]
