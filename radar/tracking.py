@@ -12,8 +12,9 @@ distance of their innovation (gated by a chi-square bound and a distance in metr
 :func:`scipy.optimize.linear_sum_assignment`, assigned tracks are updated, and every object left over starts a
 new track. A track is ``tentative`` until it has ``confirm_hits`` hits, then ``confirmed``; a confirmed track
 that misses a frame is ``lost`` (coasted on its prediction) for up to ``max_misses`` frames before it is
-dropped; a tentative track that misses a frame is dropped. Its class is the vote of its objects' classes,
-weighted by their detector scores.
+dropped; a tentative track that misses a frame is dropped. Frames not seen at all (``step(frames=k)``, a gap)
+count as misses of a confirmed track, not of a tentative one (unless the gap is longer than ``max_misses``).
+Its class is the vote of its objects' classes, weighted by their detector scores.
 
 The whole tracker state is a small JSON-able dict (:meth:`Tracker.to_state`, :meth:`Tracker.from_state`): a few
 hundred bytes per track, so a service can keep a stream's tracks in a database between frames.
@@ -151,7 +152,8 @@ class Track:
         from +x, counter-clockwise, as the simulator's), class, age, hits, misses and status."""
         x, y, vx, vy = (float(v) for v in self.mean)
         return {"track_id": self.id, "class_id": self.class_id, "status": str(self.status), "x": x, "y": y,
-                "vx": vx, "vy": vy, "speed": float(np.hypot(vx, vy)), "heading_deg": float(np.degrees(np.arctan2(vy, vx))),
+                "vx": vx, "vy": vy, "speed": float(np.hypot(vx, vy)),
+                "heading_deg": float(np.degrees(np.arctan2(vy, vx))),
                 "age": self.age, "hits": self.hits, "misses": self.misses}
 
     def to_state(self) -> dict[str, Any]:
@@ -266,7 +268,10 @@ class Tracker:
             track.mean = F @ track.mean
             track.cov = F @ track.cov @ F.T + Q
             track.age += frames
-            track.misses += frames - 1
+            # frames not seen: a confirmed track coasts through them (they count towards max_misses); a
+            # tentative one is judged on the frames seen, but no gap longer than max_misses keeps it
+            if track.status is not TrackStatus.tentative or frames - 1 > cfg.max_misses:
+                track.misses += frames - 1
         self.tracks = [t for t in self.tracks if self._alive(t)]
 
         z = np.column_stack([measurements.x, measurements.y, measurements.radial_velocity]).reshape(-1, 3)

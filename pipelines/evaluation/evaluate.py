@@ -13,6 +13,9 @@ split and writes ``DIR/metrics.json``, ``DIR/report.md`` (:mod:`pipelines.evalua
 - segmentation: one RA and one RD confusion matrix over the split (background included), IoU per
   class and mIoU; the same with ground-truth seeds (stage 2 alone, "oracle seeds");
 - cost: parameters and MACs per stage (mean per frame), seconds per stage (mean per frame);
+- tracking: the tracker (radar.tracking) per sequence over the predicted objects and over the true centres,
+  CLEAR MOT / identity metrics and velocity errors against the simulator's tracks
+  (:mod:`pipelines.evaluation.tracking`); a store without tracking truth gets a one-line reason instead;
 - pictures: PR curves, the RA/RD confusion matrices, and RA/RD maps of ``--pictures`` frames with the
   ground truth above the prediction.
 
@@ -39,8 +42,16 @@ from models.erasenet.detection import detect_centres
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
 from pipelines.datasets.spread import spread
-from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
+from pipelines.datasets.store import (
+    CENTRE_COLUMNS,
+    OBJECT_COLUMN,
+    frames_of_split,
+    open_store,
+    tracking_truth_problem,
+)
+from pipelines.evaluation.report import tracking_headline
 from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
+from pipelines.evaluation.tracking import TrackingTally
 from pipelines.jobs import run_module
 from pipelines.progress import progress
 from process.heap import freeze_loaded_heap
@@ -48,6 +59,7 @@ from radar.detections import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT
 from radar.errors import UserError
 from radar.region_growing import RegionGrowingConfig, grow_regions
+from radar.tracking import TrackerConfig
 
 log = logging.getLogger(__name__)
 
@@ -139,12 +151,17 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     picture_frames = {int(frames[i]) for i in spread(len(frames), cfg.pictures)}
     sweep_frames = {int(frames[i]) for i in spread(len(frames), cfg.sweep_frames)}
     tallies = _Tallies.empty(net.profile, cfg.sweep)
+    tracking = TrackingTally(net.profile, tracking_truth_problem(root, cfg.store))
+    if tracking.problem:
+        log.warning("tracking not evaluated: %s", tracking.problem)
+    sequence_ids, frame_indices = root["sequence_id"][:], root["frame_index"][:]
     pictures: list[str] = []
     started = time.perf_counter()
     for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
         frame = {name: array[slot] for name, array in arrays.items()}
         picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames)
+        tracking.add(sequence_ids[slot], frame_indices[slot], picture[2], picture[3].objects)
         if slot in picture_frames:
             title = f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)"
             pictures.append(_frame_picture(net, picture, out / f"frame_{slot:05d}.png", title=title))
@@ -154,6 +171,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     if cfg.oracle:
         metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
                                                in tallies.oracle_confusion.summary(net.class_names).items()}
+    metrics["tracking"] = tracking.summary(TrackerConfig.for_profile(net.profile))
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     write_report(metrics, out / "report.md")
     return metrics
@@ -328,6 +346,7 @@ def format_summary(metrics: dict[str, Any]) -> str:
         f"  region growing recall {rg['predicted_seeds']['recall']:.3f} (predicted seeds), "
         f"{rg['truth_seeds']['recall']:.3f} (true centres); visited {rg['predicted_seeds']['visited_mean']:.0f}",
         f"  mIoU RA {100 * seg['RA']['mIoU']:.2f}  RD {100 * seg['RD']['mIoU']:.2f}",
+        f"  {tracking_headline(metrics.get('tracking'))}",
     ])
 
 

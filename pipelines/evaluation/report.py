@@ -29,7 +29,8 @@ def md_table(header: list[str], rows: list[list[str]]) -> list[str]:
 def render_report(metrics: dict[str, Any]) -> str:
     """The markdown text of a report (see the module docstring)."""
     lines = [*_summary(metrics), *_detection(metrics["detection"]), *_segmentation(metrics),
-             *_region_growing(metrics["region_growing"]), *_cost(metrics["cost"]), *_training(metrics)]
+             *_region_growing(metrics["region_growing"]), *tracking_lines(metrics.get("tracking")),
+             *_cost(metrics["cost"]), *_training(metrics)]
     lines += ["", "## Pictures", ""]
     lines += [f"![{name}]({name})" for name in metrics["pictures"]]
     return "\n".join(lines) + "\n"
@@ -107,6 +108,80 @@ def _region_growing(rg: dict[str, Any]) -> list[str]:
                           fmt_num(by[("truth", d)]["recall"]), fmt_num(by[("truth", d)]["visited_mean"], ".0f")]
                          for d in distances])
     return lines
+
+
+TRACKING_SOURCES = {"predicted": "predicted objects", "truth_centres": "true centres"}
+
+
+def tracking_headline(tracking: dict[str, Any] | None) -> str:
+    """One line: MOTA and IDF1 at the match distance, every object and confirmed tracks only, both sources."""
+    if not tracking:
+        return "tracking: not evaluated"
+    if "skipped" in tracking:
+        return f"tracking: skipped: {tracking['skipped']}"
+    key = f"match_{tracking['match_distance_m']:g}m"
+    parts = []
+    for source, name in TRACKING_SOURCES.items():
+        a, c = (tracking[source][v][key]["overall"] for v in ("all_objects", "confirmed"))
+        parts.append(f"{name} MOTA {fmt_num(a['mota'])} / {fmt_num(c['mota'])}, IDF1 {fmt_num(a['idf1'])} / "
+                     f"{fmt_num(c['idf1'])}, {a['num_switches']} / {c['num_switches']} ID switches")
+    return (f"tracking ({tracking['match_distance_m']:g} m; all objects / confirmed): " + "; ".join(parts)
+            + f"; tracker {fmt_num(tracking['predicted']['tracker_ms_per_frame'].get('median'), '.3f')} ms/frame")
+
+
+def tracking_lines(tracking: dict[str, Any] | None) -> list[str]:
+    """The report's tracking section: CLEAR MOT and identity metrics, per class, velocity errors, cost."""
+    if not tracking:
+        return []
+    lines = ["", "## Tracking", ""]
+    if "skipped" in tracking:
+        return lines + [f"Not evaluated: {tracking['skipped']}."]
+    lines += [f"{tracking['sequences']} sequences, {tracking['frames']} frames, {tracking['truth_tracks']} true "
+              f"tracks. A track matches a true object within {tracking['match_distance_m']:g} m "
+              f"({tracking['distance']}; {tracking['secondary_distance_m']:g} m in the last columns). Hypotheses: "
+              + "; ".join(f"*{k}*: {v}" for k, v in tracking["variants"].items()) + ".", ""]
+    first, second = (f"match_{tracking[k]:g}m" for k in ("match_distance_m", "secondary_distance_m"))
+    rows = []
+    for source, name in TRACKING_SOURCES.items():
+        for variant in tracking["variants"]:
+            o, p = tracking[source][variant][first]["overall"], tracking[source][variant][second]["overall"]
+            rows.append([name, variant, fmt_num(o["mota"]), fmt_num(o["motp"]), fmt_num(o["idf1"]),
+                         str(o["num_switches"]), fmt_num(o["switches_per_100_tracks"], ".1f"),
+                         f"{o['mostly_tracked']} / {o['mostly_lost']} of {o['num_unique_objects']}",
+                         str(o["num_false_positives"]), str(o["num_misses"]), fmt_num(p["mota"]), fmt_num(p["idf1"])])
+    lines += md_table(["source", "hypotheses", "MOTA", "MOTP (m)", "IDF1", "ID switches", "per 100 tracks",
+                       "mostly tracked / lost", "FP", "FN", f"MOTA {second[6:]}", f"IDF1 {second[6:]}"], rows)
+    return lines + _tracking_per_class(tracking, first) + _tracking_velocity(tracking)
+
+
+def _tracking_per_class(tracking: dict[str, Any], key: str) -> list[str]:
+    rows = []
+    for source, name in TRACKING_SOURCES.items():
+        for variant in tracking["variants"]:
+            for cls, o in tracking[source][variant][key]["per_class"].items():
+                rows.append([name, variant, cls, fmt_num(o["mota"]), fmt_num(o["motp"]), fmt_num(o["idf1"]),
+                             str(o["num_switches"]), f"{o['mostly_tracked']} / {o['mostly_lost']} of "
+                             f"{o['num_unique_objects']}"])
+    return ["", f"Per class ({key[6:]}; the truth of a class against the tracks voted that class):", "",
+            *md_table(["source", "hypotheses", "class", "MOTA", "MOTP (m)", "IDF1", "ID switches",
+                       "mostly tracked / lost"], rows)]
+
+
+def _tracking_velocity(tracking: dict[str, Any]) -> list[str]:
+    rows = []
+    for source, name in TRACKING_SOURCES.items():
+        velocity = tracking[source]["velocity"]
+        for cls, v in [("all", velocity["overall"]), *velocity["per_class"].items()]:
+            rows.append([name, cls, fmt_num(v["vx_rmse_mps"]), fmt_num(v["vy_rmse_mps"]),
+                         fmt_num(v["heading_rmse_deg"], ".1f"), str(v["n"]), str(v["n_heading"])])
+    ms = {source: tracking[source]["tracker_ms_per_frame"] for source in TRACKING_SOURCES}
+    return ["", f"Velocity error of matched tracks from their frame {tracking['velocity_min_age']} on (RMSE; "
+            f"heading for objects faster than {tracking['heading_min_speed_mps']:g} m/s):", "",
+            *md_table(["source", "class", "vx (m/s)", "vy (m/s)", "heading (deg)", "objects", "objects (heading)"],
+                      rows),
+            "", "Tracker time per frame (ms): " + "; ".join(
+                f"{TRACKING_SOURCES[s]} median {fmt_num(m.get('median'), '.3f')}, p99 {fmt_num(m.get('p99'), '.3f')}"
+                for s, m in ms.items()) + "."]
 
 
 def _cost(cost: dict[str, Any]) -> list[str]:

@@ -55,7 +55,12 @@ def test_evaluate_writes_metrics_report_and_pictures(small_store, tiny_checkpoin
     assert sweep[("truth", 12.0)]["visited_mean"] >= sweep[("truth", 6.0)]["visited_mean"]
     assert saved["cost"]["params"]["detector"] > 0 and saved["cost"]["macs_mean"]["detect"] > 0
     report = (out / "report.md").read_text()
-    for heading in ("## Detection", "## Segmentation", "## Region growing", "## Cost per frame", "| small RA |"):
+    tracking = saved["tracking"]
+    assert tracking["frames"] == 2 and tracking["sequences"] == 1 and tracking["match_distance_m"] == 2.0
+    assert {"mota", "idf1", "num_switches"} <= set(tracking["truth_centres"]["all_objects"]["match_2m"]["overall"])
+    assert tracking["truth_centres"]["all_objects"]["match_2m"]["overall"]["mota"] == 1.0
+    for heading in ("## Detection", "## Segmentation", "## Region growing", "## Tracking", "## Cost per frame",
+                    "| small RA |"):
         assert heading in report
     for name in saved["pictures"]:
         assert (out / name).stat().st_size > 1000, name
@@ -76,7 +81,30 @@ def test_cli_evaluate(small_store, tiny_checkpoints, tmp_path, capsys):
     finally:
         torch.set_num_threads(threads)
     assert code == 0 and (tmp_path / "report.md").is_file()
-    assert "mAP" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "mAP" in out and "tracking (2 m; all objects / confirmed): predicted objects MOTA" in out
+
+
+def test_a_store_from_before_tracking_truth_still_evaluates(small_store, tiny_checkpoints, tmp_path, caplog):
+    """An object table of 10 columns (no track id, no velocity): every other figure, and one line on tracking."""
+    import shutil
+
+    import zarr
+
+    old = tmp_path / "old.zarr"
+    shutil.copytree(small_store, old)
+    root = zarr.open_group(old, mode="a")
+    table = root["objects"][:, :, :10]
+    del root["objects"]
+    root.create_array("objects", data=table, chunks=(2, *table.shape[1:]))
+    detector, segmenter = tiny_checkpoints
+    metrics = evaluate(EvaluateConfig(detector=str(detector), segmenter=str(segmenter), store=str(old),
+                                      out=str(tmp_path / "eval"), split="val", max_frames=1, pictures=0, sweep=(),
+                                      sweep_frames=0, oracle=False, progress=False))
+    problem = metrics["tracking"]["skipped"]
+    assert "predates tracking truth" in problem and "preprocess again" in problem
+    assert problem in caplog.text and metrics["detection"]["n_truth"] > 0
+    assert problem in (tmp_path / "eval" / "report.md").read_text()
 
 
 @pytest.mark.slow
