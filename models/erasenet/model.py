@@ -1,9 +1,10 @@
 """End-to-end ERASE-Net inference with its compute report (docs/design.md sections 5-8, 10).
 
 cube -> log transform -> normalised detector input -> detector -> decode -> region growing ->
-ROI points -> sparse segmenter -> RAD label cube (background outside the ROI) -> RA / RD masks ->
-objects. Every stage is timed; MACs are exact: the detector's from the analytic counter (cached per
-input shape), the segmenter's from the pairs its sparse convs actually processed.
+ROI points -> sparse segmenter (its fused inference form, models.segmenter.fused) -> RAD label cube
+(background outside the ROI) -> RA / RD masks -> objects. Every stage is timed; MACs are exact: the detector's
+from the analytic counter (cached per input shape), the segmenter's from the pairs its sparse convs actually
+processed.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from models.compute import ComputeCounter, MacRecorder, count_params, counted_la
 from models.detector.inference import FrozenDetector
 from models.erasenet.compute_report import STEPS, FrameCompute
 from models.erasenet.detection import decode_centres, normalise_log_power
+from models.segmenter.fused import FusedMinkUNet, fusable
 from radar import transforms
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
@@ -87,12 +89,15 @@ class EraseNet:
                  score_threshold: float = SCORE_THRESHOLD, max_objects: int = MAX_OBJECTS,
                  doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
                  region_config: RegionGrowingConfig | None = None, device: str | torch.device = "cpu",
-                 frozen_detector: bool = True):
+                 frozen_detector: bool = True, fused_segmenter: bool = True):
         """``frozen_detector``: run a detector that has a ``decode`` through
         :class:`models.detector.inference.FrozenDetector` (traced for this preset's input, BatchNorms folded,
         channels_last; a copy of its weights taken now). ``self.detector`` stays the eager module (its
-        parameters and MACs are the ones reported). ``detector`` None: the seeds always come from the
-        caller (``segment(..., centres=...)``, e.g. CFAR); the detector then counts 0 parameters."""
+        parameters and MACs are the ones reported). ``fused_segmenter``: run a MinkUNet segmenter through
+        :class:`models.segmenter.fused.FusedMinkUNet` (BatchNorms folded, ReLU and residual sums in the kernels'
+        output loop, MACs from the kernel maps; a copy of its weights taken now); other segmenters run eager.
+        ``detector`` None: the seeds always come from the caller (``segment(..., centres=...)``, e.g. CFAR); the
+        detector then counts 0 parameters."""
         self.profile = get_profile(profile)
         self.class_names = tuple(class_names or self.profile.all_class_names)
         if len(self.class_names) != self.profile.num_classes:
@@ -116,7 +121,8 @@ class EraseNet:
         self._detector_counter = None if self.detector is None else ComputeCounter(self.detector)
         self.params = {"detector": 0 if self.detector is None else count_params(self.detector),
                        "segmenter": count_params(self.segmenter)}
-        self._segmenter_layers = counted_layers(self.segmenter)  # hooked for each frame's MAC count
+        self._segmenter_layers = counted_layers(self.segmenter)  # hooked for each frame's MAC count (eager)
+        self._fused = FusedMinkUNet(self.segmenter) if fused_segmenter and fusable(self.segmenter) else None
 
     @classmethod
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
@@ -231,11 +237,18 @@ class EraseNet:
         feats = torch.from_numpy(points.features).to(self.device)
         coords = torch.from_numpy(points.coords).to(self.device)
         batch = torch.zeros(len(coords), dtype=torch.int64, device=self.device)
-        with MacRecorder(self.segmenter, layers=self._segmenter_layers, params=self.params["segmenter"]) as recorder:
-            logits = self.segmenter(self.segmenter.make_input(torch.cat([batch[:, None], coords], dim=1), feats))
+        sparse = self.segmenter.make_input(torch.cat([batch[:, None], coords], dim=1), feats)
+        if self._fused is not None:
+            logits, tally = self._fused(sparse)
+            macs, executed = tally.useful, tally.executed
+        else:
+            with MacRecorder(self.segmenter, layers=self._segmenter_layers,
+                             params=self.params["segmenter"]) as recorder:
+                logits = self.segmenter(sparse)
+            report = recorder.report()
+            macs, executed = report.macs, report.executed
         classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
-        report = recorder.report()
-        return classes[points.inverse], report.macs, report.executed
+        return classes[points.inverse], macs, executed
 
     def _objects(self, regions: Regions, voxel_classes: np.ndarray, centres: Centres) -> list[SegmentedObject]:
         """One object per seed whose region holds foreground voxels; class by majority vote."""

@@ -318,3 +318,20 @@ def grid_neighbours(grid: Tensor, flat: Tensor, delta: Tensor) -> Tensor:
         (M, K) int64.
     """
     return load().grid_neighbours(grid.contiguous(), flat.contiguous(), delta.contiguous())
+
+
+def neighbour_conv_fused(src: Tensor, neighbours: Tensor, weight: Tensor, bias: Tensor | None = None,
+                         residual: Tensor | None = None, relu: bool = False) -> Tensor:
+    """:func:`neighbour_conv` with its inference epilogue: `max(out + bias + residual, 0)` written with the rows
+    (each part optional: `bias` (D,), `residual` (M, D), `relu`). No autograd."""
+    return load().neighbour_conv_fused(src.contiguous(), neighbours.contiguous(), weight.contiguous(),
+                                       None if bias is None else bias.contiguous(),
+                                       None if residual is None else residual.contiguous(), relu)
+
+
+def scatter_conv_fused(src: Tensor, neighbours: Tensor, weight: Tensor, num_out: int, bias: Tensor | None = None,
+                       relu: bool = False) -> Tensor:
+    """:func:`scatter_conv` with its inference epilogue `max(out + bias, 0)` (rows never reached: `max(bias, 0)`).
+    No autograd."""
+    return load().scatter_conv_fused(src.contiguous(), neighbours.contiguous(), weight.contiguous(), num_out,
+                                     None if bias is None else bias.contiguous(), relu)
