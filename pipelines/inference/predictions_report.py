@@ -4,7 +4,9 @@ and pictures: ``radarseg store info PRED.zarr`` and the report ``segment-batch``
 
 Figures: frames segmented and quarantined, predicted voxels per class, detections per frame (mean, range,
 histogram) and per class, MACs and seconds per frame. Pictures: the RA and RD views of the frames with the most
-detections, the predicted masks and objects drawn over them (the views read back from the job's source).
+detections, the predicted masks and objects drawn over them (the views read back from the job's source). Tracks
+(the ``tracks`` array, when the store has one): how many, their length, the tracked objects' speed; the pictures
+name each object's track.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ def summarise_predictions(path: str | Path) -> dict[str, Any]:
     per_class = {name: int((classes == c).sum()) for c, name in enumerate(names) if c}
     compute = group["compute"][:][valid]
     report = attrs.get("report", {})
+    tracks = _tracks_summary(group, valid, n_objects) if "tracks" in group else None
     return {
         "kind": "predictions",
         "path": str(path),
@@ -60,7 +63,27 @@ def summarise_predictions(path: str | Path) -> dict[str, Any]:
         "macs_per_frame": float(compute[:, CMP["macs_total"]].mean()) if len(compute) else 0.0,
         "seconds_per_frame": float(compute[:, CMP["seconds_total"]].mean()) if len(compute) else 0.0,
         "roi_voxels_per_frame": float(compute[:, CMP["roi_voxels"]].mean()) if len(compute) else 0.0,
+        "tracks": tracks,
     }
+
+
+def _tracks_summary(group: Any, valid: np.ndarray, n_objects: np.ndarray) -> dict[str, Any]:
+    """Tracks (distinct ids per sequence), their length in frames and the speed of the tracked objects."""
+    tracks = group["tracks"][:][valid]
+    sequence_id = group["sequence_id"][:][valid]
+    ids = tracks[..., 0]
+    rows = np.isfinite(ids)
+    pairs = np.column_stack([np.broadcast_to(sequence_id[:, None], ids.shape)[rows], ids[rows]])
+    lengths = np.unique(pairs, axis=0, return_counts=True)[1] if len(pairs) else np.zeros(0, int)
+    speed = np.hypot(tracks[..., 1], tracks[..., 2])[rows]
+    figures = group.attrs.get("tracking", {})
+    return {"tracks": int(len(lengths)), "confirmed": figures.get("confirmed_tracks"),
+            "objects_tracked": int(rows.sum()), "objects": int(n_objects.sum()),
+            "frames_per_track": {"mean": float(lengths.mean()) if len(lengths) else 0.0,
+                                 "max": int(lengths.max(initial=0))},
+            "speed_mps": {"median": float(np.median(speed)) if len(speed) else 0.0,
+                          "max": float(speed.max(initial=0.0))},
+            "ms_per_frame": figures.get("ms_per_frame")}
 
 
 def format_predictions(summary: dict[str, Any]) -> str:
@@ -76,10 +99,19 @@ def format_predictions(summary: dict[str, Any]) -> str:
              "detections per class: " + ", ".join(f"{k} {v}" for k, v in summary["detections_per_class"].items()),
              "predicted voxels per class: " + ", ".join(f"{k} {v}" for k, v in summary["class_voxels"].items()),
              f"per frame: {summary['macs_per_frame'] / 1e9:.3f} GMACs, {summary['seconds_per_frame'] * 1e3:.0f} ms, "
-             f"{summary['roi_voxels_per_frame']:.0f} ROI voxels"]
+             f"{summary['roi_voxels_per_frame']:.0f} ROI voxels", _format_tracks(summary.get("tracks"))]
     for q in summary["quarantined"][:5]:
         lines.append(f"  quarantined: {q}")
     return "\n".join(lines)
+
+
+def _format_tracks(tracks: dict[str, Any] | None) -> str:
+    if tracks is None:
+        return "tracks: none (a store written before segment-batch tracked objects)"
+    return (f"tracks: {tracks['tracks']} ({tracks['confirmed']} confirmed), {tracks['objects_tracked']}/"
+            f"{tracks['objects']} objects with a track id; {tracks['frames_per_track']['mean']:.1f} frames a track "
+            f"(max {tracks['frames_per_track']['max']}); speed median {tracks['speed_mps']['median']:.2f} m/s, "
+            f"max {tracks['speed_mps']['max']:.2f} m/s")
 
 
 def _log_power(source: dict[str, Any], slot: int, sequence: str, index: int) -> np.ndarray:
@@ -119,9 +151,12 @@ def write_predictions_report(path: str | Path, out: str | Path | None = None, *,
     drawn = []
     for i in sorted(order):
         table = group["objects"][i][: int(n_objects[i])]
-        objects = [SimpleNamespace(class_name=names[int(row[OBJ["class_id"]])], score=float(row[OBJ["score"]]),
+        ids = group["tracks"][i][: len(table), 0] if "tracks" in group else np.full(len(table), np.nan)
+        objects = [SimpleNamespace(class_name=names[int(row[OBJ["class_id"]])]
+                                   + (f" #{int(track)}" if np.isfinite(track) else ""), score=float(row[OBJ["score"]]),
                                    x=float(row[OBJ["x"]]), y=float(row[OBJ["y"]]),
-                                   velocity_mps=float(row[OBJ["velocity_mps"]])) for row in table]
+                                   velocity_mps=float(row[OBJ["velocity_mps"]]))
+                   for row, track in zip(table, ids, strict=True)]
         sequence, index = sequences[int(group["sequence_id"][i])], int(group["frame_index"][i])
         source_slot = int(group["source_slot"][i])
         log_power = _log_power(summary["source"], source_slot, sequence, index)

@@ -14,6 +14,8 @@ Layout of ``PRED.zarr`` (zarr v3, sharded along the frame axis like the preproce
     sequence_id  int32   (N,)          index into the ``sequences`` attribute
     frame_index  int32   (N,)          frame index within its sequence
     valid        uint8   (N,)          1 segmented, 0 quarantined
+    tracks       float32 (N, K, 3)     per object row: track id, vx, vy (m/s), NaN padded; written last, by
+                                       pipelines.inference.batch_tracks (absent from stores made before it)
     progress/shard_NNNNN               one marker group per finished shard (attributes: its summary)
 """
 

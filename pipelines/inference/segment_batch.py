@@ -21,7 +21,9 @@ the source, segments them and writes the whole shard of every array, then the sh
 (last). Actors are spread over the cluster's nodes; the runner keeps every actor busy (``ray.wait``).
 A rerun with the same arguments skips shards whose marker exists; a store written with other
 arguments is refused. Frames that cannot be read or segmented are quarantined (``valid = 0``, reason
-in the ``report`` attribute); the job fails when every frame is bad.
+in the ``report`` attribute); the job fails when every frame is bad. After the last shard and before the store
+is marked complete, one sequential pass per sequence tracks its objects (:mod:`pipelines.inference.batch_tracks`:
+the array ``tracks``, each object's track id and velocity vector).
 
 The figure the job returns (and prints) is ``frames_per_second``: frames segmented over the wall time
 from the first shard submitted to the last shard written, with every actor's model already loaded.
@@ -330,7 +332,7 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
                                  stage_args=(cfg.detector, cfg.segmenter),
                                  stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
                                                "torch_threads": cfg.torch_threads, "engine": cfg.engine},
-                                 reduce=reduce_summaries, finish=partial(store_attributes, plan))
+                                 reduce=reduce_summaries, finish=partial(finish_predictions, plan))
     execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
                                       cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment")
     run = sharded_job.run_sharded(job, execution)
@@ -376,6 +378,15 @@ def reduce_summaries(summaries: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "macs": sum(s["macs"] for s in summaries),
         "quarantined": sorted((q for s in summaries for q in s["quarantined"]), key=lambda q: q["frame"]),
     }
+
+
+def finish_predictions(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:
+    """After every shard, before ``complete``: the final attributes, and the tracks of every sequence (one
+    sequential pass, :mod:`pipelines.inference.batch_tracks`; its figures in the attribute ``tracking``)."""
+    from pipelines.inference.batch_tracks import write_tracks
+
+    attributes = store_attributes(plan, stats)
+    return {**attributes, "tracking": write_tracks(plan.out, plan.layout.profile)}
 
 
 def store_attributes(plan: BatchPlan, stats: dict[str, Any]) -> dict[str, Any]:

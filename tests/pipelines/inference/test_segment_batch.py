@@ -67,8 +67,38 @@ def test_job_in_process_writes_what_erasenet_predicts(small_store, tiny_checkpoi
         assert root["frame_index"][k] == source["frame_index"][slot]
     assert result["macs_total"] == int(root["compute"][:, COMPUTE_FIELDS.index("macs_total")].sum())
     assert sum(s["macs"] for s in summaries.values()) == result["macs_total"]
+    _check_tracks(cfg.out, net.profile, tmp_path)
     again = main(cfg)  # a rerun of a finished store does no work
     assert (again["shards_run"], again["shards_skipped"], again["written"]) == (0, 2, 3)
+    np.testing.assert_array_equal(open_predictions(cfg.out)["tracks"][:], root["tracks"][:])
+
+
+def _check_tracks(path, profile, tmp_path):
+    """``tracks``: the tracker over the frames' object tables in order, one row per object; the report shows it;
+    a store without it still opens."""
+    import zarr
+
+    from pipelines.inference.batch_tracks import track_sequence
+    from pipelines.inference.predictions_report import format_predictions, summarise_predictions
+    from radar.tracking import TrackerConfig
+
+    root = open_predictions(path)
+    n_objects, tracks = root["n_objects"][:], root["tracks"][:]
+    assert tracks.shape == (3, 2, 3) and root.attrs["tracking"]["sequences"] == 1
+    expected, _ = track_sequence(root["objects"][:], n_objects, root["frame_index"][:],
+                                 TrackerConfig.for_profile(profile))
+    np.testing.assert_array_equal(tracks, expected)
+    for k, n in enumerate(n_objects):
+        assert np.isfinite(tracks[k, :n]).all() and np.isnan(tracks[k, n:]).all()
+    assert tracks[0, : n_objects[0], 0].tolist() == list(range(1, n_objects[0] + 1))
+    summary = summarise_predictions(path)
+    assert summary["tracks"]["objects_tracked"] == summary["tracks"]["objects"] == int(n_objects.sum())
+    assert "tracks: " in format_predictions(summary)
+    old = tmp_path / "old.zarr"
+    shutil.copytree(path, old)
+    del zarr.open_group(old, mode="r+")["tracks"]
+    summary = summarise_predictions(old)
+    assert summary["tracks"] is None and "tracks: none" in format_predictions(summary)
 
 
 def test_job_on_the_onnx_engine_writes_what_the_torch_engine_predicts(small_store, tiny_checkpoints, tmp_path,
