@@ -52,9 +52,9 @@ class TrackerConfig:
     max_radial_velocity_mps: float  # the radar's unambiguous |radial velocity|: innovations wrap at +-this
     range_sigma_m: float = 0.35  # measurement noise of an object's position along the line of sight
     azimuth_sigma_rad: float = 0.02  # and across it (as an angle)
-    min_position_sigma_m: float = 0.3  # floor on either, for an object's centre moving within its extent
+    min_position_sigma_m: float = 1.0  # floor on either, for an object's centre moving within its extent
     radial_velocity_sigma_mps: float = 0.4
-    acceleration_sigma_mps2: float = 2.0  # white acceleration noise of the constant-velocity model
+    acceleration_sigma_mps2: float = 4.0  # white acceleration noise of the constant-velocity model
     initial_speed_sigma_mps: float = 6.0  # a new track's unknown velocity across the line of sight
     # the same per class id (1-based; index 0 unused), for classes with a typical speed (TYPICAL_SPEED_SIGMA_MPS)
     class_speed_sigma_mps: tuple[float, ...] = ()
@@ -62,6 +62,7 @@ class TrackerConfig:
     gate_m: float = 4.0  # and a bound in metres between a track's predicted position and an object
     confirm_hits: int = 2
     max_misses: int = 3  # frames a confirmed track is coasted before it is dropped
+    tentative_max_misses: int = 1  # frames seen without its object that a tentative track survives
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -69,7 +70,7 @@ class TrackerConfig:
             if f.name == "class_speed_sigma_mps":
                 if not all(np.isfinite(v) and v > 0 for v in value):
                     raise ValueError(f"class_speed_sigma_mps must hold finite numbers > 0, got {value!r}")
-            elif f.name in ("confirm_hits", "max_misses"):
+            elif f.name in ("confirm_hits", "max_misses", "tentative_max_misses"):
                 if not isinstance(value, int) or value < (1 if f.name == "confirm_hits" else 0):
                     raise ValueError(f"{f.name} must be an integer >= {1 if f.name == 'confirm_hits' else 0}, "
                                      f"got {value!r}")
@@ -84,7 +85,9 @@ class TrackerConfig:
             "max_radial_velocity_mps": profile.max_velocity,
             "range_sigma_m": max(profile.range_resolution, 0.2),
             "azimuth_sigma_rad": 2.0 / profile.n_angle,  # one angle bin at boresight (bins uniform in sin)
-            "radial_velocity_sigma_mps": max(0.5 * profile.velocity_resolution, 0.1),
+            # an object's Doppler (its voxels' mean) wanders over bins and its labelled centre need not move
+            # as it does (part of it out of view): a loose radial velocity keeps identities (seed 25301)
+            "radial_velocity_sigma_mps": max(2.5 * profile.velocity_resolution, 0.1),
             "class_speed_sigma_mps": (1.0, *(TYPICAL_SPEED_SIGMA_MPS.get(name, cls.initial_speed_sigma_mps)
                                              for name in profile.class_names)),
         }
@@ -308,7 +311,7 @@ class Tracker:
 
     def _alive(self, track: Track) -> bool:
         if track.status is TrackStatus.tentative:
-            return track.misses == 0
+            return track.misses <= self.config.tentative_max_misses
         return track.misses <= self.config.max_misses
 
     def _assign(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:

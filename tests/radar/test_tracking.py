@@ -66,7 +66,7 @@ def test_a_tentative_track_survives_frames_not_seen_but_not_a_frame_seen_without
     assert tracker.step(Measurements.empty(), frames=CONFIG.max_misses + 2).tracks == []  # too long a gap
 
 
-def test_a_lost_track_is_dropped_after_max_misses_and_a_tentative_one_at_once():
+def test_a_lost_track_is_dropped_after_max_misses_and_a_tentative_one_sooner():
     tracker = Tracker(CONFIG)
     for _ in range(3):
         tracker.step(objects([(0.0, 10.0, 0.0, 0.0)]))
@@ -74,7 +74,9 @@ def test_a_lost_track_is_dropped_after_max_misses_and_a_tentative_one_at_once():
         step = tracker.step(Measurements.empty())
         assert len(step.tracks) == 1 and step.tracks[0].misses == miss
     assert tracker.step(Measurements.empty()).tracks == []
-    tracker.step(objects([(5.0, 10.0, 0.0, 0.0)]))  # tentative (one hit), missed once: gone
+    tracker.step(objects([(5.0, 10.0, 0.0, 0.0)]))  # tentative (one hit): gone after tentative_max_misses
+    for _ in range(CONFIG.tentative_max_misses):
+        assert tracker.step(Measurements.empty()).tracks[0].status is TrackStatus.tentative
     assert tracker.step(Measurements.empty()).tracks == []
     assert tracker.step(objects([(5.0, 10.0, 0.0, 0.0)])).track_ids.tolist() == [3]  # ids are never reused
 
@@ -126,9 +128,12 @@ def test_an_aliased_doppler_stays_on_its_track():
     assert step.tracks[0].mean[3] == pytest.approx(speed, abs=0.5)
 
 
-@pytest.mark.parametrize("override", [{"frame_period_s": 0.0}, {"gate_chi2": float("nan")}, {"gate_m": -1.0},
-                                      {"confirm_hits": 0}, {"max_misses": -1}, {"confirm_hits": 2.5},
-                                      {"class_speed_sigma_mps": (1.0, 0.0)}, {"acceleration_sigma_mps2": "2"}])
+BAD_CONFIGS = [{"frame_period_s": 0.0}, {"gate_chi2": float("nan")}, {"gate_m": -1.0}, {"confirm_hits": 0},
+               {"max_misses": -1}, {"confirm_hits": 2.5}, {"tentative_max_misses": -1},
+               {"class_speed_sigma_mps": (1.0, 0.0)}, {"acceleration_sigma_mps2": "2"}]
+
+
+@pytest.mark.parametrize("override", BAD_CONFIGS)
 def test_bad_config_values_are_refused(override):
     with pytest.raises(ValueError):
         TrackerConfig.for_profile(SMALL, **override)
