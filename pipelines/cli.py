@@ -163,7 +163,25 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
     from models.export.onnx_export import export_onnx
 
-    manifest = export_onnx(args.detector, args.segmenter, args.out)
+    if args.int8:
+        from models.checkpoint import load_checkpoint
+        from models.export.onnx_engine import Int8Calibration
+        from models.export.quantize import export_int8
+        from pipelines.datasets.calibration import store_calibration
+
+        profile = load_checkpoint(args.detector).profile
+        methods = tuple(args.calibration_methods)
+        calibration = (Int8Calibration.simulated(profile, frames=args.calibration_frames, methods=methods)
+                       if args.calibration is None else
+                       store_calibration(args.calibration, profile, frames=args.calibration_frames, methods=methods))
+        manifest = export_int8(args.detector, args.segmenter, args.out, cubes=calibration.cubes,
+                               calibration=calibration.description, methods=calibration.methods)
+        quant = manifest["quantization"]
+        agreement = ", ".join(f"{m} {a:.5f}" for m, a in quant["label_agreement_by_method"].items())
+        print(f"int8 (QDQ), calibrated on {len(calibration.cubes)} {quant['calibration']['source']} frames; "
+              f"ROI label agreement with float: {agreement}; kept {quant['method']}")
+    else:
+        manifest = export_onnx(args.detector, args.segmenter, args.out)
     for stage in ("detector", "segmenter"):
         graph = manifest[stage]
         inputs = ", ".join(f"{name} {tuple(v['shape'])}" for name, v in graph["inputs"].items())
@@ -362,7 +380,8 @@ def _add_frame_commands(sub: Any) -> None:
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
     seg.add_argument("--engine", choices=ENGINES, default="torch",
                      help="torch, or onnx: the exported graphs in onnxruntime, exported on first use "
-                          "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)")
+                          "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx); onnx-int8: the same graphs "
+                          "quantised, calibrated on simulated frames of the checkpoints' preset")
     seg.add_argument("--no-warm-up", dest="warm_up", action="store_false",
                      help="report the first run's time (by default the cube is segmented once before the timed run, "
                           "so the time is a steady frame's)")
@@ -377,6 +396,16 @@ def _add_frame_commands(sub: Any) -> None:
     onnx.add_argument("--detector", required=True, help="detector checkpoint")
     onnx.add_argument("--segmenter", required=True, help="segmenter checkpoint (MinkUNet)")
     onnx.add_argument("--out", required=True, help="output directory")
+    onnx.add_argument("--int8", action="store_true",
+                      help="also quantise both graphs (onnxruntime static quantisation, QDQ, int8 weights per "
+                           "channel); the float graphs go to OUT/float")
+    onnx.add_argument("--calibration", metavar="STORE",
+                      help="--int8: calibrate on the train split of this store (default: simulated frames of the "
+                           "checkpoints' preset)")
+    onnx.add_argument("--calibration-frames", type=int, default=8, metavar="N", help="--int8: frames (default 8)")
+    onnx.add_argument("--calibration-methods", nargs="+", choices=("MinMax", "Entropy", "Percentile"),
+                      default=["MinMax", "Entropy", "Percentile"],
+                      help="--int8: methods tried; the best ROI label agreement with float is kept (default: all)")
     onnx.set_defaults(func=_cmd_export_onnx)
 
     radar_cmd = sub.add_parser("radar", help="radar profiles")

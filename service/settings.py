@@ -55,8 +55,9 @@ class ModelSpec(BaseModel):
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = SCORE_THRESHOLD
     max_objects: Annotated[int, Field(ge=1, le=256)] = MAX_OBJECTS
     # torch: PyTorch (its sparse convolutions on models.sparse's engine); onnx: the exported graphs in onnxruntime
-    # (models.erasenet.engines), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx)
-    engine: Literal["torch", "onnx"] = "torch"
+    # (models.erasenet.engines), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx);
+    # onnx-int8: those graphs quantised, calibrated on simulated frames of the model's preset (models.export.quantize)
+    engine: Literal["torch", "onnx", "onnx-int8"] = "torch"
 
 
 class Settings(BaseSettings):

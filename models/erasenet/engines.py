@@ -13,9 +13,11 @@ if TYPE_CHECKING:  # importing torch takes seconds: the CLI reads ENGINES before
     from models.checkpoint import Checkpoint
     from models.erasenet.model import EraseNet
 
-ENGINES = ("torch", "onnx")
+ENGINES = ("torch", "onnx", "onnx-int8")
 """torch: the sparse engine of ``models.sparse`` and the traced detector; onnx: the exported graphs in
-onnxruntime (exported on first use into the cache of ``models.export.onnx_engine``)."""
+onnxruntime (exported on first use into the cache of ``models.export.onnx_engine``); onnx-int8: the same graphs
+statically quantised (``models.export.quantize``), calibrated on simulated frames of the model's preset unless
+``calibration=`` names a store."""
 
 
 def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *, engine: str = "torch",
@@ -29,8 +31,8 @@ def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Che
         from models.erasenet.model import EraseNet
 
         return EraseNet.from_checkpoints(detector, segmenter, **kwargs)
-    if engine == "onnx":
+    if engine in ("onnx", "onnx-int8"):
         from models.export.onnx_engine import OnnxEraseNet
 
-        return OnnxEraseNet.from_checkpoints(detector, segmenter, **kwargs)
+        return OnnxEraseNet.from_checkpoints(detector, segmenter, int8=engine == "onnx-int8", **kwargs)
     raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")

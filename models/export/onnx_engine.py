@@ -19,6 +19,7 @@ import logging
 import os
 import shutil
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -46,24 +47,38 @@ def cache_root() -> Path:
 
 
 def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint,
-                 root: Path | None = None) -> Path:
+                 root: Path | None = None, *, int8: Int8Calibration | None = None) -> Path:
     """The export of this checkpoint pair, made now if the cache does not hold it yet.
 
-    The directory is named by the sha256 of both checkpoints and the export format version; a new export is
-    written to a temporary directory and renamed into place, so concurrent processes (Ray actors) never read
-    half a directory: the first rename wins and the others use its files.
+    The directory is named by the sha256 of both checkpoints and the export format version, and for an int8
+    export (``int8`` given) also by the quantisation recipe's version and the sha256 of the calibration frames;
+    a new export is written to a temporary directory and renamed into place, so concurrent processes (Ray
+    actors) never read half a directory: the first rename wins and the others use its files.
     """
     root = cache_root() if root is None else root
     digests = (checkpoint_digest(detector), checkpoint_digest(segmenter))
-    key = hashlib.sha256(f"{FORMAT}/{VERSION}/{digests[0]}/{digests[1]}".encode()).hexdigest()[:24]
+    name = f"{FORMAT}/{VERSION}/{digests[0]}/{digests[1]}"
+    if int8 is not None:
+        from models.export.quantize import QUANT_VERSION, calibration_digest
+
+        name += (f"/int8/{QUANT_VERSION}/{calibration_digest(int8.cubes)}/{','.join(int8.methods)}/"
+                 f"{json.dumps(int8.pipeline)}")
+    key = hashlib.sha256(name.encode()).hexdigest()[:24]
     target = root / key
     if (target / "manifest.json").is_file():
         return target
+    float_dir = None if int8 is None else exported_dir(detector, segmenter, root)
     root.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".export-", dir=root))
     try:
-        log.info("exporting the checkpoints to ONNX into %s", target)
-        export_onnx(detector, segmenter, staging)
+        log.info("exporting the checkpoints to ONNX%s into %s", "" if int8 is None else " (int8)", target)
+        if int8 is None:
+            export_onnx(detector, segmenter, staging)
+        else:
+            from models.export.quantize import export_int8
+
+            export_int8(detector, segmenter, staging, cubes=int8.cubes, calibration=int8.description,
+                        methods=int8.methods, float_dir=float_dir, pipeline=dict(int8.pipeline))
         try:
             os.rename(staging, target)
         except OSError:  # another process renamed its export first
@@ -72,6 +87,31 @@ def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Chec
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return target
+
+
+@dataclass(frozen=True)
+class Int8Calibration:
+    """What an int8 export calibrates on: log-power frames (R, A, D) dB, their description for the manifest, and
+    the calibration methods to choose from (:mod:`models.export.quantize`)."""
+
+    cubes: tuple[np.ndarray, ...]
+    description: dict[str, Any]
+    methods: tuple[str, ...]
+    pipeline: tuple[tuple[str, Any], ...] = ()
+    """EraseNet keyword arguments of the float pipeline whose ROI the segmenter is calibrated on (the served
+    model's ``score_threshold`` and ``max_objects``); empty: EraseNet's defaults."""
+
+    def with_pipeline(self, **kwargs: Any) -> Int8Calibration:
+        return Int8Calibration(self.cubes, self.description, self.methods, tuple(sorted(kwargs.items())))
+
+    @classmethod
+    def simulated(cls, profile: RadarProfile, *, frames: int | None = None,
+                  methods: tuple[str, ...] | None = None) -> Int8Calibration:
+        """Simulated frames of ``profile`` (the default when no store is given; see :mod:`models.export.quantize`)."""
+        from models.export.quantize import CALIBRATION_FRAMES, METHODS, simulated_calibration_frames
+
+        cubes, description = simulated_calibration_frames(profile, CALIBRATION_FRAMES if frames is None else frames)
+        return cls(tuple(cubes), description, tuple(METHODS if methods is None else methods))
 
 
 def _session(path: Path, threads: int):
@@ -111,6 +151,7 @@ class OnnxEraseNet(EraseNet):
     """
 
     engine = "onnx"
+    """"onnx" on float graphs, "onnx-int8" on quantised ones (the manifest's ``precision``)."""
 
     def __init__(self, detector: nn.Module, segmenter: nn.Module, profile: RadarProfile | str, *,
                  onnx_dir: str | Path, threads: int | None = None, **kwargs: Any) -> None:
@@ -132,6 +173,8 @@ class OnnxEraseNet(EraseNet):
         if self.manifest["preset"] != self.profile.name or tuple(self.manifest["cube_shape"]) != self.profile.shape:
             raise ValueError(f"{self.onnx_dir}: exported for preset {self.manifest['preset']!r} "
                              f"{tuple(self.manifest['cube_shape'])}, not {self.profile.name!r} {self.profile.shape}")
+        self.precision = self.manifest.get("precision", "float32")
+        self.engine = "onnx" if self.precision == "float32" else f"onnx-{self.precision}"
         threads = torch.get_num_threads() if threads is None else threads
         self._run_detector = OnnxDetector(_session(self.onnx_dir / "detector.onnx", threads), self.detector)
         self._segmenter_session = _session(self.onnx_dir / "segmenter.onnx", threads)
@@ -139,14 +182,26 @@ class OnnxEraseNet(EraseNet):
 
     @classmethod
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
-                         onnx_dir: str | Path | None = None, **kwargs: Any) -> OnnxEraseNet:
+                         onnx_dir: str | Path | None = None, int8: bool = False,
+                         calibration: Int8Calibration | None = None, **kwargs: Any) -> OnnxEraseNet:
         """Both stages from checkpoints, run from ``onnx_dir`` (default: the export cache, exporting now if
-        these checkpoints were never exported)."""
-        if onnx_dir is None:
-            onnx_dir = exported_dir(detector, segmenter)
+        these checkpoints were never exported). ``int8``: the quantised graphs, calibrated on ``calibration``
+        (default: :meth:`Int8Calibration.simulated` frames of the checkpoints' preset); an ``onnx_dir`` given
+        must then hold an int8 export."""
         det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
         seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
-        return super().from_checkpoints(det, seg, onnx_dir=onnx_dir, **kwargs)
+        if onnx_dir is None:
+            if int8 and calibration is None:
+                calibration = Int8Calibration.simulated(det.profile)
+            if int8:  # calibrated on the ROI this model's own seeds give
+                seeds = {k: kwargs[k] for k in ("score_threshold", "max_objects") if k in kwargs}
+                calibration = calibration.with_pipeline(**seeds)
+            onnx_dir = exported_dir(detector, segmenter, int8=calibration if int8 else None)
+        net = super().from_checkpoints(det, seg, onnx_dir=onnx_dir, **kwargs)
+        if (net.precision == "int8") != int8:
+            raise ValueError(f"{onnx_dir}: a {net.precision} export, but {'int8' if int8 else 'float32'} graphs "
+                             "were asked for")
+        return net
 
     def _detector_input(self, log_power: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(log_power, dtype=np.float32)  # the graph normalises

@@ -41,8 +41,9 @@ from radar.roi import N_FEATURES
 OPSET = 17
 """ONNX opset of both graphs (onnxruntime >= 1.14, OpenVINO, TensorRT 8.6 read it)."""
 FORMAT = "radarseg.onnx"
-VERSION = 1
-"""Bump when the graphs' inputs, outputs or formulation change: the export cache keys on it."""
+VERSION = 2
+"""Bump when the graphs' inputs, outputs or formulation change: the export cache keys on it (2: row blocks
+as Slice, not SplitToSequence)."""
 DETECTOR_OUTPUTS = ("heatmap", "offset", "doppler")
 SEGMENTER_OUTPUTS = ("logits", "labels")
 STANDARD_DOMAINS = ("", "ai.onnx")

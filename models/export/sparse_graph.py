@@ -41,6 +41,18 @@ def chunk_pieces(rows: int, row_bytes: int) -> int:
     return max(1, min(MAX_PIECES, round(rows * row_bytes / CHUNK_BYTES)))
 
 
+def row_blocks(table: Tensor, pieces: int) -> list[Tensor]:
+    """``table`` cut into ``pieces`` consecutive row blocks of near-equal size (their sizes differ by one at most).
+
+    Written as one Slice per block with bounds computed from the traced row count, not ``torch.tensor_split``:
+    that traces to SplitToSequence / SequenceAt, whose element shapes ONNX shape inference gives one symbolic
+    size for all blocks, which onnxruntime then enforces (the int8 calibration runs the shape-inferred graph
+    and fails on unequal blocks), and which some runtimes (TensorRT) do not take at all."""
+    rows = table.shape[0]
+    bounds = [(rows * i + pieces - 1) // pieces for i in range(pieces + 1)]
+    return [table[bounds[i]:bounds[i + 1]] for i in range(pieces)]
+
+
 @dataclass(frozen=True)
 class LayerCost:
     """One matrix product of the graph, for its MAC count: ``kind`` "gather" (rows of ``map_name``, pairs
@@ -90,7 +102,7 @@ class GatherConv(nn.Module):
         if self.pieces == 1:
             out = self._gemm(padded, neighbours)
         else:  # one Gather and MatMul per block of rows: the gathered block stays in cache for its product
-            out = torch.cat([self._gemm(padded, block) for block in torch.tensor_split(neighbours, self.pieces)])
+            out = torch.cat([self._gemm(padded, block) for block in row_blocks(neighbours, self.pieces)])
         out = out + self.bias
         return torch.relu(out) if self.relu else out
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from prometheus_client.parser import text_string_to_metric_families
@@ -335,3 +337,28 @@ def test_a_model_served_by_the_onnx_engine_answers_like_the_torch_one(make_setti
     assert bodies["tiny-onnx"]["compute"]["macs"] == bodies["tiny"]["compute"]["macs"]
     classes = {name: [o["class_name"] for o in body["objects"]] for name, body in bodies.items()}
     assert classes["tiny-onnx"] == classes["tiny"]
+
+
+def test_a_model_served_by_the_int8_onnx_engine_names_its_precision(make_settings, client_for, cube_body,
+                                                                    tiny_checkpoints, monkeypatch, tmp_path):
+    """onnx-int8 needs no store: the service's model calibrates on simulated frames of its preset."""
+    from service.settings import ModelSpec
+
+    det, seg = tiny_checkpoints
+    monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
+    monkeypatch.setattr("models.export.quantize.CALIBRATION_FRAMES", 2)  # a quick calibration for the test
+    monkeypatch.setattr("models.export.quantize.METHODS", ("MinMax",))
+    models = [ModelSpec(name=name, detector=det, segmenter=seg, score_threshold=0.0, max_objects=1, engine=engine)
+              for name, engine in (("tiny-onnx", "onnx"), ("tiny-int8", "onnx-int8"))]
+    client = client_for(make_settings(models=models))
+    bodies = {}
+    for name in ("tiny-onnx", "tiny-int8"):
+        r = client.post(f"/v1/segment?model={name}&outputs=objects", content=cube_body, headers=NPY)
+        assert r.status_code == 200, r.text
+        bodies[name] = r.json()
+    assert bodies["tiny-int8"]["compute"]["engine"] == "onnx-int8"
+    assert bodies["tiny-onnx"]["compute"]["engine"] == "onnx"
+    manifests = [json.loads(p.read_text()) for p in (tmp_path / "onnx").glob("*/manifest.json")]
+    int8 = [m for m in manifests if m.get("precision") == "int8"]
+    assert len(int8) == 1 and int8[0]["quantization"]["calibration"]["source"] == "simulated"
+    assert len(bodies["tiny-int8"]["objects"]) == len(bodies["tiny-onnx"]["objects"])

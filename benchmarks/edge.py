@@ -1,0 +1,161 @@
+"""int8 on the edge: the shipped pair and its slimmed twin, float and int8 ONNX graphs, against the default engine.
+
+    nice -n 5 .venv/bin/python benchmarks/edge.py --store /tmp/edge.zarr --calibration /tmp/edge-calib.zarr
+
+Per pair: parameters, bytes on disk of both .onnx files, MACs (the detector's per frame, the segmenter's useful
+MACs as the mean over the timed frames), the median over ``--timing-frames`` frames of each frame's best of
+``--repeats`` end-to-end times on one thread, the ONNX float, ONNX int8 and default (``torch``) engines
+interleaved per frame; then RA / RD mIoU, pedestrian IoU and mAP of the float and int8 graphs on every frame of
+``--store`` (a store of a seed nobody trained on) with ``pipelines.evaluation.evaluate``. The int8 graphs are
+calibrated on ``--calibration-frames`` frames of the train split of ``--calibration`` (another seed).
+
+Writes benchmarks/results/edge.json with the CPU's flags (AVX-512 VNNI or not) and the load average before and
+after: the machine is shared, so compare engines within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import platform
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from models.erasenet.engines import load_erasenet
+from models.export.onnx_engine import exported_dir
+from pipelines.datasets.calibration import store_calibration
+from pipelines.datasets.store import frames_of_split, open_store
+
+ROOT = Path(__file__).resolve().parents[1]
+PAIRS = {"shipped": ("checkpoints/detector.pt", "checkpoints/segmenter.pt"),
+         "p40": ("checkpoints/detector-p40.pt", "checkpoints/segmenter-p40.pt")}
+ENGINES = ("onnx", "onnx-int8", "torch")
+
+
+def cpu_flags() -> dict[str, object]:
+    """The CPU's model and the SIMD flags int8 kernels depend on (from /proc/cpuinfo)."""
+    flags: set[str] = set()
+    model = platform.processor()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("flags") and not flags:
+                flags = set(line.split(":", 1)[1].split())
+            elif line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+    wanted = ("avx2", "avx512f", "avx512_vnni", "avx_vnni", "amx_int8")
+    return {"model": model, "flags": {name: name in flags for name in wanted},
+            "vnni": "avx512_vnni" in flags or "avx_vnni" in flags, "cores": os.cpu_count()}
+
+
+def timing(nets: dict, cubes: list[np.ndarray], repeats: int) -> dict[str, object]:
+    """Median over frames of each frame's best end-to-end time per engine (interleaved), and segment MACs."""
+    best: dict[str, list[float]] = {name: [] for name in nets}
+    macs: list[int] = []
+    for index, cube in enumerate(cubes):
+        times: dict[str, list[float]] = {name: [] for name in nets}
+        for repeat in range(repeats):
+            order = list(nets) if (index + repeat) % 2 == 0 else list(nets)[::-1]
+            for name in order:
+                started = time.perf_counter()
+                result = nets[name].segment(cube, is_log_power=True)
+                times[name].append(time.perf_counter() - started)
+                if name == "onnx" and repeat == 0:
+                    macs.append(result.compute.segment_macs)
+        for name in nets:
+            best[name].append(min(times[name]))
+    median = {name: statistics.median(values) for name, values in best.items()}
+    return {"median_seconds": median,
+            "onnx_float_over_int8": median["onnx"] / median["onnx-int8"],
+            "torch_over_int8": median["torch"] / median["onnx-int8"],
+            "torch_over_onnx_float": median["torch"] / median["onnx"],
+            "segment_useful_macs_mean": float(np.mean(macs)) if macs else 0.0}
+
+
+def accuracy(detector: str, segmenter: str, store: str, engine: str, onnx_dir: Path, frames: int) -> dict:
+    """RA / RD mIoU, pedestrian IoU and mAP of one engine on the store (``pipelines.evaluation.evaluate``)."""
+    from pipelines.evaluation import evaluate as evaluation
+
+    load = functools.partial(load_erasenet, engine=engine, onnx_dir=onnx_dir)
+    original = evaluation.load_erasenet
+    evaluation.load_erasenet = lambda det, seg, device="cpu", **kwargs: load(det, seg, **kwargs)
+    try:
+        with tempfile.TemporaryDirectory(prefix="edge-eval-") as out:
+            metrics = evaluation.evaluate(evaluation.EvaluateConfig(
+                detector=detector, segmenter=segmenter, store=store, out=out, split=None, max_frames=frames,
+                pictures=0, sweep_frames=0, oracle=False, threads=1, progress=False))
+    finally:
+        evaluation.load_erasenet = original
+    segmentation = metrics["segmentation"]
+    return {"frames": metrics["frames"], "RA_mIoU": segmentation["RA"]["mIoU"], "RD_mIoU": segmentation["RD"]["mIoU"],
+            "RA_pedestrian_IoU": segmentation["RA"]["iou"]["pedestrian"],
+            "RD_pedestrian_IoU": segmentation["RD"]["iou"]["pedestrian"], "mAP": metrics["detection"]["mAP"]}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--store", required=True, help="evaluation store (a fresh seed), every frame scored")
+    parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
+    parser.add_argument("--calibration-frames", type=int, default=6)
+    parser.add_argument("--eval-frames", type=int, default=0, help="0: every frame of --store")
+    parser.add_argument("--timing-frames", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--pairs", nargs="+", choices=sorted(PAIRS), default=list(PAIRS))
+    parser.add_argument("--cache", default=None, help="export cache (default: a temporary directory)")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "edge.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    results: dict[str, object] = {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1,
+                                  "store": args.store, "calibration_store": args.calibration,
+                                  "calibration_frames": args.calibration_frames, "pairs": {}}
+    cache = Path(args.cache or tempfile.mkdtemp(prefix="edge-onnx-"))
+    root = open_store(args.store)
+    slots = frames_of_split(root, None)
+    chosen = slots[np.linspace(0, len(slots) - 1, min(args.timing_frames, len(slots))).round().astype(int)]
+    cubes = [np.asarray(root["input"][int(slot)], dtype=np.float32) for slot in chosen]
+    for pair in args.pairs:
+        detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
+        float_dir = exported_dir(detector, segmenter, cache)
+        profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
+        calibration = store_calibration(args.calibration, profile, frames=args.calibration_frames)
+        int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
+        manifests = {"float": json.loads((float_dir / "manifest.json").read_text()),
+                     "int8": json.loads((int8_dir / "manifest.json").read_text())}
+        nets = {"onnx": load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir),
+                "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
+                "torch": load_erasenet(detector, segmenter)}
+        for net in nets.values():  # warm-up
+            net.segment(cubes[0], is_log_power=True)
+        entry: dict[str, object] = {
+            "detector": PAIRS[pair][0], "segmenter": PAIRS[pair][1],
+            "params": {stage: manifests["float"][stage]["params"] for stage in ("detector", "segmenter")},
+            "detector_macs": manifests["float"]["detector"]["macs"],
+            "bytes": {precision: {stage: (directory / f"{stage}.onnx").stat().st_size
+                                  for stage in ("detector", "segmenter")}
+                      for precision, directory in (("float", float_dir), ("int8", int8_dir))},
+            "quantization": manifests["int8"]["quantization"],
+            "operator_precision": {stage: manifests["int8"][stage]["operator_precision"]
+                                   for stage in ("detector", "segmenter")},
+        }
+        entry["timing"] = timing(nets, cubes, args.repeats)
+        entry["timing"]["frames"] = [int(s) for s in chosen]
+        print(pair, json.dumps(entry["timing"], indent=1), flush=True)
+        entry["accuracy"] = {precision: accuracy(detector, segmenter, args.store, engine, directory, args.eval_frames)
+                             for precision, engine, directory in (("float", "onnx", float_dir),
+                                                                  ("int8", "onnx-int8", int8_dir))}
+        print(pair, json.dumps(entry["accuracy"], indent=1), flush=True)
+        results["pairs"][pair] = entry
+    results["load_average_after"] = os.getloadavg()
+    Path(args.out).write_text(json.dumps(results, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
