@@ -4,8 +4,8 @@ One process, one thread, simulated frames with objects (seed 5), after two warm-
 
 - ``stages``: milliseconds per frame of each stage of :meth:`models.erasenet.model.EraseNet.segment`;
 - ``segment_parts``: inside the segment stage, the compiled engine's convolution kernels, the kernel maps (index
-  grids, neighbour tables, coarser voxel sets) and the rest (BatchNorm, ReLU, residual sums, module calls, hooks,
-  input features, argmax);
+  grids, neighbour tables, coarser voxel sets) and the rest (input features, 1x1 shortcuts, concatenations, argmax;
+  with ``--eager``, also BatchNorm, ReLU, residual sums, module calls and hooks);
 - ``layers``: every sparse convolution shape (kernel voxels, C_in, C_out) with its calls, milliseconds per frame and
   useful GMAC/s (present neighbour pairs x C_in x C_out over its time).
 
@@ -60,7 +60,7 @@ class _Clock:
             started = time.perf_counter()
             out = original(src, neighbours, weight, *rest)
             seconds = time.perf_counter() - started
-            missing = src.shape[0] if name == "neighbour_conv" else rest[0]
+            missing = src.shape[0] if name.startswith("neighbour_conv") else rest[0]
             pairs = int((neighbours < missing).sum())
             row = self.layers[(name, weight.shape[0], weight.shape[1], weight.shape[2])]
             row[0] += 1
@@ -76,13 +76,15 @@ def main() -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=10, help="timed frames (after 2 warm-up frames)")
     parser.add_argument("--output", default=str(RESULTS))
+    parser.add_argument("--eager", action="store_true", help="the eager segmenter instead of its fused form")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    model = EraseNet.from_checkpoints(REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt")
+    model = EraseNet.from_checkpoints(REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt",
+                                      fused_segmenter=not args.eager)
     cubes = [frame.log_power() for frame in simulate_sequence("small", args.frames + 2, seed=5)]
     clock = _Clock()
-    clock.wrap_kernel("neighbour_conv")
-    clock.wrap_kernel("scatter_conv")
+    for kernel in ("neighbour_conv", "scatter_conv", "neighbour_conv_fused", "scatter_conv_fused"):
+        clock.wrap_kernel(kernel)  # the eager model's kernels, and the fused form's (the default)
     for name in ("build_kernel_map", "VoxelIndex", "downsample_coords"):
         clock.wrap(sparse_tensor, name, f"kernel maps: {name}")
     load_before = os.getloadavg()
@@ -103,7 +105,8 @@ def main() -> dict:
                "ms_per_frame": 1e3 * seconds / n, "useful_gmacs_per_s": macs / seconds / 1e9 if seconds else 0.0}
               for (name, k, c_in, c_out), (calls, seconds, macs)
               in sorted(clock.layers.items(), key=lambda kv: -kv[1][1])]
-    result = {"frames": n, "engine": model.engine, "ms_per_frame": per_frame, "segment_parts_ms": parts,
+    result = {"frames": n, "engine": model.engine, "segmenter": "eager" if args.eager else "fused",
+              "ms_per_frame": per_frame, "segment_parts_ms": parts,
               "layers": layers, "cpu_flags": [f for f in compiled.cpu_flags().split() if f.startswith(("avx", "fma"))],
               "load_average_before": load_before, "load_average_after": os.getloadavg()}
     print("ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in per_frame.items())
