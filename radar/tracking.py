@@ -212,30 +212,35 @@ class Tracker:
         Q[np.ix_([1, 3], [1, 3])] = block
         return F, Q
 
-    def _position_cov(self, x: float, y: float) -> np.ndarray:
-        """(2, 2) measurement covariance of a position: range and azimuth noise rotated to x-y."""
+    def _position_cov(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """(n, 2, 2) measurement covariances of positions: range and azimuth noise rotated to x-y."""
         cfg = self.config
-        r = max(float(np.hypot(x, y)), 1e-3)
-        radial = np.array([x, y]) / r
-        across = np.array([radial[1], -radial[0]])
+        r = np.maximum(np.hypot(x, y), 1e-3)
+        radial = np.stack([x / r, y / r], axis=-1)
+        across = np.stack([radial[:, 1], -radial[:, 0]], axis=-1)
         sigma_r = max(cfg.range_sigma_m, cfg.min_position_sigma_m)
-        sigma_a = max(cfg.azimuth_sigma_rad * r, cfg.min_position_sigma_m)
-        return sigma_r**2 * np.outer(radial, radial) + sigma_a**2 * np.outer(across, across)
+        sigma_a = np.maximum(cfg.azimuth_sigma_rad * r, cfg.min_position_sigma_m)
+        return (sigma_r**2 * radial[:, :, None] * radial[:, None, :]
+                + (sigma_a**2)[:, None, None] * across[:, :, None] * across[:, None, :])
 
-    def _innovation(self, track: Track, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Innovation y (3,), its covariance S (3, 3) and the Jacobian H (3, 4) of object z against track."""
-        x, y, vx, vy = track.mean
-        r = max(float(np.hypot(x, y)), 1e-3)
+    def _innovation(self, mean: np.ndarray, cov: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                      np.ndarray]:
+        """Innovations y (n, 3), their covariances S (n, 3, 3) and Jacobians H (n, 3, 4) of n objects z (n, 3)
+        against n track states (mean (n, 4), cov (n, 4, 4))."""
+        x, y, vx, vy = mean.T
+        r = np.maximum(np.hypot(x, y), 1e-3)
         radial_velocity = (x * vx + y * vy) / r
-        H = np.zeros((3, 4))
-        H[0, 0] = H[1, 1] = 1.0
-        H[2] = [vx / r - radial_velocity * x / r**2, vy / r - radial_velocity * y / r**2, x / r, y / r]
-        R = np.zeros((3, 3))
-        R[:2, :2] = self._position_cov(z[0], z[1])
-        R[2, 2] = self.config.radial_velocity_sigma_mps ** 2
+        H = np.zeros((len(z), 3, 4))
+        H[:, 0, 0] = H[:, 1, 1] = 1.0
+        H[:, 2] = np.stack([vx / r - radial_velocity * x / r**2, vy / r - radial_velocity * y / r**2, x / r, y / r],
+                           axis=-1)
+        R = np.zeros((len(z), 3, 3))
+        R[:, :2, :2] = self._position_cov(z[:, 0], z[:, 1])
+        R[:, 2, 2] = self.config.radial_velocity_sigma_mps ** 2
         span = 2 * self.config.max_radial_velocity_mps
-        innovation = np.array([z[0] - x, z[1] - y, (z[2] - radial_velocity + span / 2) % span - span / 2])
-        return innovation, H @ track.cov @ H.T + R, H
+        innovation = np.stack([z[:, 0] - x, z[:, 1] - y, (z[:, 2] - radial_velocity + span / 2) % span - span / 2],
+                              axis=-1)
+        return innovation, H @ cov @ H.transpose(0, 2, 1) + R, H
 
     def _new_track(self, z: np.ndarray, class_id: int, score: float) -> Track:
         """A track at the object's position, moving at its radial velocity along the line of sight, with the
@@ -245,7 +250,7 @@ class Tracker:
         radial = np.array([z[0], z[1]]) / r
         across = np.array([radial[1], -radial[0]])
         cov = np.zeros((4, 4))
-        cov[:2, :2] = self._position_cov(z[0], z[1])
+        cov[:2, :2] = self._position_cov(z[None, 0], z[None, 1])[0]
         cov[2:, 2:] = (cfg.radial_velocity_sigma_mps**2 * np.outer(radial, radial)
                        + self._speed_sigma(class_id) ** 2 * np.outer(across, across))
         mean = np.array([z[0], z[1], *(z[2] * radial)])
@@ -267,9 +272,11 @@ class Tracker:
             raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
         cfg = self.config
         F, Q = self._transition(frames * cfg.frame_period_s)
-        for track in self.tracks:
-            track.mean = F @ track.mean
-            track.cov = F @ track.cov @ F.T + Q
+        if self.tracks:
+            means = np.array([t.mean for t in self.tracks]) @ F.T
+            covs = F @ np.array([t.cov for t in self.tracks]) @ F.T + Q
+        for k, track in enumerate(self.tracks):
+            track.mean, track.cov = means[k], covs[k]
             track.age += frames
             # frames not seen: a confirmed track coasts through them (they count towards max_misses); a
             # tentative one is judged on the frames seen, but no gap longer than max_misses keeps it
@@ -281,13 +288,16 @@ class Tracker:
         rows, cols, gains = self._assign(z)
         track_ids = np.zeros(len(z), np.int64)
         assigned = set()
-        for i, j in zip(rows, cols, strict=True):
+        if len(rows):  # the Kalman update of every assigned track at once
+            innovation, S, H = (np.array([gains[i, j][n] for i, j in zip(rows, cols, strict=True)]) for n in range(3))
+            P = np.array([self.tracks[i].cov for i in rows])
+            K = P @ H.transpose(0, 2, 1) @ np.linalg.inv(S)
+            means = np.array([self.tracks[i].mean for i in rows]) + (K @ innovation[..., None])[..., 0]
+            covs = (np.eye(4) - K @ H) @ P
+            covs = (covs + covs.transpose(0, 2, 1)) / 2
+        for k, (i, j) in enumerate(zip(rows, cols, strict=True)):
             track = self.tracks[i]
-            innovation, S, H = gains[i, j]
-            K = track.cov @ H.T @ np.linalg.inv(S)
-            track.mean = track.mean + K @ innovation
-            track.cov = (np.eye(4) - K @ H) @ track.cov
-            track.cov = (track.cov + track.cov.T) / 2
+            track.mean, track.cov = means[k], covs[k]
             class_id = int(measurements.class_id[j])
             track.votes[class_id] = track.votes.get(class_id, 0.0) + float(measurements.score[j])
             track.hits += 1
@@ -319,15 +329,18 @@ class Tracker:
         n_tracks, n_objects = len(self.tracks), len(z)
         cost = np.full((n_tracks, n_objects), _NOT_ALLOWED)
         gains: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-        for i, track in enumerate(self.tracks):
-            near = np.flatnonzero(np.hypot(z[:, 0] - track.mean[0], z[:, 1] - track.mean[1]) <= self.config.gate_m)
-            for j in near:
-                innovation, S, H = self._innovation(track, z[j])
-                distance = float(innovation @ np.linalg.solve(S, innovation))
-                if distance <= self.config.gate_chi2:
-                    # + log det S: among equally close pairs, the better-known track wins (the NN cost of a GNN)
-                    cost[i, j] = distance + float(np.log(np.linalg.det(S)))
-                    gains[i, j] = (innovation, S, H)
+        if n_tracks and n_objects:
+            means, covs = np.array([t.mean for t in self.tracks]), np.array([t.cov for t in self.tracks])
+            near = np.hypot(z[None, :, 0] - means[:, None, 0], z[None, :, 1] - means[:, None, 1]) <= self.config.gate_m
+            rows, cols = np.nonzero(near)
+            innovation, S, H = self._innovation(means[rows], covs[rows], z[cols])
+            distance = np.einsum("ni,ni->n", innovation, np.linalg.solve(S, innovation[..., None])[..., 0])
+            # + log det S: among equally close pairs, the better-known track wins (the NN cost of a GNN)
+            log_det = np.log(np.linalg.det(S))
+            for k in np.flatnonzero(distance <= self.config.gate_chi2):
+                i, j = int(rows[k]), int(cols[k])
+                cost[i, j] = distance[k] + log_det[k]
+                gains[i, j] = (innovation[k], S[k], H[k])
         if not gains:
             return np.zeros(0, np.int64), np.zeros(0, np.int64), gains
         shift = -min(cost[pair] for pair in gains)  # costs >= 0, so a gated pair always beats no pair
