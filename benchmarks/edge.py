@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from models.erasenet.engines import load_erasenet
-from models.export.onnx_engine import exported_dir
+from models.export.export_cache import exported_dir
 from pipelines.datasets.calibration import store_calibration
 from pipelines.datasets.store import frames_of_split, open_store
 

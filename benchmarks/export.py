@@ -35,7 +35,8 @@ import torch
 
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.erasenet.model import STEPS, EraseNet
-from models.export.onnx_engine import OnnxEraseNet, exported_dir
+from models.export.export_cache import exported_dir
+from models.export.onnx_engine import OnnxEraseNet
 from models.registry import create_model
 from models.sparse import SparseTensor
 from radar import transforms

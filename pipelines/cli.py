@@ -165,7 +165,7 @@ def _cmd_export_onnx(args: argparse.Namespace) -> int:
 
     if args.int8:
         from models.checkpoint import load_checkpoint
-        from models.export.onnx_engine import Int8Calibration
+        from models.export.export_cache import Int8Calibration
         from models.export.quantize import export_int8
         from pipelines.datasets.calibration import store_calibration
 

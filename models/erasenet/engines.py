@@ -15,7 +15,7 @@ if TYPE_CHECKING:  # importing torch takes seconds: the CLI reads ENGINES before
 
 ENGINES = ("torch", "onnx", "onnx-int8")
 """torch: the sparse engine of ``models.sparse`` and the traced detector; onnx: the exported graphs in
-onnxruntime (exported on first use into the cache of ``models.export.onnx_engine``); onnx-int8: the same graphs
+onnxruntime (exported on first use into the cache of ``models.export.export_cache``); onnx-int8: the same graphs
 statically quantised (``models.export.quantize``), calibrated on simulated frames of the model's preset unless
 ``calibration=`` names a store."""
 
@@ -32,7 +32,7 @@ def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Che
 
         return EraseNet.from_checkpoints(detector, segmenter, **kwargs)
     if engine in ("onnx", "onnx-int8"):
-        from models.export.onnx_engine import OnnxEraseNet
+        from models.export.export_cache import onnx_erasenet
 
-        return OnnxEraseNet.from_checkpoints(detector, segmenter, int8=engine == "onnx-int8", **kwargs)
+        return onnx_erasenet(detector, segmenter, int8=engine == "onnx-int8", **kwargs)
     raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")

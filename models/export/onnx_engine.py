@@ -7,19 +7,14 @@ MinkUNet (kernel maps from :mod:`models.export.kernel_maps_numpy`); region growi
 projection and objects are the shared code. Useful MACs are counted from the kernel maps exactly as the
 PyTorch engine counts them; executed MACs are what the graph's matrix products run.
 
-:meth:`OnnxEraseNet.from_checkpoints` exports on demand into a cache keyed by the checkpoints' sha256
+:mod:`models.export.export_cache` exports on demand into a cache keyed by the checkpoints' sha256
 (``RADARSEG_ONNX_CACHE``, default ``~/.cache/radarseg/onnx``), so the .pt files are all it needs.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import os
-import shutil
-import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,89 +25,12 @@ from torch import nn
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.erasenet.model import EraseNet
 from models.export.kernel_maps_numpy import kernel_maps, segmenter_macs
-from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
+from models.export.onnx_export import FORMAT, VERSION
 from radar.profiles import RadarProfile
 from radar.region_growing import Regions
 from radar.roi import roi_points
 
 log = logging.getLogger(__name__)
-
-CACHE_ENV = "RADARSEG_ONNX_CACHE"
-
-
-def cache_root() -> Path:
-    """Where exports are cached: ``$RADARSEG_ONNX_CACHE``, else ``~/.cache/radarseg/onnx``."""
-    configured = os.environ.get(CACHE_ENV)
-    return Path(configured).expanduser() if configured else Path.home() / ".cache" / "radarseg" / "onnx"
-
-
-def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint,
-                 root: Path | None = None, *, int8: Int8Calibration | None = None) -> Path:
-    """The export of this checkpoint pair, made now if the cache does not hold it yet.
-
-    The directory is named by the sha256 of both checkpoints and the export format version, and for an int8
-    export (``int8`` given) also by the quantisation recipe's version and the sha256 of the calibration frames;
-    a new export is written to a temporary directory and renamed into place, so concurrent processes (Ray
-    actors) never read half a directory: the first rename wins and the others use its files.
-    """
-    root = cache_root() if root is None else root
-    digests = (checkpoint_digest(detector), checkpoint_digest(segmenter))
-    name = f"{FORMAT}/{VERSION}/{digests[0]}/{digests[1]}"
-    if int8 is not None:
-        from models.export.quantize import QUANT_VERSION, calibration_digest
-
-        name += (f"/int8/{QUANT_VERSION}/{calibration_digest(int8.cubes)}/{','.join(int8.methods)}/"
-                 f"{json.dumps(int8.pipeline)}")
-    key = hashlib.sha256(name.encode()).hexdigest()[:24]
-    target = root / key
-    if (target / "manifest.json").is_file():
-        return target
-    float_dir = None if int8 is None else exported_dir(detector, segmenter, root)
-    root.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".export-", dir=root))
-    try:
-        log.info("exporting the checkpoints to ONNX%s into %s", "" if int8 is None else " (int8)", target)
-        if int8 is None:
-            export_onnx(detector, segmenter, staging)
-        else:
-            from models.export.quantize import export_int8
-
-            export_int8(detector, segmenter, staging, cubes=int8.cubes, calibration=int8.description,
-                        methods=int8.methods, float_dir=float_dir, pipeline=dict(int8.pipeline))
-        try:
-            os.rename(staging, target)
-        except OSError:  # another process renamed its export first
-            if not (target / "manifest.json").is_file():
-                raise
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    return target
-
-
-@dataclass(frozen=True)
-class Int8Calibration:
-    """What an int8 export calibrates on: log-power frames (R, A, D) dB, their description for the manifest, and
-    the calibration methods to choose from (:mod:`models.export.quantize`)."""
-
-    cubes: tuple[np.ndarray, ...]
-    description: dict[str, Any]
-    methods: tuple[str, ...]
-    pipeline: tuple[tuple[str, Any], ...] = ()
-    """EraseNet keyword arguments of the float pipeline whose ROI the segmenter is calibrated on (the served
-    model's ``score_threshold`` and ``max_objects``); empty: EraseNet's defaults."""
-
-    def with_pipeline(self, **kwargs: Any) -> Int8Calibration:
-        return Int8Calibration(self.cubes, self.description, self.methods, tuple(sorted(kwargs.items())))
-
-    @classmethod
-    def simulated(cls, profile: RadarProfile, *, frames: int | None = None,
-                  methods: tuple[str, ...] | None = None) -> Int8Calibration:
-        """Simulated frames of ``profile`` (the default when no store is given; see :mod:`models.export.quantize`)."""
-        from models.export.quantize import CALIBRATION_FRAMES, METHODS, simulated_calibration_frames
-
-        cubes, description = simulated_calibration_frames(profile, CALIBRATION_FRAMES if frames is None else frames)
-        return cls(tuple(cubes), description, tuple(METHODS if methods is None else methods))
-
 
 def _session(path: Path, threads: int):
     import onnxruntime as ort
@@ -182,21 +100,12 @@ class OnnxEraseNet(EraseNet):
 
     @classmethod
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
-                         onnx_dir: str | Path | None = None, int8: bool = False,
-                         calibration: Int8Calibration | None = None, **kwargs: Any) -> OnnxEraseNet:
-        """Both stages from checkpoints, run from ``onnx_dir`` (default: the export cache, exporting now if
-        these checkpoints were never exported). ``int8``: the quantised graphs, calibrated on ``calibration``
-        (default: :meth:`Int8Calibration.simulated` frames of the checkpoints' preset); an ``onnx_dir`` given
-        must then hold an int8 export."""
+                         onnx_dir: str | Path, int8: bool = False, **kwargs: Any) -> OnnxEraseNet:
+        """Both stages from checkpoints, run from the export in ``onnx_dir`` (``models.export.export_cache`` makes
+        and caches exports: :func:`models.export.export_cache.onnx_erasenet`). ``int8``: the export must hold the
+        quantised graphs (ValueError otherwise, and for a float export asked as int8)."""
         det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
         seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
-        if onnx_dir is None:
-            if int8 and calibration is None:
-                calibration = Int8Calibration.simulated(det.profile)
-            if int8:  # calibrated on the ROI this model's own seeds give
-                seeds = {k: kwargs[k] for k in ("score_threshold", "max_objects") if k in kwargs}
-                calibration = calibration.with_pipeline(**seeds)
-            onnx_dir = exported_dir(detector, segmenter, int8=calibration if int8 else None)
         net = super().from_checkpoints(det, seg, onnx_dir=onnx_dir, **kwargs)
         if (net.precision == "int8") != int8:
             raise ValueError(f"{onnx_dir}: a {net.precision} export, but {'int8' if int8 else 'float32'} graphs "

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from models.export.onnx_engine import Int8Calibration
+from models.export.export_cache import Int8Calibration
 from models.export.quantize import CALIBRATION_FRAMES, METHODS
 from pipelines.datasets.store import frames_of_split, open_store
 from radar.profiles import RadarProfile

@@ -325,7 +325,7 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
     if cfg.engine == "onnx":  # export once here, not in every actor at once (they share this node's cache)
-        from models.export.onnx_engine import exported_dir
+        from models.export.export_cache import exported_dir
 
         exported_dir(cfg.detector, cfg.segmenter)
     job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,

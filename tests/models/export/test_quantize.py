@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from models.erasenet.engines import load_erasenet
-from models.export.onnx_engine import Int8Calibration, exported_dir
+from models.export.export_cache import Int8Calibration, exported_dir
 from models.export.onnx_export import export_onnx, validate
 from models.export.quantize import export_int8, roi_label_agreement, simulated_calibration_frames
 from radar.simulate import simulate_sequence

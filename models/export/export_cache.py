@@ -1,0 +1,123 @@
+"""The export cache: ONNX exports of checkpoint pairs (float, or int8 with its calibration) made on first use and
+kept under ``RADARSEG_ONNX_CACHE`` (default ``~/.cache/radarseg/onnx``), keyed by what they depend on, and the ONNX
+engine built on them (:func:`onnx_erasenet`). Above both the float export (:mod:`models.export.onnx_export`) and
+the int8 one (:mod:`models.export.quantize`, which runs the float engine to calibrate), so no import goes round.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from models.checkpoint import Checkpoint, load_checkpoint
+from models.export.onnx_engine import OnnxEraseNet
+from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
+from models.export.quantize import (
+    CALIBRATION_FRAMES,
+    METHODS,
+    QUANT_VERSION,
+    calibration_digest,
+    export_int8,
+    simulated_calibration_frames,
+)
+from radar.profiles import RadarProfile
+
+log = logging.getLogger(__name__)
+
+CACHE_ENV = "RADARSEG_ONNX_CACHE"
+
+
+def cache_root() -> Path:
+    """Where exports are cached: ``$RADARSEG_ONNX_CACHE``, else ``~/.cache/radarseg/onnx``."""
+    configured = os.environ.get(CACHE_ENV)
+    return Path(configured).expanduser() if configured else Path.home() / ".cache" / "radarseg" / "onnx"
+
+
+def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint,
+                 root: Path | None = None, *, int8: Int8Calibration | None = None) -> Path:
+    """The export of this checkpoint pair, made now if the cache does not hold it yet.
+
+    The directory is named by the sha256 of both checkpoints and the export format version, and for an int8
+    export (``int8`` given) also by the quantisation recipe's version and the sha256 of the calibration frames;
+    a new export is written to a temporary directory and renamed into place, so concurrent processes (Ray
+    actors) never read half a directory: the first rename wins and the others use its files.
+    """
+    root = cache_root() if root is None else root
+    digests = (checkpoint_digest(detector), checkpoint_digest(segmenter))
+    name = f"{FORMAT}/{VERSION}/{digests[0]}/{digests[1]}"
+    if int8 is not None:
+        name += (f"/int8/{QUANT_VERSION}/{calibration_digest(int8.cubes)}/{','.join(int8.methods)}/"
+                 f"{json.dumps(int8.pipeline)}")
+    key = hashlib.sha256(name.encode()).hexdigest()[:24]
+    target = root / key
+    if (target / "manifest.json").is_file():
+        return target
+    float_dir = None if int8 is None else exported_dir(detector, segmenter, root)
+    root.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".export-", dir=root))
+    try:
+        log.info("exporting the checkpoints to ONNX%s into %s", "" if int8 is None else " (int8)", target)
+        if int8 is None:
+            export_onnx(detector, segmenter, staging)
+        else:
+            export_int8(detector, segmenter, staging, cubes=int8.cubes, calibration=int8.description,
+                        methods=int8.methods, float_dir=float_dir, pipeline=dict(int8.pipeline))
+        try:
+            os.rename(staging, target)
+        except OSError:  # another process renamed its export first
+            if not (target / "manifest.json").is_file():
+                raise
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return target
+
+
+@dataclass(frozen=True)
+class Int8Calibration:
+    """What an int8 export calibrates on: log-power frames (R, A, D) dB, their description for the manifest, and
+    the calibration methods to choose from (:mod:`models.export.quantize`)."""
+
+    cubes: tuple[np.ndarray, ...]
+    description: dict[str, Any]
+    methods: tuple[str, ...]
+    pipeline: tuple[tuple[str, Any], ...] = ()
+    """EraseNet keyword arguments of the float pipeline whose ROI the segmenter is calibrated on (the served
+    model's ``score_threshold`` and ``max_objects``); empty: EraseNet's defaults."""
+
+    def with_pipeline(self, **kwargs: Any) -> Int8Calibration:
+        return Int8Calibration(self.cubes, self.description, self.methods, tuple(sorted(kwargs.items())))
+
+    @classmethod
+    def simulated(cls, profile: RadarProfile, *, frames: int | None = None,
+                  methods: tuple[str, ...] | None = None) -> Int8Calibration:
+        """Simulated frames of ``profile`` (the default when no store is given; see :mod:`models.export.quantize`)."""
+        cubes, description = simulated_calibration_frames(profile, CALIBRATION_FRAMES if frames is None else frames)
+        return cls(tuple(cubes), description, tuple(METHODS if methods is None else methods))
+
+
+def onnx_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *, int8: bool = False,
+                  calibration: Int8Calibration | None = None, onnx_dir: str | Path | None = None,
+                  **kwargs: Any) -> OnnxEraseNet:
+    """The ONNX engine on the cached export of these checkpoints (exported now if never before), or on the export
+    in ``onnx_dir``. ``int8``: the quantised graphs, calibrated on ``calibration`` (default:
+    :meth:`Int8Calibration.simulated` frames of the checkpoints' preset) and on the ROI this model's own seeds give
+    (``score_threshold``, ``max_objects``)."""
+    det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
+    seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
+    if onnx_dir is not None:
+        return OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=onnx_dir, int8=int8, **kwargs)
+    if int8:
+        calibration = calibration or Int8Calibration.simulated(det.profile)
+        seeds = {k: kwargs[k] for k in ("score_threshold", "max_objects") if k in kwargs}
+        calibration = calibration.with_pipeline(**seeds)
+    onnx_dir = exported_dir(detector, segmenter, int8=calibration if int8 else None)
+    return OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=onnx_dir, int8=int8, **kwargs)
