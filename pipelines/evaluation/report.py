@@ -56,6 +56,8 @@ def _summary(metrics: dict[str, Any]) -> list[str]:
                      ["detection mAP", fmt_num(det["mAP"])],
                      ["region-growing recall (predicted seeds)", fmt_num(rg["predicted_seeds"]["recall"])],
                      [f"MACs ({metrics['preset']})", macs_text]])
+    headline = tracking_headline(metrics.get("tracking"))
+    lines += ["", f"{headline[0].upper()}{headline[1:]}."]
     lines += ["", "Paper, ERASE-Net (M), for context (other radars and data, not comparable figures): "
               + "; ".join(f"{name} RD {ref['RD']} / RA {ref['RA']} mIoU, mAP {ref['mAP']}, MACs {ref['macs_g']} G"
                           for name, ref in PAPER_REFERENCE.items()) + ".", ""]

@@ -60,7 +60,7 @@ def test_evaluate_writes_metrics_report_and_pictures(small_store, tiny_checkpoin
     assert {"mota", "idf1", "num_switches"} <= set(tracking["truth_centres"]["all_objects"]["match_2m"]["overall"])
     assert tracking["truth_centres"]["all_objects"]["match_2m"]["overall"]["mota"] == 1.0
     for heading in ("## Detection", "## Segmentation", "## Region growing", "## Tracking", "## Cost per frame",
-                    "| small RA |"):
+                    "| small RA |", "Tracking (2 m; all objects / confirmed): predicted objects MOTA"):
         assert heading in report
     for name in saved["pictures"]:
         assert (out / name).stat().st_size > 1000, name
