@@ -223,6 +223,19 @@ class EraseNet:
             visited_points=regions.visited, detections=len(centres), engine=self.engine)
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views)
 
+    @torch.no_grad()
+    def detect(self, log_power: np.ndarray, *, score_threshold: float | None = None) -> Centres:
+        """The centres of one frame's log power (R, A, D) dB down to ``score_threshold`` (default the model's), found
+        by the detector :meth:`segment` runs (this engine's: the ONNX graph, float or int8, or the PyTorch module),
+        Doppler refined as :meth:`segment` refines it: what detection AP scores."""
+        if self._run_detector is None:
+            raise ValueError("this EraseNet has no detector")
+        log_power = log_power.astype(np.float32, copy=False)
+        threshold = self.score_threshold if score_threshold is None else score_threshold
+        return decode_centres(self._run_detector, self._run_detector(self._detector_input(log_power)), [log_power],
+                              k=self.max_objects, score_threshold=threshold,
+                              doppler_refinement=self.doppler_refinement)[0]
+
     def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
         """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""
         # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.

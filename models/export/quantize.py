@@ -1,4 +1,4 @@
-"""int8 ERASE-Net: both exported graphs statically quantised with onnxruntime, calibrated on radar frames.
+"""int8 ERASE-Net: the exported graphs statically quantised with onnxruntime, calibrated on radar frames.
 
 ``detector.onnx`` and ``segmenter.onnx`` of a float export (:mod:`models.export.onnx_export`) go through
 ``onnxruntime.quantization.quantize_static``: QDQ format (standard QuantizeLinear / DequantizeLinear around the
@@ -8,6 +8,18 @@ ranges calibrated on frames:
 - the detector on the frames' log power (R, A, D) dB;
 - the segmenter on what the float pipeline feeds it on those frames: the features of the ROI voxels region
   growing gives around the float detector's centres, and their kernel maps (captured from the float engine).
+
+What stays float is chosen by measurement, one thread:
+
+- the detector graph is timed float against int8 on the calibration frames, interleaved, and the int8 one is kept
+  only when it is faster (measured on the shipped pair, AVX-512 VNNI CPU, onnxruntime 1.32: float 3.7-3.8 ms,
+  int8 4.8-4.9 ms: the small convolutions pay more for the QDQ conversions than they gain), so an int8 export is
+  usually an int8 segmenter beside the float detector; the manifest gives each graph's ``precision`` and both
+  timings;
+- in the segmenter, ``Add`` (the bias and residual sums after each MatMul) is not quantised
+  (:data:`NOT_QUANTISED`): a QLinearAdd per sum cost more than the float Add between a dequantised MatMul and the
+  next quantisation (shipped segmenter, 6 calibration frames of 12-49 k voxels, median of each frame's best:
+  float 42-46 ms, every op int8 31-34 ms, all but Add 29-32 ms; voxel label agreement with float 99.8 %).
 
 Calibration frames come from the train split of a preprocessed store (read by
 :mod:`pipelines.datasets.calibration`, which hands the cubes in), or, when none is given, from the project's
@@ -44,7 +56,7 @@ from models.checkpoint import Checkpoint
 
 log = logging.getLogger(__name__)
 
-QUANT_VERSION = 1
+QUANT_VERSION = 2
 """Bump when the quantisation recipe changes: the int8 export cache keys on it."""
 METHODS = ("MinMax", "Entropy", "Percentile")
 CALIBRATION_FRAMES = 8
@@ -53,6 +65,9 @@ SIMULATED_SEED = 7_204_311
 """Scene seed of the simulated calibration frames (apart from the seeds tests and benchmarks draw)."""
 SIMULATED_SEQUENCES = 2
 QUANTISED_FILES = ("detector.onnx", "segmenter.onnx")
+NOT_QUANTISED = {"detector.onnx": (), "segmenter.onnx": ("Add",)}
+"""Operator types each graph keeps in float (measured slower in 8 bits; see the module's docstring)."""
+DETECTOR_TIMING_ROUNDS = 5
 
 
 def simulated_calibration_frames(preset: Any, frames: int, *, seed: int = SIMULATED_SEED
@@ -132,31 +147,38 @@ def float_pipeline_feeds(float_dir: Path, detector: Checkpoint, segmenter: Check
     return [{"log_power": np.ascontiguousarray(c, dtype=np.float32)} for c in cubes], captured, labels
 
 
-def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndarray]], method: str) -> None:
-    """``quantize_static`` of one graph: QDQ, weights int8 per channel, activations uint8, ``method`` ranges."""
+def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndarray]], method: str,
+                   not_quantised: Sequence[str] = ()) -> None:
+    """``quantize_static`` of one graph: QDQ, weights int8 per channel, activations uint8, ``method`` ranges;
+    the operator types in ``not_quantised`` stay float."""
+    import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     if method not in METHODS:
         raise ValueError(f"calibration method must be one of {METHODS}, got {method!r}")
+    op_types = None
+    if not_quantised:
+        op_types = sorted({node.op_type for node in onnx.load(str(source)).graph.node} - set(not_quantised))
     with tempfile.TemporaryDirectory(prefix="calibrate-") as scratch:
         cwd = os.getcwd()
         os.chdir(scratch)  # the calibrator writes its augmented model into the working directory
         try:
             quantize_static(str(source), str(target), _Feeds(feeds), quant_format=QuantFormat.QDQ,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-                            calibrate_method=getattr(CalibrationMethod, method),
+                            calibrate_method=getattr(CalibrationMethod, method), op_types_to_quantize=op_types,
                             extra_options={"CalibStridedMinMax": 1})
         finally:
             os.chdir(cwd)
 
 
-def operator_precision(path: Path) -> dict[str, dict[str, int]]:
+def operator_precision(path: Path, not_quantised: Sequence[str] = ()) -> dict[str, dict[str, int]]:
     """Per operator type of a QDQ graph, how many nodes compute on 8-bit data and how many do not.
 
     A node is ``int8`` when one of its inputs comes from a DequantizeLinear (onnxruntime fuses the pair into an
     8-bit kernel, or drops it around a data-movement op such as Gather, Reshape, Slice, Concat); ``float`` when
     it takes float data from elsewhere; ``index`` when it only handles integers (shapes, kernel-map rows).
-    QuantizeLinear / DequantizeLinear themselves and Constants are not counted.
+    QuantizeLinear / DequantizeLinear themselves and Constants are not counted. Operator types in ``not_quantised``
+    (left out of the quantisation) are ``float`` whatever feeds them: their DequantizeLinear inputs stay.
     """
     import onnx
 
@@ -171,7 +193,9 @@ def operator_precision(path: Path) -> dict[str, dict[str, int]]:
         if node.op_type in ("QuantizeLinear", "DequantizeLinear", "Constant"):
             continue
         inputs = [name for name in node.input if name]
-        if any(produced_by.get(name) == "DequantizeLinear" for name in inputs):
+        if node.op_type in not_quantised and any(types.get(name) in floats for name in inputs):
+            kind = "float"
+        elif any(produced_by.get(name) == "DequantizeLinear" for name in inputs):
             kind = "int8"
         elif any(types.get(name) in floats for name in inputs):
             kind = "float"
@@ -179,6 +203,29 @@ def operator_precision(path: Path) -> dict[str, dict[str, int]]:
             kind = "index"
         table.setdefault(node.op_type, Counter())[kind] += 1
     return {op: dict(sorted(counts.items())) for op, counts in sorted(table.items())}
+
+
+def time_graphs(paths: dict[str, Path], feeds: Sequence[dict[str, np.ndarray]],
+                rounds: int = DETECTOR_TIMING_ROUNDS) -> dict[str, float]:
+    """Milliseconds of each graph, one thread: the median over ``feeds`` of each feed's best of ``rounds`` runs, the
+    graphs interleaved (order reversed every other round), so a shared machine's load falls on all alike."""
+    import time
+
+    from models.export.onnx_engine import _session as session
+
+    sessions = {name: session(path, 1) for name, path in paths.items()}
+    best = {name: [float("inf")] * len(feeds) for name in sessions}
+    for feed in feeds[:1]:
+        for run in sessions.values():  # warm-up
+            run.run(None, feed)
+    for repeat in range(rounds):
+        order = list(sessions) if repeat % 2 == 0 else list(sessions)[::-1]
+        for index, feed in enumerate(feeds):
+            for name in order:
+                started = time.perf_counter()
+                sessions[name].run(None, feed)
+                best[name][index] = min(best[name][index], time.perf_counter() - started)
+    return {name: round(1e3 * float(np.median(values)), 3) for name, values in best.items()}
 
 
 def roi_label_agreement(float_labels: Sequence[np.ndarray], int8_labels: Sequence[np.ndarray]) -> float:
@@ -193,7 +240,8 @@ def roi_label_agreement(float_labels: Sequence[np.ndarray], int8_labels: Sequenc
 
 def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, out: str | Path, *,
                 cubes: Sequence[np.ndarray], calibration: dict[str, Any], methods: Sequence[str] = METHODS,
-                float_dir: str | Path | None = None, pipeline: dict[str, Any] | None = None) -> dict[str, Any]:
+                float_dir: str | Path | None = None, pipeline: dict[str, Any] | None = None,
+                int8_detector: bool | None = None) -> dict[str, Any]:
     """Write the int8 graphs and their manifest into ``out``.
 
     Args:
@@ -203,12 +251,13 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
         float_dir: an existing float export of these checkpoints (default: exported now into ``out/float``).
         pipeline: EraseNet keyword arguments of the float and int8 pipelines compared (``score_threshold``,
             ``max_objects``; default EraseNet's).
+        int8_detector: quantise the detector graph (True), keep it float (False), or (None, the default) keep
+            whichever of the two runs faster on the calibration frames (:func:`time_graphs`).
 
     Returns:
         The manifest (written last: a directory with a manifest is complete).
     """
     from models.erasenet.model import EraseNet
-    from models.export.onnx_engine import OnnxEraseNet
     from models.export.onnx_export import export_onnx
 
     if not methods:
@@ -227,38 +276,34 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     if not seg_feeds:
         raise ValueError("no calibration frame has ROI voxels: the segmenter cannot be calibrated on them")
     float_manifest = json.loads((float_dir / "manifest.json").read_text())
-    agreement: dict[str, float] = {}
-    best: str | None = None
+    feeds = {"detector.onnx": det_feeds, "segmenter.onnx": seg_feeds}
     for method in methods:
-        trial = out / f".{method}"
-        trial.mkdir(exist_ok=True)
-        for name, feeds in (("detector.onnx", det_feeds), ("segmenter.onnx", seg_feeds)):
-            log.info("quantising %s (%s, %d calibration inputs)", name, method, len(feeds))
-            quantise_graph(float_dir / name, trial / name, feeds, method)
-        (trial / "manifest.json").write_text(json.dumps({**float_manifest, "precision": "int8"}))
-        net = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=trial, threads=1, int8=True, **(pipeline or {}))
-        int8_labels = [net.segment(cube, is_log_power=True).labels for cube in cubes]
-        agreement[method] = roi_label_agreement(float_labels, int8_labels)
-        log.info("%s: ROI label agreement with float %.5f", method, agreement[method])
-        if best is None or agreement[method] > agreement[best]:
-            best = method
-    assert best is not None
+        (out / f".{method}").mkdir(exist_ok=True)
+    # the detector's precision first: its int8 graph (first method) timed against the float one
+    quantise_graph(float_dir / "detector.onnx", out / f".{methods[0]}" / "detector.onnx", det_feeds, methods[0])
+    detector_ms = time_graphs({"float32": float_dir / "detector.onnx",
+                               "int8": out / f".{methods[0]}" / "detector.onnx"}, det_feeds)
+    if int8_detector is None:
+        int8_detector = detector_ms["int8"] < detector_ms["float32"]
+    log.info("detector graph ms float %.2f, int8 %.2f: the detector is %s", detector_ms["float32"],
+             detector_ms["int8"], "int8" if int8_detector else "float")
+    _quantise_trials(out, float_dir, feeds, methods, int8_detector)
+    agreement = _agreement_by_method(out, det, seg, cubes, float_labels, float_manifest, methods, pipeline)
+    best = max(methods, key=lambda method: agreement[method])  # the first of equals
     for name in QUANTISED_FILES:
         os.replace(out / f".{best}" / name, out / name)
     for method in methods:
         shutil.rmtree(out / f".{method}", ignore_errors=True)
-    manifest = dict(float_manifest)
-    manifest["precision"] = "int8"
-    for stage, name in (("detector", "detector.onnx"), ("segmenter", "segmenter.onnx")):
-        graph = dict(float_manifest[stage])
-        graph["operators"] = sorted(set(graph["operators"]) | {"QuantizeLinear", "DequantizeLinear"})
-        graph["float_bytes"] = (float_dir / name).stat().st_size
-        graph["bytes"] = (out / name).stat().st_size
-        graph["operator_precision"] = operator_precision(out / name)
-        manifest[stage] = graph
+    manifest = _int8_manifest(float_manifest, float_dir, out, int8_detector)
     manifest["quantization"] = {
         "version": QUANT_VERSION, "tool": "onnxruntime.quantization.quantize_static", "format": "QDQ",
         "weights": "int8, symmetric, per output channel", "activations": "uint8, asymmetric, per tensor",
+        "graphs": {"detector": manifest["detector"]["precision"], "segmenter": "int8"},
+        "not_quantised_op_types": {"detector": list(NOT_QUANTISED["detector.onnx"]) if int8_detector else "all",
+                                   "segmenter": list(NOT_QUANTISED["segmenter.onnx"])},
+        "detector_ms_one_thread": {**detector_ms, "measure": "median over the calibration frames of each one's "
+                                   f"best of {DETECTOR_TIMING_ROUNDS}, interleaved", "chosen": "measured"
+                                   if int8_detector == (detector_ms["int8"] < detector_ms["float32"]) else "given"},
         "method": best, "label_agreement_by_method": agreement,
         "agreement_measure": "share of the ROI voxels (non-background in float or int8) with the same label, "
                              "int8 pipeline against float, on the calibration frames",
@@ -269,4 +314,52 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     tmp = out / ".manifest.json.tmp"
     tmp.write_text(json.dumps(manifest, indent=2))
     os.replace(tmp, out / "manifest.json")
+    return manifest
+
+
+def _quantise_trials(out: Path, float_dir: Path, feeds: dict[str, Sequence[dict[str, np.ndarray]]],
+                     methods: Sequence[str], int8_detector: bool) -> None:
+    """Each method's graphs into ``out/.METHOD`` (the first method's int8 detector is there already); the float
+    detector there when ``int8_detector`` is false."""
+    for method in methods:
+        for name in QUANTISED_FILES:
+            target = out / f".{method}" / name
+            if name == "detector.onnx" and not int8_detector:
+                shutil.copyfile(float_dir / name, target)
+            elif not (name == "detector.onnx" and method == methods[0]):
+                log.info("quantising %s (%s, %d calibration inputs)", name, method, len(feeds[name]))
+                quantise_graph(float_dir / name, target, feeds[name], method, NOT_QUANTISED[name])
+
+
+def _agreement_by_method(out: Path, det: Checkpoint, seg: Checkpoint, cubes: Sequence[np.ndarray],
+                         float_labels: Sequence[np.ndarray], float_manifest: dict[str, Any], methods: Sequence[str],
+                         pipeline: dict[str, Any] | None) -> dict[str, float]:
+    """ROI label agreement with float of the int8 pipeline of each method's graphs (in ``out/.METHOD``)."""
+    from models.export.onnx_engine import OnnxEraseNet
+
+    agreement: dict[str, float] = {}
+    for method in methods:
+        trial = out / f".{method}"
+        (trial / "manifest.json").write_text(json.dumps({**float_manifest, "precision": "int8"}))
+        net = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=trial, threads=1, int8=True, **(pipeline or {}))
+        int8_labels = [net.segment(cube, is_log_power=True).labels for cube in cubes]
+        agreement[method] = roi_label_agreement(float_labels, int8_labels)
+        log.info("%s: ROI label agreement with float %.5f", method, agreement[method])
+    return agreement
+
+
+def _int8_manifest(float_manifest: dict[str, Any], float_dir: Path, out: Path, int8_detector: bool) -> dict[str, Any]:
+    """The float manifest with each graph's precision, bytes (and float bytes) and operators' precision."""
+    manifest = dict(float_manifest)
+    manifest["precision"] = "int8"
+    for stage, name in (("detector", "detector.onnx"), ("segmenter", "segmenter.onnx")):
+        graph = dict(float_manifest[stage])
+        quantised = stage == "segmenter" or int8_detector
+        graph["precision"] = "int8" if quantised else "float32"
+        if quantised:
+            graph["operators"] = sorted(set(graph["operators"]) | {"QuantizeLinear", "DequantizeLinear"})
+        graph["float_bytes"] = (float_dir / name).stat().st_size
+        graph["bytes"] = (out / name).stat().st_size
+        graph["operator_precision"] = operator_precision(out / name, NOT_QUANTISED[name] if quantised else ())
+        manifest[stage] = graph
     return manifest

@@ -38,7 +38,6 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
-from models.erasenet.detection import detect_centres
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
 from pipelines.datasets.spread import spread
@@ -200,12 +199,9 @@ def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: d
     truth = {"ra": frame["ra_mask"], "rd": frame["rd_mask"]}
     table = frame["objects"][: int(frame["n_objects"])].astype(np.float64)
 
-    # detection AP: the detector's scored centres down to a low threshold
-    frame_dra = torch.from_numpy(np.ascontiguousarray(log_power.transpose(2, 0, 1)))[None]  # (1, D, R, A)
-    with torch.no_grad():  # Doppler refined as the product refines it: AP of what it outputs
-        scored = detect_centres(net.detector, frame_dra, mean_db=net.mean_db, std_db=net.std_db,
-                                k=net.max_objects, score_threshold=AP_SCORE_THRESHOLD,
-                                doppler_refinement=net.doppler_refinement, device=net.device)[1][0]
+    # detection AP: the scored centres of the engine's own detector (the ONNX graph on the ONNX engines) down to a
+    # low threshold, Doppler refined as the product refines it: AP of what it outputs
+    scored = net.detect(log_power, score_threshold=AP_SCORE_THRESHOLD)
     tallies.detection.add(scored, table)
 
     # the whole chain at the operating threshold
