@@ -6,8 +6,10 @@ Per pair: parameters, bytes on disk of both .onnx files, MACs (the detector's pe
 MACs as the mean over the timed frames), the median over ``--timing-frames`` frames of each frame's best of
 ``--repeats`` end-to-end times on one thread, the ONNX float, ONNX int8 and default (``torch``) engines
 interleaved per frame; then RA / RD mIoU, pedestrian IoU and mAP of the float and int8 graphs on every frame of
-``--store`` (a store of a seed nobody trained on) with ``pipelines.evaluation.evaluate``. The int8 graphs are
-calibrated on ``--calibration-frames`` frames of the train split of ``--calibration`` (another seed).
+``--store`` (a store of a seed nobody trained on) with ``pipelines.evaluation.evaluate``, whose detection AP comes
+from the engine being scored (``EraseNet.detect``: the ONNX detector graph on the ONNX engines). The int8 graphs
+are calibrated on ``--calibration-frames`` frames of the train split of ``--calibration`` (another seed), with the
+``--methods`` given (default all three; ``--methods Percentile`` alone to save minutes per pair).
 
 Writes benchmarks/results/edge.json with the CPU's flags (AVX-512 VNNI or not) and the load average before and
 after: the machine is shared, so compare engines within one run.
@@ -30,6 +32,7 @@ import torch
 
 from models.erasenet.engines import load_erasenet
 from models.export.export_cache import exported_dir
+from models.export.quantize import METHODS
 from pipelines.datasets.calibration import store_calibration
 from pipelines.datasets.store import frames_of_split, open_store
 
@@ -104,6 +107,8 @@ def main() -> None:
     parser.add_argument("--store", required=True, help="evaluation store (a fresh seed), every frame scored")
     parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
     parser.add_argument("--calibration-frames", type=int, default=6)
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),
+                        help="calibration methods tried (the best ROI label agreement is kept)")
     parser.add_argument("--eval-frames", type=int, default=0, help="0: every frame of --store")
     parser.add_argument("--timing-frames", type=int, default=8)
     parser.add_argument("--repeats", type=int, default=2)
@@ -114,7 +119,9 @@ def main() -> None:
     torch.set_num_threads(1)
     results: dict[str, object] = {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1,
                                   "store": args.store, "calibration_store": args.calibration,
-                                  "calibration_frames": args.calibration_frames, "pairs": {}}
+                                  "calibration_frames": args.calibration_frames, "methods": args.methods,
+                                  "mAP_from": "the engine scored (EraseNet.detect: ONNX detector graph on ONNX)",
+                                  "pairs": {}}
     cache = Path(args.cache or tempfile.mkdtemp(prefix="edge-onnx-"))
     root = open_store(args.store)
     slots = frames_of_split(root, None)
@@ -124,7 +131,8 @@ def main() -> None:
         detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
         float_dir = exported_dir(detector, segmenter, cache)
         profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
-        calibration = store_calibration(args.calibration, profile, frames=args.calibration_frames)
+        calibration = store_calibration(args.calibration, profile, frames=args.calibration_frames,
+                                        methods=tuple(args.methods))
         int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
         manifests = {"float": json.loads((float_dir / "manifest.json").read_text()),
                      "int8": json.loads((int8_dir / "manifest.json").read_text())}
@@ -141,6 +149,8 @@ def main() -> None:
                                   for stage in ("detector", "segmenter")}
                       for precision, directory in (("float", float_dir), ("int8", int8_dir))},
             "quantization": manifests["int8"]["quantization"],
+            "graph_precision": {stage: manifests["int8"][stage].get("precision", "int8")
+                                for stage in ("detector", "segmenter")},
             "operator_precision": {stage: manifests["int8"][stage]["operator_precision"]
                                    for stage in ("detector", "segmenter")},
         }
