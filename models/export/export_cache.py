@@ -19,15 +19,13 @@ from typing import Any
 import numpy as np
 
 from models.checkpoint import Checkpoint, load_checkpoint
+from models.export import quantize
 from models.export.onnx_engine import OnnxEraseNet
 from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
 from models.export.quantize import (
-    CALIBRATION_FRAMES,
-    METHODS,
     QUANT_VERSION,
     calibration_digest,
     export_int8,
-    simulated_calibration_frames,
 )
 from radar.profiles import RadarProfile
 
@@ -100,8 +98,10 @@ class Int8Calibration:
     def simulated(cls, profile: RadarProfile, *, frames: int | None = None,
                   methods: tuple[str, ...] | None = None) -> Int8Calibration:
         """Simulated frames of ``profile`` (the default when no store is given; see :mod:`models.export.quantize`)."""
-        cubes, description = simulated_calibration_frames(profile, CALIBRATION_FRAMES if frames is None else frames)
-        return cls(tuple(cubes), description, tuple(METHODS if methods is None else methods))
+        # read when called (a test may lower them): quantize's defaults
+        frames = quantize.CALIBRATION_FRAMES if frames is None else frames
+        cubes, description = quantize.simulated_calibration_frames(profile, frames)
+        return cls(tuple(cubes), description, tuple(quantize.METHODS if methods is None else methods))
 
 
 def onnx_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *, int8: bool = False,

@@ -319,20 +319,27 @@ def test_each_replica_runs_on_its_own_thread_with_the_configured_torch_threads(m
     assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 200
 
 
-def test_a_model_served_by_the_onnx_engine_answers_like_the_torch_one(make_settings, client_for, cube_body,
-                                                                      tiny_checkpoints, monkeypatch, tmp_path):
+def _answers_by_engine(make_settings, client_for, cube_body, checkpoints, engines: dict[str, str]) -> dict:
+    """The /v1/segment answer of each served model ``name -> engine`` (the tiny pair, threshold 0, one object)."""
     from service.settings import ModelSpec
 
-    det, seg = tiny_checkpoints
-    monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
+    det, seg = checkpoints
     models = [ModelSpec(name=name, detector=det, segmenter=seg, score_threshold=0.0, max_objects=1, engine=engine)
-              for name, engine in (("tiny", "torch"), ("tiny-onnx", "onnx"))]
+              for name, engine in engines.items()]
     client = client_for(make_settings(models=models))
     bodies = {}
-    for name in ("tiny", "tiny-onnx"):
+    for name in engines:
         r = client.post(f"/v1/segment?model={name}&outputs=objects", content=cube_body, headers=NPY)
         assert r.status_code == 200, r.text
         bodies[name] = r.json()
+    return bodies
+
+
+def test_a_model_served_by_the_onnx_engine_answers_like_the_torch_one(make_settings, client_for, cube_body,
+                                                                      tiny_checkpoints, monkeypatch, tmp_path):
+    monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
+    bodies = _answers_by_engine(make_settings, client_for, cube_body, tiny_checkpoints,
+                                {"tiny": "torch", "tiny-onnx": "onnx"})
     assert bodies["tiny"]["compute"]["engine"] == "torch" and bodies["tiny-onnx"]["compute"]["engine"] == "onnx"
     assert bodies["tiny-onnx"]["compute"]["macs"] == bodies["tiny"]["compute"]["macs"]
     classes = {name: [o["class_name"] for o in body["objects"]] for name, body in bodies.items()}
@@ -342,20 +349,11 @@ def test_a_model_served_by_the_onnx_engine_answers_like_the_torch_one(make_setti
 def test_a_model_served_by_the_int8_onnx_engine_names_its_precision(make_settings, client_for, cube_body,
                                                                     tiny_checkpoints, monkeypatch, tmp_path):
     """onnx-int8 needs no store: the service's model calibrates on simulated frames of its preset."""
-    from service.settings import ModelSpec
-
-    det, seg = tiny_checkpoints
     monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
     monkeypatch.setattr("models.export.quantize.CALIBRATION_FRAMES", 2)  # a quick calibration for the test
     monkeypatch.setattr("models.export.quantize.METHODS", ("MinMax",))
-    models = [ModelSpec(name=name, detector=det, segmenter=seg, score_threshold=0.0, max_objects=1, engine=engine)
-              for name, engine in (("tiny-onnx", "onnx"), ("tiny-int8", "onnx-int8"))]
-    client = client_for(make_settings(models=models))
-    bodies = {}
-    for name in ("tiny-onnx", "tiny-int8"):
-        r = client.post(f"/v1/segment?model={name}&outputs=objects", content=cube_body, headers=NPY)
-        assert r.status_code == 200, r.text
-        bodies[name] = r.json()
+    bodies = _answers_by_engine(make_settings, client_for, cube_body, tiny_checkpoints,
+                                {"tiny-onnx": "onnx", "tiny-int8": "onnx-int8"})
     assert bodies["tiny-int8"]["compute"]["engine"] == "onnx-int8"
     assert bodies["tiny-onnx"]["compute"]["engine"] == "onnx"
     manifests = [json.loads(p.read_text()) for p in (tmp_path / "onnx").glob("*/manifest.json")]
