@@ -79,7 +79,8 @@ class TrackerConfig:
 
     @classmethod
     def for_profile(cls, profile: RadarProfile, **overrides: Any) -> TrackerConfig:
-        """The radar's frame period, unambiguous velocity and resolutions; ``overrides`` replace any field."""
+        """The radar's frame period, unambiguous velocity and resolutions, then the settings its profile file states
+        (``[tracking]``, ``RadarProfile.tracking``); ``overrides`` replace any field."""
         values: dict[str, Any] = {
             "frame_period_s": profile.frame_period_s,
             "max_radial_velocity_mps": profile.max_velocity,
@@ -91,7 +92,7 @@ class TrackerConfig:
             "class_speed_sigma_mps": (1.0, *(TYPICAL_SPEED_SIGMA_MPS.get(name, cls.initial_speed_sigma_mps)
                                              for name in profile.class_names)),
         }
-        return cls(**{**values, **overrides})
+        return cls(**{**values, **dict(profile.tracking), **overrides})
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

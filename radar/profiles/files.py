@@ -12,6 +12,8 @@ A file holds these tables (units in the key names; see radar/profiles/presets/*.
     [expect]      range_res_m, velocity_res_mps, max_range_m, max_velocity_mps          (optional)
     [region_growing]  distance_m, min_snr_db, intensity_ratio, bridge, seed_search      (optional; derive them
                   for a new radar with ``radarseg radar tune-growing PROFILE``)
+    [tracking]    any of TRACKING_KEYS (optional: radar.tracking.TrackerConfig's noise levels, gates and track
+                  life; the frame period and the unambiguous velocity always come from the radar)
 
 Derived: range bin = c / (2 B) / range_pad with B = slope * samples / sample_rate; velocity bin =
 lambda / (2 chirps chirp_cycle) / doppler_pad; cube = (samples * range_pad, angle_bins, chirps *
@@ -41,7 +43,7 @@ class ProfileError(UserError):
 
 _SCHEMA: dict[str, set[str]] = {
     "": {"name", "class_names", "frame_rate_hz", "chirp", "array", "processing", "simulation", "expect",
-         "region_growing"},
+         "region_growing", "tracking"},
     "chirp": {"carrier_hz", "sweep_bandwidth_hz", "slope_hz_per_s", "sample_rate_hz", "samples_per_chirp",
               "chirps_per_frame", "chirp_cycle_s"},
     "array": {"n_tx", "n_rx", "tdm_order"},
@@ -50,6 +52,12 @@ _SCHEMA: dict[str, set[str]] = {
     "expect": {"range_res_m", "velocity_res_mps", "max_range_m", "max_velocity_mps"},
     "region_growing": {"distance_m", "min_snr_db", "intensity_ratio", "bridge", "seed_search"},
 }
+TRACKING_FLOATS = ("range_sigma_m", "azimuth_sigma_rad", "min_position_sigma_m", "radial_velocity_sigma_mps",
+                   "acceleration_sigma_mps2", "initial_speed_sigma_mps", "gate_chi2", "gate_m")
+TRACKING_COUNTS = ("confirm_hits", "max_misses", "tentative_max_misses")
+TRACKING_KEYS = TRACKING_FLOATS + TRACKING_COUNTS
+"""What a profile's ``[tracking]`` table may set (fields of ``radar.tracking.TrackerConfig``; ranges checked there)."""
+_SCHEMA["tracking"] = set(TRACKING_KEYS)
 
 
 def _table(data: dict, key: str, source: str, required: bool = True) -> dict:
@@ -143,6 +151,21 @@ def _region_growing_options(table: dict, source: str) -> tuple[tuple[str, Any], 
     return tuple(sorted(options.items()))
 
 
+def _tracking_options(table: dict, source: str) -> tuple[tuple[str, float | int], ...]:
+    """The ``[tracking]`` table as sorted ``(key, value)`` pairs: positive numbers, whole counts >= 0."""
+    options: dict[str, float | int] = {}
+    for key in TRACKING_FLOATS:
+        if key in table:
+            options[key] = float(_number(table, key, source))
+    for key in TRACKING_COUNTS:
+        if key in table:
+            value = table[key]
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ProfileError(f"{source}: [tracking] {key} must be a whole number of frames >= 0, got {value!r}")
+            options[key] = value
+    return tuple(sorted(options.items()))
+
+
 def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> RadarProfile:
     """Validate a profile description and build the :class:`RadarProfile` it derives."""
     if not isinstance(data, dict):
@@ -160,6 +183,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
     processing, simulation = _table(data, "processing", source), _table(data, "simulation", source, False)
     expect = _table(data, "expect", source, False)
     growing = _region_growing_options(_table(data, "region_growing", source, False), source)
+    tracking = _tracking_options(_table(data, "tracking", source, False), source)
 
     carrier = _number(chirp, "carrier_hz", source)
     fs = _number(chirp, "sample_rate_hz", source)
@@ -204,7 +228,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
             name=name, n_range=samples * range_pad, n_angle=angle_bins, n_doppler=chirps * doppler_pad,
             range_res=range_res, velocity_res=velocity_res, n_tx=n_tx, n_rx=n_rx,
             class_names=tuple(class_names), range_pad=range_pad, doppler_pad=doppler_pad, carrier_hz=float(carrier),
-            frame_rate_hz=frame_rate, window=window, region_growing=growing,
+            frame_rate_hz=frame_rate, window=window, region_growing=growing, tracking=tracking,
             chirp=ChirpParameters(float(carrier), float(bandwidth), float(fs), samples, chirps, float(cycle),
                                   tdm_order, window),
             **sim_kwargs,
@@ -253,6 +277,8 @@ def describe(profile: RadarProfile) -> list[tuple[str, str]]:
     growing = ", ".join(f"{k} {list(v) if isinstance(v, tuple) else v}" for k, v in profile.region_growing)
     rows.append(("region growing", growing or "not stated: the paper's settings are assumed "
                                               "(radarseg radar tune-growing derives them)"))
+    tracking = ", ".join(f"{k} {v}" for k, v in profile.tracking)
+    rows.append(("tracking", tracking or "derived from the radar (radar.tracking.TrackerConfig.for_profile)"))
     return rows
 
 
@@ -275,4 +301,5 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
                        "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg},
         **({"region_growing": {k: list(v) if isinstance(v, tuple) else v for k, v in profile.region_growing}}
            if profile.region_growing else {}),
+        **({"tracking": dict(profile.tracking)} if profile.tracking else {}),
     }

@@ -80,6 +80,9 @@ class RadarProfile:
     # the file's [region_growing] table: part of the radar, because the right disc radius and SNR floor depend
     # on its resolution and noise. Empty: none stated (the paper's settings are assumed, with a warning).
     region_growing: tuple[tuple[str, float | int | tuple[int, ...]], ...] = ()
+    # The tracker's settings for this radar (keys of radar.tracking.TrackerConfig but the two the radar gives: frame
+    # period and unambiguous velocity), as stated in the file's [tracking] table. Empty: derived from the radar.
+    tracking: tuple[tuple[str, float | int], ...] = ()
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:

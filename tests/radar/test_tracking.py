@@ -146,3 +146,35 @@ def test_bad_steps_and_measurements_are_refused():
         Measurements(np.array([np.nan]), np.array([1.0]), np.array([0.0]), np.array([1]), np.array([1.0]))
     with pytest.raises(ValueError, match="length"):
         Measurements(np.zeros(2), np.zeros(1), np.zeros(1), np.zeros(1, np.int64), np.zeros(1))
+
+
+def test_a_profile_file_states_the_trackers_settings(tmp_path):
+    """[tracking] in a profile file: read, checked, carried in the file form, applied by for_profile; every key it
+    takes is a TrackerConfig field."""
+    from dataclasses import fields
+
+    from radar.profiles.files import TRACKING_KEYS, ProfileError, profile_from_dict, profile_to_dict
+
+    assert set(TRACKING_KEYS) <= {f.name for f in fields(TrackerConfig)}
+    described = profile_to_dict(profile_from_dict(_small_file_form()))
+    described["tracking"] = {"gate_m": 6.0, "max_misses": 5}
+    profile = profile_from_dict(described)
+    config = TrackerConfig.for_profile(profile)
+    assert (config.gate_m, config.max_misses) == (6.0, 5)
+    assert config.frame_period_s == profile.frame_period_s  # the radar's, whatever the file says
+    assert TrackerConfig.for_profile(profile, gate_m=3.0).gate_m == 3.0
+    assert profile_from_dict(profile_to_dict(profile)).tracking == profile.tracking
+    assert get_profile("small").tracking == ()  # the presets derive theirs
+    for bad, message in (({"gate_m": -1.0}, "gate_m"), ({"max_misses": 1.5}, "max_misses"),
+                         ({"frame_period_s": 0.2}, "unknown key")):
+        with pytest.raises(ProfileError, match=message):
+            profile_from_dict({**described, "tracking": bad})
+
+
+def _small_file_form() -> dict:
+    import tomllib
+    from pathlib import Path
+
+    import radar.profiles
+
+    return tomllib.loads((Path(radar.profiles.__file__).parent / "presets" / "small.toml").read_text())
