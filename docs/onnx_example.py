@@ -49,8 +49,10 @@ def segment(onnx_dir: Path, cube: np.ndarray, *, score_threshold: float = 0.3, m
     profile = resolve_profile(manifest["preset"], manifest.get("radar_file"), source=str(onnx_dir / "manifest.json"))
     options = ort.SessionOptions()
     options.intra_op_num_threads = 1
-    detector = ort.InferenceSession(str(onnx_dir / "detector.onnx"), options, providers=["CPUExecutionProvider"])
     segmenter = ort.InferenceSession(str(onnx_dir / "segmenter.onnx"), options, providers=["CPUExecutionProvider"])
+    if manifest["detector"].get("precision") == "int8-weights":  # an int8 export's detector: float compute on int8
+        options.add_session_config_entry("session.disable_quant_qdq", "1")  # weights, folded once at load
+    detector = ort.InferenceSession(str(onnx_dir / "detector.onnx"), options, providers=["CPUExecutionProvider"])
 
     log_power = transforms.log_power(cube)  # (R, A, D) dB; the detector graph normalises it itself
     heatmap, offset, doppler = detector.run(None, {"log_power": log_power})

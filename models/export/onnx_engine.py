@@ -32,14 +32,23 @@ from radar.roi import roi_points
 
 log = logging.getLogger(__name__)
 
-def _session(path: Path, threads: int):
+INT8_WEIGHTS = "int8-weights"
+"""A graph's precision when it stores int8 weights and computes in float (``models.export.compact.int8_weights``)."""
+
+def _session(path: Path, threads: int, *, fold_weights: bool = False):
+    """``fold_weights``: a graph with int8 weights and float compute (:func:`models.export.compact.int8_weights`):
+    its DequantizeLinear nodes folded into float weights when the session is built."""
     import onnxruntime as ort
+
+    from models.export.compact import FOLD_WEIGHTS
 
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.log_severity_level = 3  # warnings about unused initialisers of the folded BatchNorms are noise
+    if fold_weights:
+        options.add_session_config_entry(*FOLD_WEIGHTS)
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
@@ -94,7 +103,9 @@ class OnnxEraseNet(EraseNet):
         self.precision = self.manifest.get("precision", "float32")
         self.engine = "onnx" if self.precision == "float32" else f"onnx-{self.precision}"
         threads = torch.get_num_threads() if threads is None else threads
-        self._run_detector = OnnxDetector(_session(self.onnx_dir / "detector.onnx", threads), self.detector)
+        fold = self.manifest.get("detector", {}).get("precision") == INT8_WEIGHTS
+        self._run_detector = OnnxDetector(_session(self.onnx_dir / "detector.onnx", threads, fold_weights=fold),
+                                          self.detector)
         self._segmenter_session = _session(self.onnx_dir / "segmenter.onnx", threads)
         self._layers = self.manifest["segmenter"]["layers"]
 
