@@ -109,33 +109,41 @@ def _store(url: str, prefix: str = "radarseg_", **kwargs) -> StreamStore:
     return store
 
 
-def _claims_run_one_at_a_time(store: StreamStore) -> None:
+def _claim_story(store: StreamStore) -> dict[str, object]:
+    """What the store answers along one stream's life: two frames at once, another tenant, an older frame, a gap, a
+    failed frame, and a claim left by a replica that died mid-frame (free once it runs out; its frame writes
+    nothing)."""
     stream = store.create("acme", "tiny")
     first = store.claim("acme", stream.id, 0)
-    assert not isinstance(first, Refusal)
-    assert store.claim("acme", stream.id, 1) is Refusal.busy  # a second frame while the first runs
-    assert store.claim("globex", stream.id, 1) is Refusal.missing
-    assert store.commit(first, {"version": 1, "tracks": []})
-    assert store.claim("acme", stream.id, 0) is Refusal.stale
+    story: dict[str, object] = {"first": type(first).__name__,
+                                "while_first_runs": store.claim("acme", stream.id, 1),
+                                "other_tenant": store.claim("globex", stream.id, 1),
+                                "first_written": store.commit(first, {"version": 1, "tracks": []}),
+                                "older_frame": store.claim("acme", stream.id, 0)}
     second = store.claim("acme", stream.id, 2)
-    assert not isinstance(second, Refusal) and second.gap == 2
+    story["gap"] = second.gap
     store.release(second)  # a failed frame writes nothing
-    assert store.get("acme", stream.id).last_seq == 0
-    # a claim left by a replica that died mid-frame frees the stream once it runs out; the dead frame writes nothing
+    story["last_seq_after_failure"] = store.get("acme", stream.id).last_seq
     later = dt.datetime.now(dt.UTC) + dt.timedelta(seconds=31)
     dead = store.claim("acme", stream.id, 1)
     taken = store.claim("acme", stream.id, 1, now=later)
-    assert not isinstance(taken, Refusal)
-    assert not store.commit(dead, {"stale": True}) and store.commit(taken, {"version": 1, "tracks": []})
-    assert store.get("acme", stream.id, now=later).frames == 2
+    story["dead_frame_written"] = store.commit(dead, {"stale": True})
+    story["taken_frame_written"] = store.commit(taken, {"version": 1, "tracks": []})
+    story["frames"] = store.get("acme", stream.id, now=later).frames
+    return story
+
+
+CLAIM_STORY = {"first": "Claim", "while_first_runs": Refusal.busy, "other_tenant": Refusal.missing,
+               "first_written": True, "older_frame": Refusal.stale, "gap": 2, "last_seq_after_failure": 0,
+               "dead_frame_written": False, "taken_frame_written": True, "frames": 2}
 
 
 def test_store_sqlite(tmp_path):
-    _claims_run_one_at_a_time(_store(f"sqlite:///{tmp_path / 'ledger.sqlite3'}"))
+    assert _claim_story(_store(f"sqlite:///{tmp_path / 'ledger.sqlite3'}")) == CLAIM_STORY
 
 
 def test_store_postgres(postgres_url, pg_prefix):
-    _claims_run_one_at_a_time(_store(postgres_url, pg_prefix))
+    assert _claim_story(_store(postgres_url, pg_prefix)) == CLAIM_STORY
 
 
 @pytest.mark.slow
