@@ -48,10 +48,9 @@ def _paths(measurements, config):
     tracker, paths, velocity = Tracker(config), defaultdict(list), {}
     for m in measurements:
         step = tracker.step(m)
-        tracks = {t.id: t for t in step.tracks}
-        for j, track_id in enumerate(step.track_ids.tolist()):
-            paths[track_id].append((m.x[j], m.y[j]))
-            velocity[track_id] = tracks[track_id].mean[2:].copy()
+        for j, track in enumerate(step.object_tracks):
+            paths[track.id].append((m.x[j], m.y[j]))
+            velocity[track.id] = track.mean[2:].copy()
     return paths, velocity
 
 

@@ -184,8 +184,11 @@ class TrackerStep:
     track_ids: np.ndarray  # (N,) int64
     tracks: list[Track]
 
-    def track_of(self, index: int) -> Track:
-        return next(t for t in self.tracks if t.id == self.track_ids[index])
+    @property
+    def object_tracks(self) -> list[Track]:
+        """The track of each object, in the measurements' order."""
+        by_id = {t.id: t for t in self.tracks}
+        return [by_id[int(i)] for i in self.track_ids]
 
     @property
     def confirmed(self) -> list[Track]:

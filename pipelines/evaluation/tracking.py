@@ -134,8 +134,7 @@ def run_tracker(frames: list[TrackingFrame], source: str,
         step = tracker.step(measurements, frames=gap)
         seconds.append(time.perf_counter() - started)
         previous = frame.frame_index
-        tracks = {t.id: t for t in step.tracks}
-        rows = [tracks[int(i)] for i in step.track_ids]
+        rows = step.object_tracks
         answers.append(Hypotheses(
             track_id=step.track_ids.copy(), class_id=np.array([t.class_id for t in rows], np.int64),
             xy=np.column_stack([measurements.x, measurements.y]).astype(np.float64).reshape(-1, 2),

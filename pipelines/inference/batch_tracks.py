@@ -45,10 +45,8 @@ def track_sequence(objects: np.ndarray, n_objects: np.ndarray, frame_index: np.n
         started = time.perf_counter()
         step = tracker.step(_measurements(table[: int(n)]), frames=gap)
         seconds += time.perf_counter() - started
-        tracks = {t.id: t for t in step.tracks}
-        for row, track_id in enumerate(step.track_ids):
-            track = tracks[int(track_id)]
-            out[k, row] = (track_id, track.mean[2], track.mean[3])
+        for row, track in enumerate(step.object_tracks):
+            out[k, row] = (track.id, track.mean[2], track.mean[3])
             if track.status is TrackStatus.confirmed:
                 confirmed.add(track.id)
     return out, {"tracks": tracker.next_id - 1, "confirmed": len(confirmed), "seconds": seconds}

@@ -27,22 +27,17 @@ from service.routes.segment import REQUEST_BODY, admit, read_body, respond, run_
 from service.schemas import (
     InputKind,
     MaskEncoding,
-    ObjectOut,
     StreamCreate,
     StreamFrameResponse,
     StreamInfo,
     TrackedObjectOut,
     TrackOut,
 )
-from service.stream_store import Claim, Refusal, StreamRow, StreamStore
+from service.stream_store import Claim, Refusal, StreamRow
 
 router = APIRouter(tags=["streams"])
 
 StreamId = Annotated[str, Path(pattern=r"^[0-9a-f]{32}$", description="the id POST /v1/streams answered")]
-
-
-def _store(state: ServiceState) -> StreamStore:
-    return state.streams
 
 
 def _refused(refusal: Refusal, state: ServiceState, stream_id: str, seq: int | None = None) -> ApiError:
@@ -72,10 +67,12 @@ def _track_out(summary: dict[str, Any], class_names: tuple[str, ...]) -> TrackOu
     return TrackOut(class_name=name, **summary)
 
 
-def _info(stream: StreamRow, state: ServiceState) -> StreamInfo:
+def _info(stream: StreamRow, state: ServiceState, kept: list[Track] | None = None) -> StreamInfo:
+    """The stream as answered; ``kept``: its tracks when the caller has them (else read from its stored state)."""
     served = state.pool.models.get(stream.model)
     names = served.net.class_names if served is not None and served.ready else ()
-    kept = [] if stream.state is None else [Track.from_state(t) for t in stream.state["tracks"]]
+    if kept is None:
+        kept = [] if stream.state is None else [Track.from_state(t) for t in stream.state["tracks"]]
     tracks = [_track_out(t.summary(), names) for t in kept if t.status is not TrackStatus.tentative]
     return StreamInfo(id=stream.id, model=stream.model, created_at=stream.created_at.isoformat(),
                       updated_at=stream.updated_at.isoformat(),
@@ -93,7 +90,7 @@ async def create_stream(state: State, caller: Caller,
         served = state.pool.get(None if body is None else body.model)
     except KeyError as exc:
         raise ApiError(422, exc.args[0], error="unknown_model") from None
-    stream = await state.billing.read(_store(state).create, caller.tenant, served.spec.name)
+    stream = await state.billing.read(state.streams.create, caller.tenant, served.spec.name)
     if isinstance(stream, Refusal):
         raise _refused(stream, state, "")
     return _info(stream, state)
@@ -102,7 +99,7 @@ async def create_stream(state: State, caller: Caller,
 @router.get("/v1/streams/{stream_id}", response_model=StreamInfo, summary="A stream and its tracks",
             responses=error_responses(401, 404, 503))
 async def get_stream(stream_id: StreamId, state: State, caller: Caller) -> StreamInfo:
-    stream = await state.billing.read(_store(state).get, caller.tenant, stream_id)
+    stream = await state.billing.read(state.streams.get, caller.tenant, stream_id)
     if isinstance(stream, Refusal):
         raise _refused(stream, state, stream_id)
     return _info(stream, state)
@@ -111,7 +108,7 @@ async def get_stream(stream_id: StreamId, state: State, caller: Caller) -> Strea
 @router.delete("/v1/streams/{stream_id}", status_code=204, summary="Close a stream",
                responses=error_responses(401, 404, 503))
 async def delete_stream(stream_id: StreamId, state: State, caller: Caller) -> Response:
-    if not await state.billing.read(_store(state).delete, caller.tenant, stream_id):
+    if not await state.billing.read(state.streams.delete, caller.tenant, stream_id):
         raise _refused(Refusal.missing, state, stream_id)
     return Response(status_code=204)
 
@@ -143,7 +140,7 @@ async def stream_frame(
     """The /v1/segment answer for this frame (billed as one), each object with its ``track_id``, ``vx`` and ``vy``,
     and the stream after the frame with its confirmed and coasted tracks. Checked before the body is read: the
     stream (404), the order (409), then everything /v1/segment checks."""
-    store = _store(state)
+    store = state.streams
     stream = await state.billing.read(store.check, caller.tenant, stream_id, seq)
     if isinstance(stream, Refusal):
         raise _refused(stream, state, stream_id, seq)
@@ -158,7 +155,8 @@ async def stream_frame(
         start = time.perf_counter()
         tracker, step = _track(claim, billed.result.objects, state)
         track_s = time.perf_counter() - start
-        committed = await state.billing.read(store.commit, claim, tracker.to_state())
+        tracker_state = tracker.to_state()
+        committed = await state.billing.read(store.commit, claim, tracker_state)
     finally:
         if not committed:
             await _release(state, claim)
@@ -168,14 +166,14 @@ async def stream_frame(
                        error="stream_busy")
     state.metrics.stage_seconds.labels(admitted.name, "track").observe(track_s)
     row = StreamRow(claim.stream.id, claim.stream.tenant, claim.stream.model, claim.stream.created_at,
-                    utc_now(), seq, claim.stream.frames + 1, tracker.to_state())
+                    utc_now(), seq, claim.stream.frames + 1, tracker_state)
     net = admitted.served.net
-    objects = [TrackedObjectOut(**ObjectOut(**obj.to_dict()).model_dump(), track_id=int(step.track_ids[k]),
-                                vx=float(step.track_of(k).mean[2]), vy=float(step.track_of(k).mean[3]))
-               for k, obj in enumerate(billed.result.objects)]
+    objects = [TrackedObjectOut(**obj.to_dict(), track_id=track.id, vx=float(track.mean[2]), vy=float(track.mean[3]))
+               for obj, track in zip(billed.result.objects, step.object_tracks, strict=True)]
     body = StreamFrameResponse(request_id=billed.request_id, model=admitted.name, preset=net.profile.name,
                                shape=list(net.profile.shape), class_names=list(net.class_names), views=billed.views,
-                               compute=billed.compute, usage=billed.usage, seq=seq, stream=_info(row, state))
+                               compute=billed.compute, usage=billed.usage, seq=seq,
+                               stream=_info(row, state, tracker.tracks))
     response = await respond(body, billed, admitted, encoding, state, caller, objects)
     response.headers["X-Stream-Id"] = stream_id
     return response
@@ -184,7 +182,7 @@ async def stream_frame(
 async def _release(state: ServiceState, claim: Claim) -> None:
     """Give the stream back after a frame that failed (a failure to do so leaves the claim to expire)."""
     try:
-        await state.billing.read(_store(state).release, claim)
+        await state.billing.read(state.streams.release, claim)
     except ApiError:
         pass
 
