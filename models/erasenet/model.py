@@ -209,9 +209,7 @@ class EraseNet:
             x = self._detector_input(log_power)
         with _stage(seconds, "detect"):
             if centres is None:
-                centres = decode_centres(self._run_detector, self._run_detector(x), [log_power], k=self.max_objects,
-                                         score_threshold=self.score_threshold,
-                                         doppler_refinement=self.doppler_refinement)[0]
+                centres = self._centres(x, log_power, self.score_threshold)
                 detect_macs = self.detector_macs()
             else:
                 detect_macs = 0
@@ -245,9 +243,12 @@ class EraseNet:
             raise ValueError("this EraseNet has no detector")
         log_power = log_power.astype(np.float32, copy=False)
         threshold = self.score_threshold if score_threshold is None else score_threshold
-        return decode_centres(self._run_detector, self._run_detector(self._detector_input(log_power)), [log_power],
-                              k=self.max_objects, score_threshold=threshold,
-                              doppler_refinement=self.doppler_refinement)[0]
+        return self._centres(self._detector_input(log_power), log_power, threshold)
+
+    def _centres(self, x: Any, log_power: np.ndarray, score_threshold: float) -> Centres:
+        """The detector on its input ``x``, decoded down to ``score_threshold``, Doppler refined from ``log_power``."""
+        return decode_centres(self._run_detector, self._run_detector(x), [log_power], k=self.max_objects,
+                              score_threshold=score_threshold, doppler_refinement=self.doppler_refinement)[0]
 
     def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
         """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""
