@@ -19,7 +19,9 @@ from service.ledger import Ledger
 from tests.service.conftest import NPY, GuardedServer, npy_bytes, server_env
 from tests.service.raw_http import http_head, json_error, raw_exchange, read_answer
 
-pytestmark = pytest.mark.slow
+# One worker runs the whole module, in file order: the last test reads the refusals (header timeouts, 431) that the
+# earlier ones caused on the module's server; split over pytest-xdist workers, it met a server that had seen none.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("tenancy")]
 
 KEYS = {f"key-{name}-0123456789abcdef": name for name in ("acme", "globex", "hooli", "initech", "umbrella", "ops")}
 AUTH = {tenant: {"authorization": f"Bearer {key}"} for key, tenant in KEYS.items()}
