@@ -251,6 +251,11 @@ def test_connections_making_no_progress_are_closed_whatever_they_sent(server):
 def test_the_connection_cap_closes_the_longest_waiting_socket_and_refusals_are_counted(server):
     """40 quiet sockets against a cap of 24 leave a new client served; the server layer's
     refusals (evictions, header timeouts, 431) appear in /metrics."""
+    # a head that never completes: closed with 408 after header_timeout_s (counted header_timeout), whatever the
+    # earlier tests' blank-line trickle was classified as
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        assert _closed_within(sock, 8)
     quiet = []
     try:
         for _ in range(40):
