@@ -3,7 +3,11 @@
 Three branches on the stride-``S`` feature map ``(B, C, H, W)``, each a 3x3 conv (dense or depthwise
 separable) with ``head_channels`` channels, ReLU, then a 1x1 conv:
 
-- ``heatmap``: 1 channel, sigmoid, bias initialised to -2.19 (prior probability 0.1);
+- ``heatmap``: 1 channel, or one per foreground class (``heatmap_classes``, CenterNet's own form), sigmoid,
+  bias initialised to -2.19 (prior probability 0.1). With classes, the class-agnostic ``heatmap`` that
+  decoding, region growing and the exports read is ``max_c min(1, gain_c p_c)``: a class's gain (the buffer
+  ``class_gain``, 1 until tuned, carried in the state dict) is its own threshold's correction, so that a weak
+  class's peaks meet the one operating threshold (gain 2 for a class: its peaks of 0.15 count as 0.3);
 - ``offset``: 2 channels, sub-cell (range, angle) offset of the centre, in cells;
 - ``doppler``: 1 channel, the object's mean Doppler bin (bias initialised to ``D / 2``, zero velocity).
 
@@ -62,8 +66,9 @@ def _gather(feature: torch.Tensor, indices: torch.Tensor) -> torch.Tensor:
 class CentreNetHead(nn.Module):
     """Heatmap, offset and Doppler heads; ``forward`` returns a dict of named outputs.
 
-    Outputs for features ``(B, in_channels, H, W)``: ``heatmap`` (B, 1, H, W) probabilities,
-    ``heatmap_logits`` (B, 1, H, W), ``offset`` (B, 2, H, W) cells (range, angle), ``doppler``
+    Outputs for features ``(B, in_channels, H, W)``: ``heatmap`` (B, 1, H, W) probabilities (class-agnostic),
+    ``heatmap_logits`` (B, C, H, W), with ``C`` heatmap classes also ``class_heatmap`` (B, C, H, W),
+    ``offset`` (B, 2, H, W) cells (range, angle), ``doppler``
     (B, 1, H, W) Doppler bins.
     """
 
@@ -79,6 +84,7 @@ class CentreNetHead(nn.Module):
         doppler_weight: float = 1.0,
         focal_alpha: float = 2.0,
         focal_beta: float = 4.0,
+        heatmap_classes: int = 1,
     ) -> None:
         super().__init__()
         if doppler_bins < 1:
@@ -89,7 +95,12 @@ class CentreNetHead(nn.Module):
             )
         if output_stride < 1:
             raise ValueError(f"output_stride must be >= 1, got {output_stride}")
-        self.heatmap = _branch(in_channels, head_channels, 1, separable=separable)
+        if heatmap_classes < 1:
+            raise ValueError(f"heatmap_classes must be >= 1, got {heatmap_classes}")
+        self.heatmap = _branch(in_channels, head_channels, heatmap_classes, separable=separable)
+        self.heatmap_classes = heatmap_classes
+        if heatmap_classes > 1:
+            self.register_buffer("class_gain", torch.ones(heatmap_classes))
         self.offset = _branch(in_channels, head_channels, 2, separable=separable)
         self.doppler = _branch(in_channels, head_channels, 1, separable=separable)
         nn.init.constant_(self.heatmap[-1].bias, HEATMAP_PRIOR_BIAS)
@@ -103,8 +114,14 @@ class CentreNetHead(nn.Module):
 
     def forward(self, features: torch.Tensor) -> dict[str, torch.Tensor]:
         logits = self.heatmap(features)
+        per_class = {}
+        heatmap = torch.sigmoid(logits)
+        if self.heatmap_classes > 1:
+            per_class = {"class_heatmap": heatmap}
+            heatmap = (heatmap * self.class_gain[:, None, None]).clamp(max=1.0).amax(dim=1, keepdim=True)
         return {
-            "heatmap": torch.sigmoid(logits),
+            **per_class,
+            "heatmap": heatmap,
             "heatmap_logits": logits,
             "offset": self.offset(features),
             "doppler": self.doppler(features),

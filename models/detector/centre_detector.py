@@ -1,8 +1,9 @@
 """Stage 1 of ERASE-Net: the centre detector (docs/design.md section 5) and its registered builders.
 
 Input: normalised log power with Doppler as channels, ``(B, D, R, A)``. A 1x1 conv compresses the
-``D`` Doppler channels to 3; two channels with each RA cell's Cartesian (x, y), divided by the
-largest range so they lie in [-1, 1] and [0, 1], are appended: 5 channels go into the backbone.
+``D`` Doppler channels to 3 (the paper's; ``doppler_channels`` widens it); two channels with each RA cell's
+Cartesian (x, y), divided by the largest range so they lie in [-1, 1] and [0, 1], are appended: 5 channels go
+into the backbone.
 Backbone (MBConv, strides 4..32) -> BiFPN neck (P3..P7, fused down to stride 4) -> CenterNet heads.
 Outputs are on the stride-4 grid ``(ceil(R / 4), ceil(A / 4))`` (dict, see :class:`CentreNetHead`).
 
@@ -125,6 +126,7 @@ class CentreDetector(nn.Module):
         neck: nn.Module | None = None,
         head: CentreNetHead | None = None,
         pad_multiple: int = 4,
+        doppler_channels: int = COMPRESSED_DOPPLER_CHANNELS,
     ) -> None:
         super().__init__()
         if doppler_bins < 1:
@@ -133,9 +135,11 @@ class CentreDetector(nn.Module):
             raise ValueError(
                 f"pad_multiple must be a positive multiple of the output stride 4, got {pad_multiple}"
             )
-        self.doppler_compress = nn.Conv2d(doppler_bins, COMPRESSED_DOPPLER_CHANNELS, 1)
+        if doppler_channels < 1:
+            raise ValueError(f"doppler_channels must be >= 1, got {doppler_channels}")
+        self.doppler_compress = nn.Conv2d(doppler_bins, doppler_channels, 1)
         self.register_buffer("cartesian", normalised_cartesian(*cartesian)[None], persistent=False)
-        in_channels = COMPRESSED_DOPPLER_CHANNELS + CARTESIAN_CHANNELS
+        in_channels = doppler_channels + CARTESIAN_CHANNELS
         self.backbone = (
             backbone
             if backbone is not None
@@ -225,8 +229,13 @@ def build_centre_detector(
     stages: Sequence[MBConvStage] | None = None,
     cartesian: tuple[np.ndarray, np.ndarray] | None = None,
     channels: dict[str, list[int]] | None = None,
+    doppler_channels: int = COMPRESSED_DOPPLER_CHANNELS,
+    heatmap_classes: int = 1,
 ) -> CentreDetector:
     """Centre detector for a radar preset.
+
+    ``doppler_channels``: width of the 1x1 Doppler compression (the paper's 3); ``heatmap_classes``: 1 (one
+    heatmap for every class, the paper's) or the preset's number of foreground classes (a heatmap per class).
 
     ``variant`` picks the stage table and head conv type from :data:`VARIANTS`; ``stages`` and
     ``separable_heads`` override them. ``cartesian`` (x, y metres, each (R, A)) defaults to the
@@ -245,7 +254,7 @@ def build_centre_detector(
     chosen = VARIANTS[variant]
     doppler_bins, cartesian = _resolve_grid(preset, cartesian)
     backbone: EfficientNetBackbone = build_efficientnet(
-        in_channels=COMPRESSED_DOPPLER_CHANNELS + CARTESIAN_CHANNELS,
+        in_channels=doppler_channels + CARTESIAN_CHANNELS,
         stages=chosen.stages if stages is None else tuple(stages),
         width_mult=width_mult,
         depth_mult=depth_mult,
@@ -256,9 +265,11 @@ def build_centre_detector(
         in_channels=neck_channels,
         head_channels=head_channels,
         separable=chosen.separable_heads if separable_heads is None else separable_heads,
+        heatmap_classes=heatmap_classes,
     )
     detector = CentreDetector(
-        doppler_bins=doppler_bins, cartesian=cartesian, backbone=backbone, neck=neck, head=head
+        doppler_bins=doppler_bins, cartesian=cartesian, backbone=backbone, neck=neck, head=head,
+        doppler_channels=doppler_channels,
     )
     if channels:
         apply_channel_table(detector, channels)
@@ -271,11 +282,15 @@ def build_centre_detector_tiny(
     preset: str | RadarProfile = "small",
     variant: str = SMALLER_VARIANT,
     channels: dict[str, list[int]] | None = None,
+    doppler_channels: int = COMPRESSED_DOPPLER_CHANNELS,
+    heatmap_classes: int = 1,
 ) -> CentreDetector:
     """A 67 k-parameter detector with the real structure (every stage, BiFPN, three heads), for tests."""
     return build_centre_detector(
         preset=preset,
         variant=variant,
+        doppler_channels=doppler_channels,
+        heatmap_classes=heatmap_classes,
         width_mult=0.25,
         depth_mult=0.25,
         neck_channels=16,

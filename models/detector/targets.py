@@ -4,9 +4,10 @@ Target format (what :meth:`CentreNetHead.compute_loss` reads), for a batch of ``
 output grid ``(H, W) = (ceil(R / S), ceil(A / S))`` with output stride ``S`` and at most ``K`` objects
 per frame:
 
-- ``heatmap``: float32 ``(B, 1, H, W)``, 1 at each object's centre cell, a Gaussian around it (radius
+- ``heatmap``: float32 ``(B, C, H, W)``, 1 at each object's centre cell, a Gaussian around it (radius
   1 cell, sigma 1/3 cell along range and 1/2 cell along angle, docs/design.md section 5), the maximum where
-  objects overlap, 0 elsewhere;
+  objects overlap, 0 elsewhere; ``C = 1`` (one heatmap for every class) or one channel per foreground
+  class (an object drawn only in its class's channel, CenterNet's form);
 - ``indices``: int64 ``(B, K)``, flat index ``row * W + col`` of each object's centre cell on the grid;
 - ``offsets``: float32 ``(B, K, 2)``, sub-cell offset (range, angle) in cells, in ``[0, 1)``: the
   centre in bins is ``(cell + offset) * S``;
@@ -32,12 +33,12 @@ GAUSSIAN_SIGMA = (1 / 3, 1 / 2)  # cells, (range, angle)
 
 
 class CentreTargets(TypedDict):
-    heatmap: torch.Tensor  # (B, 1, H, W) float32
+    heatmap: torch.Tensor  # (B, C, H, W) float32, C = 1 or one channel per foreground class
     indices: torch.Tensor  # (B, K) int64
     offsets: torch.Tensor  # (B, K, 2) float32, (range, angle) in cells
     doppler: torch.Tensor  # (B, K) float32, Doppler bins
     mask: torch.Tensor  # (B, K) bool
-    peak_weight: NotRequired[torch.Tensor]  # (B, 1, H, W) float32: the focal loss's weight at each object's centre
+    peak_weight: NotRequired[torch.Tensor]  # (B, C, H, W) float32: the focal loss's weight at each object's centre
 
 
 def output_grid(grid_shape: tuple[int, int], output_stride: int = OUTPUT_STRIDE) -> tuple[int, int]:
@@ -117,8 +118,13 @@ def build_centre_targets(
     sigma: tuple[float, float] = GAUSSIAN_SIGMA,
     radius: int = GAUSSIAN_RADIUS,
     centre_weights: Sequence[np.ndarray] | None = None,
+    heatmap_classes: int = 1,
+    classes: Sequence[np.ndarray] | None = None,
 ) -> CentreTargets:
     """Targets of a batch (format in the module docstring) from per-frame centres.
+
+    ``heatmap_classes > 1``: one heatmap channel per foreground class; ``classes[b]`` (``(N_b,)``, 0-based
+    foreground class, i.e. the store's class id - 1) says in which channel each object of frame ``b`` is drawn.
 
     ``centre_weights[b]`` (optional, ``(N_b,)``): the focal loss's weight at each object's centre cell
     (``peak_weight``; 1 elsewhere), e.g. a weight per class so that a weak class's peaks count more.
@@ -131,9 +137,12 @@ def build_centre_targets(
         raise ValueError(f"output_stride must be >= 1, got {output_stride}")
     if max_objects < 1:
         raise ValueError(f"max_objects must be >= 1, got {max_objects}")
+    if heatmap_classes < 1 or (heatmap_classes > 1 and classes is None):
+        raise ValueError(f"heatmap_classes must be >= 1, and a class per object is needed for more than one "
+                         f"(got {heatmap_classes}, classes {'given' if classes is not None else 'None'})")
     height, width = output_grid(grid_shape, output_stride)
     batch = len(batch_centres)
-    heatmap = np.zeros((batch, 1, height, width), dtype=np.float32)
+    heatmap = np.zeros((batch, heatmap_classes, height, width), dtype=np.float32)
     indices = np.zeros((batch, max_objects), dtype=np.int64)
     offsets = np.zeros((batch, max_objects, 2), dtype=np.float32)
     doppler = np.zeros((batch, max_objects), dtype=np.float32)
@@ -142,9 +151,16 @@ def build_centre_targets(
         centres = _as_centres(frame_centres)
         if len(centres) > max_objects:
             raise ValueError(f"frame {b} has {len(centres)} objects, more than max_objects={max_objects}")
-        heatmap[b, 0] = render_heatmap(
-            centres, grid_shape, output_stride=output_stride, sigma=sigma, radius=radius
-        )
+        if heatmap_classes == 1:
+            heatmap[b, 0] = render_heatmap(centres, grid_shape, output_stride=output_stride, sigma=sigma, radius=radius)
+        else:
+            frame_classes = np.asarray(classes[b], np.int64)[: len(centres)]
+            if len(frame_classes) != len(centres) or np.any((frame_classes < 0) | (frame_classes >= heatmap_classes)):
+                raise ValueError(f"frame {b}: classes must be {len(centres)} values in [0, {heatmap_classes}), "
+                                 f"got {frame_classes.tolist()}")
+            for c in np.unique(frame_classes):
+                heatmap[b, c] = render_heatmap(centres[frame_classes == c], grid_shape, output_stride=output_stride,
+                                               sigma=sigma, radius=radius)
         if len(centres) == 0:
             continue
         cells, sub_cell = _centre_cells(centres, grid_shape, output_stride)
@@ -161,9 +177,9 @@ def build_centre_targets(
         mask=torch.from_numpy(mask),
     )
     if centre_weights is not None:
-        weight = np.ones((batch, height * width), np.float32)
+        weight = np.ones((batch, heatmap_classes, height * width), np.float32)
         for b, frame_weights in enumerate(centre_weights):
             n = int(mask[b].sum())
-            weight[b, indices[b, :n]] = np.asarray(frame_weights, np.float32)[:n]
-        targets["peak_weight"] = torch.from_numpy(weight.reshape(batch, 1, height, width))
+            weight[b][:, indices[b, :n]] = np.asarray(frame_weights, np.float32)[:n]
+        targets["peak_weight"] = torch.from_numpy(weight.reshape(batch, heatmap_classes, height, width))
     return targets

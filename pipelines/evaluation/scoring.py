@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.detector.targets import build_centre_targets
+from models.detector.targets import CentreTargets, build_centre_targets
 from models.erasenet.detection import detect_centres
 from pipelines.datasets.spread import subset
 from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, StoreDataset
@@ -34,6 +34,17 @@ def frame_centres(sample: Mapping[str, Any]) -> np.ndarray:
     objects = sample["objects"]
     objects = objects.double().numpy() if isinstance(objects, torch.Tensor) else np.asarray(objects, np.float64)
     return objects[:n, CENTRE_COLUMNS]
+
+
+def centre_targets(samples: Sequence[Mapping[str, Any]], grid_shape: tuple[int, int], *, heatmap_classes: int = 1,
+                   centre_weights: Sequence[np.ndarray] | None = None) -> CentreTargets:
+    """The detector's training targets for store samples: one heatmap, or one per foreground class."""
+    classes = None
+    if heatmap_classes > 1:  # class id 0 is background: foreground class c is heatmap channel c - 1
+        classes = [np.asarray(s["objects"][:int(s["n_objects"]), OBJECT_COLUMN["class_id"]], np.int64) - 1
+                   for s in samples]
+    return build_centre_targets([frame_centres(s) for s in samples], grid_shape, centre_weights=centre_weights,
+                                heatmap_classes=heatmap_classes, classes=classes)
 
 
 # --------------------------------------------------------------------------- detection
@@ -101,7 +112,8 @@ def score_detector(detector: nn.Module, store: str, split: str, profile: RadarPr
                                          std_db=normalisation["std"], score_threshold=score_threshold,
                                          doppler_refinement=doppler_refinement, device=device)
         if with_loss:
-            targets = build_centre_targets([frame_centres(s) for s in samples], (profile.n_range, profile.n_angle))
+            targets = centre_targets(samples, (profile.n_range, profile.n_angle),
+                                     heatmap_classes=getattr(detector.head, "heatmap_classes", 1))
             loss = detector.compute_loss(outputs, {k: v.to(device) for k, v in targets.items()})["total"]
             loss_sum += float(loss) * len(samples)
         for sample, centres in zip(samples, frames, strict=True):

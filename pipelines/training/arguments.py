@@ -61,6 +61,11 @@ def common_config(args: argparse.Namespace) -> dict[str, Any]:
 def format_training(result: dict[str, Any]) -> str:
     """What a trainer prints for people: the run, its checkpoint and the last epoch's figures (``--json``: all of
     ``result`` as one JSON line); for ``train export``, the copy and its size."""
+    if "class_gains" in result:
+        classes = result["class_gains"]["classes"]
+        return f"{result['checkpoint']}: " + ", ".join(
+            f"{name} threshold {c['threshold']:.3f} (gain {c['gain']:.2f}; F1 {c['f1']:.3f}, precision "
+            f"{c['precision']:.3f}, recall {c['recall']:.3f} of {c['truths']})" for name, c in classes.items())
     if "run" not in result:
         return f"{result['checkpoint']}: {result['bytes'] / 1e6:.2f} MB"
     metrics = result.get("metrics") or {}

@@ -13,9 +13,8 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from models.capabilities import Stage
-from models.detector.targets import build_centre_targets
 from pipelines.datasets.store import OBJECT_COLUMN, StoreDataset
-from pipelines.evaluation.scoring import frame_centres, score_detector
+from pipelines.evaluation.scoring import centre_targets, score_detector
 from pipelines.training.task import Task, unwrap
 from radar.errors import UserError
 
@@ -36,8 +35,8 @@ class DetectorTask(Task):
         log_power = torch.stack([s["input"] for s in samples])
         stats = self.store.normalisation
         return {"input": (log_power - stats["mean"]) / stats["std"],
-                "targets": build_centre_targets([frame_centres(s) for s in samples], grid,
-                                                centre_weights=self._centre_weights(samples))}
+                "targets": centre_targets(samples, grid, centre_weights=self._centre_weights(samples),
+                                          heatmap_classes=int(self.hyper.model_config.get("heatmap_classes", 1)))}
 
     def _centre_weights(self, samples: list[dict[str, Any]]) -> list[np.ndarray] | None:
         """Each object's weight in the centre loss: its class's ``class_weights`` entry (None: all 1)."""

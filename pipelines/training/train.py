@@ -4,6 +4,7 @@ of a shippable checkpoint::
     radarseg train detector  --store STORE.zarr --out runs/det [--profile quick|paper] [--resume]
     radarseg train segmenter --store STORE.zarr --out runs/seg --jitter-from runs/det/model.pt
     radarseg train export RUN/model.pt checkpoints/detector.pt   # float16 weights only
+    radarseg train class-gains RUN/model.pt TUNED.pt --store STORE.zarr   # a threshold per class (heatmap per class)
     python -m pipelines.training.train ...                                # the same arguments
 
 The loop, the tasks and the profiles live in :mod:`pipelines.training`; this module is the job
@@ -19,10 +20,13 @@ from typing import Any
 
 from models.capabilities import ERASENET_STAGES, Stage
 from models.checkpoint import export_checkpoint
+from pipelines.datasets.store_info import StoreInfo
 from pipelines.jobs import run_module
 from pipelines.training.arguments import add_common_arguments, common_config, format_training
+from pipelines.training.class_gains import write_class_gains
 from pipelines.training.config import TrainConfig
 from pipelines.training.loop import train
+from radar.errors import UserError
 
 
 @dataclass(frozen=True)
@@ -34,8 +38,19 @@ class ExportConfig:
     float16: bool = True
 
 
+@dataclass(frozen=True)
+class ClassGainsConfig:
+    """``radarseg train class-gains SOURCE TARGET --store STORE``: a threshold per class, chosen on a split."""
+
+    source: str
+    target: str
+    store: str
+    split: str = "val"
+    frames: int = 0
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    stages = parser.add_subparsers(dest="stage", required=True, metavar="{detector,segmenter,export}")
+    stages = parser.add_subparsers(dest="stage", required=True, metavar="{detector,segmenter,export,class-gains}")
     for stage in ERASENET_STAGES:
         sub = stages.add_parser(stage, help=f"train the {stage} from a store")
         sub.add_argument("--model", help="registered model name (default: the profile's)")
@@ -55,11 +70,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     export.add_argument("source", help="training checkpoint (model.pt or last.pt)")
     export.add_argument("target", help="shippable copy to write (float16, no optimiser state)")
     export.add_argument("--float32", action="store_true", help="keep float32 weights (default float16)")
+    gains = stages.add_parser("class-gains", help="a detector with a heatmap per class: each class's threshold "
+                                                  "(best F1 on a split), written into a copy of the checkpoint")
+    gains.add_argument("source", help="detector checkpoint trained with --model-config '{\"heatmap_classes\": N}'")
+    gains.add_argument("target", help="the copy to write, with the class gains")
+    gains.add_argument("--store", required=True, help="preprocessed store whose split chooses the thresholds")
+    gains.add_argument("--split", default="val", help="split of the store (default val)")
+    gains.add_argument("--frames", type=int, default=0, help="frames of the split, evenly spread (default 0: all)")
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig:
+def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | ClassGainsConfig:
     if args.stage == "export":
         return ExportConfig(args.source, args.target, float16=not args.float32)
+    if args.stage == "class-gains":
+        if args.frames < 0:
+            raise UserError(f"--frames must be >= 0, got {args.frames}")
+        return ClassGainsConfig(args.source, args.target, args.store, split=args.split, frames=args.frames)
     jitter_std = getattr(args, "jitter_std", None)
     return TrainConfig(stage=args.stage, model=args.model, jitter_from=getattr(args, "jitter_from", None),
                        jitter_std=tuple(jitter_std) if jitter_std else None,
@@ -68,8 +94,13 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig:
                        **common_config(args))
 
 
-def main(cfg: TrainConfig | ExportConfig) -> dict[str, Any]:
-    """Train (the last epoch's metrics and where the run lives), or export (the checkpoint and its size)."""
+def main(cfg: TrainConfig | ExportConfig | ClassGainsConfig) -> dict[str, Any]:
+    """Train (the last epoch's metrics and where the run lives), export (the checkpoint and its size), or tune the
+    class gains (the chosen thresholds)."""
+    if isinstance(cfg, ClassGainsConfig):
+        record = write_class_gains(cfg.source, cfg.target, StoreInfo.read(cfg.store), split=cfg.split,
+                                   max_frames=cfg.frames)
+        return {"checkpoint": cfg.target, "class_gains": record}
     if isinstance(cfg, ExportConfig):
         target = export_checkpoint(cfg.source, cfg.target, float16=cfg.float16)
         return {"checkpoint": str(target), "bytes": target.stat().st_size}

@@ -283,3 +283,58 @@ def test_centre_weights_scale_only_the_positives_of_the_focal_loss():
     heavier = focal_loss(logits, plain["heatmap"], peak_weight=weight)
     positive_term = 0.5 ** 2 * np.log(2.0) / 2  # one positive's share: (1 - p)^2 * -log p / n_pos
     assert float(heavier - base) == pytest.approx(2 * positive_term, rel=1e-5)
+
+
+def test_per_class_targets_draw_each_object_in_its_class_channel_only():
+    centres = [np.array([[10.0, 20.0, 3.0], [40.0, 8.0, 5.0], [60.0, 60.0, 1.0]])]
+    plain = build_centre_targets(centres, (128, 128))
+    per_class = build_centre_targets(centres, (128, 128), heatmap_classes=3, classes=[np.array([0, 2, 2])])
+    heat = per_class["heatmap"][0]
+    assert heat.shape == (3, 32, 32)
+    flat = heat.reshape(3, -1)
+    cells = plain["indices"][0, :3]
+    assert flat[0, cells[0]] == 1 and flat[2, cells[1]] == 1 and flat[2, cells[2]] == 1
+    assert flat[1].max() == 0 and flat[0, cells[1]] == 0 and flat[2, cells[0]] == 0
+    torch.testing.assert_close(heat.amax(0), plain["heatmap"][0, 0])  # together: the class-agnostic map
+    for key in ("indices", "offsets", "doppler", "mask"):
+        torch.testing.assert_close(per_class[key], plain[key])
+    with pytest.raises(ValueError, match="class per object"):
+        build_centre_targets(centres, (128, 128), heatmap_classes=3)
+    with pytest.raises(ValueError, match=r"in \[0, 3\)"):
+        build_centre_targets(centres, (128, 128), heatmap_classes=3, classes=[np.array([0, 3, 1])])
+
+
+def test_per_class_head_merges_gained_class_maps_into_one_heatmap():
+    """``heatmap_classes``: decoding reads ``max_c min(1, gain_c p_c)``; the gains travel in the state dict."""
+    torch.manual_seed(0)
+    detector = create_model("centre_detector", preset="small", width_mult=0.25, depth_mult=0.25, neck_channels=16,
+                            neck_layers=1, head_channels=16, heatmap_classes=3).eval()
+    assert "head.class_gain" in detector.state_dict()
+    log_power = torch.randn(2, 32, 128, 128)
+    with torch.no_grad():
+        out = detector(log_power)
+        assert out["class_heatmap"].shape == (2, 3, 32, 32) and out["heatmap"].shape == (2, 1, 32, 32)
+        torch.testing.assert_close(out["heatmap"], out["class_heatmap"].amax(1, keepdim=True))
+        detector.head.class_gain.copy_(torch.tensor([4.0, 1.0, 0.5]))
+        gained = detector(log_power)
+    expected = torch.stack([(out["class_heatmap"][:, 0] * 4).clamp(max=1), out["class_heatmap"][:, 1],
+                            out["class_heatmap"][:, 2] * 0.5], 1).amax(1, keepdim=True)
+    torch.testing.assert_close(gained["heatmap"], expected)
+    assert gained["heatmap"].max() <= 1.0
+    targets = build_centre_targets([np.array([[10.0, 20.0, 3.0]]), np.zeros((0, 3))], (128, 128),
+                                   heatmap_classes=3, classes=[np.array([1]), np.zeros(0)])
+    losses = detector.compute_loss(gained, targets)
+    assert torch.isfinite(losses["total"]) and losses["heatmap"] > 0
+    with pytest.raises(ValueError, match="does not match"):
+        detector.compute_loss(gained, build_centre_targets([np.array([[10.0, 20.0, 3.0]])] * 2, (128, 128)))
+
+
+def test_doppler_compression_width_is_an_option():
+    wide = create_model("centre_detector", preset="small", width_mult=0.25, depth_mult=0.25, neck_channels=16,
+                        neck_layers=1, head_channels=16, doppler_channels=12).eval()
+    assert wide.doppler_compress.out_channels == 12
+    assert wide.backbone.stem[0].in_channels == 14  # 12 Doppler + 2 Cartesian channels
+    with torch.no_grad():
+        assert wide(torch.randn(1, 32, 128, 128))["heatmap"].shape == (1, 1, 32, 32)
+    with pytest.raises(ValueError, match="doppler_channels"):
+        create_model("centre_detector", preset="small", doppler_channels=0)
