@@ -22,7 +22,8 @@ def test_default_rows_are_the_shipped_checkpoints(capsys):
     assert detector["model"] == "centre_detector" and segmenter["model"] == "minkunet"
     # The shipped, ratio-0.25 MinkUNet (1.36 M), not the paper-size one (2.92 M).
     assert 1.2e6 < segmenter["params"] < 1.5e6
-    assert 0.10e9 < detector["macs"] < 0.13e9
+    # the shipped detector: the paper's smaller backbone with a 12-channel Doppler compression (0.131 G; 0.116 G at 3)
+    assert 0.12e9 < detector["macs"] < 0.14e9
 
 
 def test_a_given_checkpoint_is_described(tmp_path, capsys):
