@@ -24,7 +24,8 @@ COLUMNS = ("mAP", "ap1", "ra_miou", "rd_miou", "ped_iou_ra", "ped_iou_rd", "cyc_
 
 def row_of(metrics: dict) -> dict[str, float]:
     seg, rg, det = metrics["segmentation"], metrics["region_growing"]["predicted_seeds"], metrics["detection"]
-    return {"mAP": det["mAP"], "ap1": det["AP@1"], "ra_miou": 100 * seg["RA"]["mIoU"], "rd_miou": 100 * seg["RD"]["mIoU"],
+    return {"mAP": det["mAP"], "ap1": det["AP@1"],
+            "ra_miou": 100 * seg["RA"]["mIoU"], "rd_miou": 100 * seg["RD"]["mIoU"],
             "ped_iou_ra": 100 * seg["RA"]["iou"]["pedestrian"], "ped_iou_rd": 100 * seg["RD"]["iou"]["pedestrian"],
             "cyc_iou_ra": 100 * seg["RA"]["iou"]["cyclist"], "cyc_iou_rd": 100 * seg["RD"]["iou"]["cyclist"],
             "rg_recall": rg["recall"], "roi_voxels_k": rg["roi_voxels_mean"] / 1e3,
