@@ -137,9 +137,10 @@ def build_centre_targets(
         raise ValueError(f"output_stride must be >= 1, got {output_stride}")
     if max_objects < 1:
         raise ValueError(f"max_objects must be >= 1, got {max_objects}")
-    if heatmap_classes < 1 or (heatmap_classes > 1 and classes is None):
-        raise ValueError(f"heatmap_classes must be >= 1, and a class per object is needed for more than one "
-                         f"(got {heatmap_classes}, classes {'given' if classes is not None else 'None'})")
+    if heatmap_classes < 1:
+        raise ValueError(f"heatmap_classes must be >= 1, got {heatmap_classes}")
+    if heatmap_classes > 1 and classes is None:
+        raise ValueError(f"heatmap_classes={heatmap_classes} needs a class per object (classes), got None")
     height, width = output_grid(grid_shape, output_stride)
     batch = len(batch_centres)
     heatmap = np.zeros((batch, heatmap_classes, height, width), dtype=np.float32)
