@@ -7,6 +7,8 @@ Built once from a trained model in eval mode (a copy of its weights taken then):
 - the ReLU after a convolution, and a residual block's sum with its shortcut and the ReLU after it, are applied by
   the compiled kernel in the loop that writes the output rows (``compiled.neighbour_conv_fused``,
   ``scatter_conv_fused``): no separate pass over the features, no module calls;
+- every level's coordinates and kernel maps are built in one compiled pass before the first layer
+  (``KernelMapCache.build_pyramid``);
 - the frame's MACs come from the kernel maps: each convolution adds its map's pairs times its ``C_in x C_out``
   (the useful MACs, as the eager model's per-layer counters give; the compiled kernels execute exactly these),
   without per-layer hooks.
@@ -190,6 +192,7 @@ class FusedMinkUNet:
     def __call__(self, x: SparseTensor) -> tuple[Tensor, MacTally]:
         """Logits (N, num_classes) for the N voxels of ``x`` (stride 1) and the frame's MACs."""
         macs = MacTally()
+        x.cache.build_pyramid(x.stride, len(self.encoder) + 1)  # every level's kernel maps in one compiled pass
         for conv in self.stem:
             x = self._submanifold(x, conv, macs)
         skips = [x]

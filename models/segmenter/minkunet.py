@@ -122,6 +122,7 @@ class MinkUNet(nn.Module):
 
     def encode(self, x: SparseTensor) -> list[SparseTensor]:
         """Stem and encoder: [stem output at stride 1, stage outputs at strides 2, 4, 8, 16]."""
+        x.cache.build_pyramid(x.stride, len(self.encoder) + 1)  # every level's kernel maps in one compiled pass
         features = [self.stem(x)]
         for stage in self.encoder:
             features.append(stage(features[-1]))

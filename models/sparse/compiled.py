@@ -2,7 +2,7 @@
 
 Two sparse engines run `models.sparse.conv`'s convolutions: `reference` (pure PyTorch, any device and dtype) and
 `compiled` (`csrc/sparse_conv.cpp`: gather-multiply kernels over the kernel map's neighbour table, float32 on
-CPU). The setting (`set_engine`, or the environment variable `RADARSEG_SPARSE_ENGINE` read at first use) is one
+CPU; `csrc/kernel_maps.cpp`: every kernel map of a voxel pyramid in one pass). The setting (`set_engine`, or the environment variable `RADARSEG_SPARSE_ENGINE` read at first use) is one
 of:
 
 - `auto` (default): compiled where it applies (CPU, float32) if it builds, else reference with one warning;
@@ -14,7 +14,7 @@ runtime runs its sparse convolutions on this setting's engine. The names `native
 versions are refused with the new name.
 
 The extension is built on first use with torch's extension machinery (g++ and ninja) and cached under
-`$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of the source,
+`$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of the sources,
 the compiler flags, torch's and Python's versions and the CPU's instruction-set flags (it is compiled with
 `-march=native`, so a cache shared between machines of different kinds never serves foreign code).
 torch's loader holds a file lock while it builds, so concurrent processes build it once.
@@ -45,7 +45,8 @@ logger = logging.getLogger(__name__)
 ENGINES = ("auto", "compiled", "reference")
 RENAMED = {"native": "compiled", "torch": "reference"}  # earlier names -> today's
 ENGINE_ENV = "RADARSEG_SPARSE_ENGINE"
-SOURCE = Path(__file__).parent / "csrc" / "sparse_conv.cpp"
+SOURCES = (Path(__file__).parent / "csrc" / "sparse_conv.cpp", Path(__file__).parent / "csrc" / "kernel_maps.cpp")
+"""The extension's C++ files: the convolution kernels (and the module's bindings), and a pyramid's kernel maps."""
 CFLAGS = ("-O3", "-march=native", "-fopenmp")
 LDFLAGS = ("-fopenmp",)
 # Instruction sets the kernels can be built for: `native` (everything this CPU has: 16-lane AVX-512
@@ -112,7 +113,7 @@ def build_key(instruction_set: str = "native") -> str:
     """Hash of everything the compiled code depends on (see the module docstring)."""
     digest = hashlib.sha256()
     flags = CFLAGS + INSTRUCTION_SETS[instruction_set] + LDFLAGS
-    for part in (SOURCE.read_bytes(), " ".join(flags).encode(), torch.__version__.encode(),
+    for part in (*(source.read_bytes() for source in SOURCES), " ".join(flags).encode(), torch.__version__.encode(),
                  sys.version.encode(), cpu_flags().encode(), platform.machine().encode()):
         digest.update(part)
         digest.update(b"\0")
@@ -201,7 +202,7 @@ def build(instruction_set: str) -> ModuleType:
         directory.mkdir(parents=True, exist_ok=True)
         with _build_lock(directory):
             module = cpp_extension.load(
-                name=name, sources=[str(SOURCE)], build_directory=str(directory),
+                name=name, sources=[str(source) for source in SOURCES], build_directory=str(directory),
                 extra_cflags=list(CFLAGS + INSTRUCTION_SETS[instruction_set]), extra_ldflags=list(LDFLAGS),
                 verbose=False,
             )
@@ -335,3 +336,21 @@ def scatter_conv_fused(src: Tensor, neighbours: Tensor, weight: Tensor, num_out:
     No autograd."""
     return load().scatter_conv_fused(src.contiguous(), neighbours.contiguous(), weight.contiguous(), num_out,
                                      None if bias is None else bias.contiguous(), relu)
+
+
+def pyramid_maps(coords: Tensor, levels: int, max_cells: int) -> list[Tensor] | None:
+    """Every level's coordinates, 3^3 submanifold map and 2^3 down-sampling map of a voxel pyramid in one pass
+    (`csrc/kernel_maps.cpp`; tables equal to `models.sparse.kernel_map.build_kernel_map`'s).
+
+    Args:
+        coords: (N, 4) int64 `(batch, x, y, z)` of level 0, sorted by key and unique.
+        levels: tensor strides 1, 2, ..., 2^(levels - 1).
+        max_cells: largest (batch, x, y) column index of a level.
+
+    Returns:
+        Five tensors per level (coords, 3^3 table, its pair counts, 2^3 table to the next level, its pair counts;
+        the last level's 2^3 table has no rows), or None where `coords` are not sorted and unique, are empty, or a
+        level's column index would exceed `max_cells`.
+    """
+    out = load().pyramid_maps(coords.contiguous(), levels, max_cells)
+    return out or None

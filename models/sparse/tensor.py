@@ -12,7 +12,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from models.sparse.kernel_map import KernelMap, VoxelIndex, build_kernel_map, check_coords, downsample_coords
+from models.sparse import compiled
+from models.sparse.kernel_map import (
+    MAX_GRID_CELLS,
+    KernelMap,
+    VoxelIndex,
+    build_kernel_map,
+    check_coords,
+    downsample_coords,
+)
 
 
 class KernelMapCache:
@@ -85,6 +93,34 @@ class KernelMapCache:
                 same_coords=stride == 1,
             )
         return self._maps[key]
+
+    def build_pyramid(self, stride: int, levels: int) -> bool:
+        """Build the coordinates, 3^3 submanifold maps and 2^3 down-sampling maps of `levels` tensor strides
+        (`stride`, 2 `stride`, ...) in one compiled pass (`compiled.pyramid_maps`), as a U-Net's forward asks for
+        them; the maps equal those `kernel_map` builds one by one.
+
+        Returns:
+            True when built; False when the compiled engine does not run here, the coordinates at `stride` are not
+            sorted (the one-by-one path handles any order), or a level is too large for its column index.
+        """
+        coords = self.coords(stride)
+        if levels < 1 or len(coords) == 0 or not compiled.enabled_on(coords.device):
+            return False
+        built = compiled.pyramid_maps(coords, levels, MAX_GRID_CELLS)
+        if built is None:
+            return False
+        for level in range(levels):
+            level_coords, sub, sub_counts, down, down_counts = built[5 * level: 5 * level + 5]
+            tensor_stride = stride << level
+            self._coords.setdefault(tensor_stride, level_coords)
+            self._maps.setdefault((tensor_stride, 3, 1), KernelMap(
+                neighbours=sub, pair_counts=tuple(sub_counts.tolist()), identity_offset=13,
+                num_in=len(level_coords), num_out=len(level_coords), kernel_size=3, stride=1))
+            if level + 1 < levels:
+                self._maps.setdefault((tensor_stride, 2, 2), KernelMap(
+                    neighbours=down, pair_counts=tuple(down_counts.tolist()), identity_offset=None,
+                    num_in=len(level_coords), num_out=len(down), kernel_size=2, stride=2))
+        return True
 
     @property
     def num_maps(self) -> int:

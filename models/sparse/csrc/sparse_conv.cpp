@@ -437,6 +437,10 @@ at::Tensor grid_neighbours(at::Tensor grid, at::Tensor flat, at::Tensor delta) {
   return out;
 }
 
+namespace radarseg {
+std::vector<at::Tensor> pyramid_maps(at::Tensor coords, int64_t levels, int64_t max_cells);  // kernel_maps.cpp
+}  // namespace radarseg
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("neighbour_conv", &neighbour_conv, "out[j] = sum_k src[nbr[j, k]] @ weight[k]");
   m.def("scatter_conv", &scatter_conv, "out[nbr[j, k]] = src[j] @ weight[k]");
@@ -445,4 +449,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("scatter_conv_fused", &scatter_conv_fused, "out[nbr[j, k]] = max(src[j] @ weight[k] + bias, 0)");
   m.def("neighbour_weight_grad", &neighbour_weight_grad, "grad[k] = sum_j src[nbr[j, k]]^T dense[j]");
   m.def("grid_neighbours", &grid_neighbours, "out[j, k] = grid[flat[j] + delta[k]] as int64");
+  m.def("pyramid_maps", &radarseg::pyramid_maps,
+        "coordinates, 3^3 and 2^3 kernel maps and pair counts of every level of a voxel pyramid");
 }
