@@ -2,8 +2,8 @@
 
 Two sparse engines run `models.sparse.conv`'s convolutions: `reference` (pure PyTorch, any device and dtype) and
 `compiled` (`csrc/sparse_conv.cpp`: gather-multiply kernels over the kernel map's neighbour table, float32 on
-CPU; `csrc/kernel_maps.cpp`: every kernel map of a voxel pyramid in one pass). The setting (`set_engine`, or the environment variable `RADARSEG_SPARSE_ENGINE` read at first use) is one
-of:
+CPU; `csrc/kernel_maps.cpp`: every kernel map of a voxel pyramid in one pass). The setting (`set_engine`, or the
+environment variable `RADARSEG_SPARSE_ENGINE` read at first use) is one of:
 
 - `auto` (default): compiled where it applies (CPU, float32) if it builds, else reference with one warning;
 - `compiled`: compiled where it applies; a failed build raises;
