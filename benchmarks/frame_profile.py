@@ -3,8 +3,9 @@
 One process, one thread, simulated frames with objects (seed 5), after two warm-up frames:
 
 - ``stages``: milliseconds per frame of each stage of :meth:`models.erasenet.model.EraseNet.segment`;
-- ``segment_parts``: inside the segment stage, the compiled engine's convolution kernels, the kernel maps (index
-  grids, neighbour tables, coarser voxel sets) and the rest (input features, 1x1 shortcuts, concatenations, argmax;
+- ``segment_parts``: inside the segment stage, the compiled engine's convolution kernels, the kernel maps (every
+  level in one compiled pass, ``build_pyramid``; any built one by one: index grids, neighbour tables, coarser voxel
+  sets) and the rest (input features, 1x1 shortcuts, concatenations, argmax;
   with ``--eager``, also BatchNorm, ReLU, residual sums, module calls and hooks);
 - ``layers``: every sparse convolution shape (kernel voxels, C_in, C_out) with its calls, milliseconds per frame and
   useful GMAC/s (present neighbour pairs x C_in x C_out over its time).
@@ -87,6 +88,7 @@ def main() -> dict:
         clock.wrap_kernel(kernel)  # the eager model's kernels, and the fused form's (the default)
     for name in ("build_kernel_map", "VoxelIndex", "downsample_coords"):
         clock.wrap(sparse_tensor, name, f"kernel maps: {name}")
+    clock.wrap(sparse_tensor.KernelMapCache, "build_pyramid", "kernel maps: build_pyramid")
     load_before = os.getloadavg()
     for cube in cubes[:2]:
         model.segment(cube, is_log_power=True)
