@@ -15,8 +15,8 @@
 //
 // Design: a level's voxels sorted by (batch, x, y, z) form columns of equal (batch, x, y) with z ascending. A dense
 // 2-D index over the padded (batch, x, y) box gives each column's range (boxes are R x A, not R x A x D: 66 k cells
-// for a `small` ROI instead of the 3-D grid's 4 M). For each voxel and each of the 9 (dx, dy) columns, one pointer
-// that only moves forward through that column finds z - 1, z, z + 1. The next level is built column by column from
+// for a `small` ROI instead of the 3-D grid's 4 M). For each column and each of the 9 (dx, dy) columns beside it, a
+// z-indexed table of the neighbour column's rows answers z - 1, z, z + 1 for every voxel without a branch. The next level is built column by column from
 // the (at most 4) fine columns under each coarse one, in key order without a sort.
 
 #include <ATen/Parallel.h>
@@ -79,10 +79,19 @@ bool build_columns(const int64_t* c, int64_t n, int64_t max_cells, Columns& cols
   return true;
 }
 
-// The 3^3 submanifold table of one level: out[j * 27 + k] with k = (dx + 1) * 9 + (dy + 1) * 3 + (dz + 1).
+// The 3^3 submanifold table of one level: out[j * 27 + k] with k = (dx + 1) * 9 + (dy + 1) * 3 + (dz + 1). For each
+// column and each of its 9 neighbour columns, the neighbour's rows are written into a table indexed by z (one slot of
+// padding at each end), the column's voxels read z - 1, z, z + 1 from it without a branch, and the slots are reset.
 void submanifold(const int64_t* c, int64_t n, const Columns& cols, int64_t* out) {
   const int64_t ncols = static_cast<int64_t>(cols.start.size()) - 1;
+  int64_t z_lo = c[3], z_hi = c[3];
+  for (int64_t i = 1; i < n; ++i) {
+    z_lo = std::min(z_lo, c[4 * i + 3]);
+    z_hi = std::max(z_hi, c[4 * i + 3]);
+  }
+  const int64_t z0 = z_lo - 1;  // slot of z is z - z0
   at::parallel_for(0, ncols, 64, [&](int64_t begin, int64_t end) {
+    std::vector<int64_t> slot(static_cast<size_t>(z_hi - z0 + 2), n);
     for (int64_t col = begin; col < end; ++col) {
       const int64_t first = cols.start[col], last = cols.start[col + 1];
       const int64_t b = c[4 * first], x = c[4 * first + 1], y = c[4 * first + 2];
@@ -90,25 +99,16 @@ void submanifold(const int64_t* c, int64_t n, const Columns& cols, int64_t* out)
         for (int dy = -1; dy <= 1; ++dy) {
           const int64_t k0 = (dx + 1) * 9 + (dy + 1) * 3;
           const int32_t other = cols.at(b, x + dx, y + dy);
-          if (other < 0) {
-            for (int64_t j = first; j < last; ++j)
-              for (int dz = 0; dz < 3; ++dz) out[j * 27 + k0 + dz] = n;
-            continue;
-          }
-          int64_t p = cols.start[other];
-          const int64_t p_end = cols.start[other + 1];
+          const int64_t o_first = other < 0 ? 0 : cols.start[other], o_last = other < 0 ? 0 : cols.start[other + 1];
+          for (int64_t r = o_first; r < o_last; ++r) slot[c[4 * r + 3] - z0] = r;
           for (int64_t j = first; j < last; ++j) {
-            const int64_t z = c[4 * j + 3];
-            while (p < p_end && c[4 * p + 3] < z - 1) ++p;
-            int64_t q = p;
-            for (int dz = -1; dz <= 1; ++dz) {
-              if (q < p_end && c[4 * q + 3] == z + dz) {
-                out[j * 27 + k0 + dz + 1] = q++;
-              } else {
-                out[j * 27 + k0 + dz + 1] = n;
-              }
-            }
+            const int64_t* s = slot.data() + (c[4 * j + 3] - z0);
+            int64_t* o = out + j * 27 + k0;
+            o[0] = s[-1];
+            o[1] = s[0];
+            o[2] = s[1];
           }
+          for (int64_t r = o_first; r < o_last; ++r) slot[c[4 * r + 3] - z0] = n;
         }
       }
     }
