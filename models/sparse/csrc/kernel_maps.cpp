@@ -43,9 +43,10 @@ struct Columns {
   std::vector<int32_t> grid;
   int64_t b0 = 0, x0 = 0, y0 = 0, nx = 0, ny = 0;
 
-  int32_t at(int64_t b, int64_t x, int64_t y) const {
-    return grid[static_cast<size_t>(((b - b0) * nx + (x - x0)) * ny + (y - y0))];
+  size_t cell(int64_t b, int64_t x, int64_t y) const {
+    return static_cast<size_t>(((b - b0) * nx + (x - x0)) * ny + (y - y0));
   }
+  int32_t at(int64_t b, int64_t x, int64_t y) const { return grid[cell(b, x, y)]; }
 };
 
 bool build_columns(const int64_t* c, int64_t n, int64_t max_cells, Columns& cols) {
@@ -70,8 +71,7 @@ bool build_columns(const int64_t* c, int64_t n, int64_t max_cells, Columns& cols
   for (int64_t i = 0; i < n; ++i) {
     const int64_t* v = c + 4 * i;
     if (i == 0 || v[0] != v[-4] || v[1] != v[-3] || v[2] != v[-2]) {
-      cols.grid[static_cast<size_t>(((v[0] - cols.b0) * cols.nx + (v[1] - cols.x0)) * cols.ny + (v[2] - cols.y0))] =
-          static_cast<int32_t>(cols.start.size());
+      cols.grid[cols.cell(v[0], v[1], v[2])] = static_cast<int32_t>(cols.start.size());
       cols.start.push_back(i);
     }
   }
