@@ -127,6 +127,7 @@ class CentreDetector(nn.Module):
         head: CentreNetHead | None = None,
         pad_multiple: int = 4,
         doppler_channels: int = COMPRESSED_DOPPLER_CHANNELS,
+        history_frames: int = 0,
     ) -> None:
         super().__init__()
         if doppler_bins < 1:
@@ -137,9 +138,12 @@ class CentreDetector(nn.Module):
             )
         if doppler_channels < 1:
             raise ValueError(f"doppler_channels must be >= 1, got {doppler_channels}")
+        if history_frames < 0:
+            raise ValueError(f"history_frames must be >= 0, got {history_frames}")
         self.doppler_compress = nn.Conv2d(doppler_bins, doppler_channels, 1)
         self.register_buffer("cartesian", normalised_cartesian(*cartesian)[None], persistent=False)
-        in_channels = doppler_channels + CARTESIAN_CHANNELS
+        self.history_frames = history_frames
+        in_channels = backbone_in_channels(doppler_channels, history_frames)
         self.backbone = (
             backbone
             if backbone is not None
@@ -164,8 +168,14 @@ class CentreDetector(nn.Module):
         """The ``(R, A)`` grid this detector's Cartesian channels were built for."""
         return tuple(self.cartesian.shape[-2:])
 
-    def forward(self, log_power: torch.Tensor) -> dict[str, torch.Tensor]:
-        """``(B, D, R, A)`` normalised log power -> dict of ``(B, ., ceil(R/4), ceil(A/4))`` outputs."""
+    def forward(self, log_power: torch.Tensor, history: torch.Tensor | None = None,
+                history_present: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """``(B, D, R, A)`` normalised log power -> dict of ``(B, ., ceil(R/4), ceil(A/4))`` outputs.
+
+        With ``history_frames`` H > 0, ``history`` (B, H, D, R, A) holds the earlier frames of the sequence
+        (normalised alike, the latest first) and ``history_present`` (B, H) which of them exist (default all);
+        without ``history`` every earlier frame counts as absent, so a single cube runs as it is.
+        """
         if (
             log_power.ndim != 4
             or log_power.shape[1] != self.doppler_bins
@@ -177,8 +187,9 @@ class CentreDetector(nn.Module):
             )
         batch, _, n_range, n_angle = log_power.shape
         image = torch.cat(
-            [self.doppler_compress(log_power), self.cartesian.expand(batch, -1, -1, -1)], dim=1
-        )  # (B, 5, R, A)
+            [self.doppler_compress(log_power), self.cartesian.expand(batch, -1, -1, -1),
+             *self._history_channels(log_power, history, history_present)], dim=1
+        )  # (B, C + 2 [+ H (C + 1)], R, A)
         pad_range = -n_range % self.pad_multiple
         pad_angle = -n_angle % self.pad_multiple
         if pad_range or pad_angle:
@@ -187,6 +198,29 @@ class CentreDetector(nn.Module):
         out_range = -(-n_range // self.output_stride)
         out_angle = -(-n_angle // self.output_stride)
         return {name: value[..., :out_range, :out_angle] for name, value in outputs.items()}
+
+    def _history_channels(self, log_power: torch.Tensor, history: torch.Tensor | None,
+                          history_present: torch.Tensor | None) -> list[torch.Tensor]:
+        """Each earlier frame compressed by the same 1x1 conv (zero where absent), then one presence channel
+        per earlier frame: ``[]`` for a single-frame detector."""
+        if not self.history_frames:
+            if history is not None:
+                raise ValueError("this detector reads one frame (history_frames 0): give no history")
+            return []
+        batch, _, n_range, n_angle = log_power.shape
+        n_history = self.history_frames
+        if history is None:
+            present = log_power.new_zeros(batch, n_history)
+            compressed = log_power.new_zeros(batch, n_history * self.doppler_compress.out_channels, n_range, n_angle)
+            return [compressed, present[:, :, None, None].expand(-1, -1, n_range, n_angle)]
+        expected = (batch, n_history, self.doppler_bins, n_range, n_angle)
+        if tuple(history.shape) != expected:
+            raise ValueError(f"expected history {expected} (B, H, D, R, A), got {tuple(history.shape)}")
+        present = (log_power.new_ones(batch, n_history) if history_present is None
+                   else history_present.to(log_power.dtype))
+        compressed = self.doppler_compress(history.flatten(0, 1)).unflatten(0, (batch, n_history))
+        compressed = (compressed * present[:, :, None, None, None]).flatten(1, 2)
+        return [compressed, present[:, :, None, None].expand(-1, -1, n_range, n_angle)]
 
     def compute_loss(
         self, outputs: dict[str, torch.Tensor], targets: CentreTargets
@@ -199,6 +233,12 @@ class CentreDetector(nn.Module):
     ) -> list[dict[str, torch.Tensor]]:
         """Centres per frame in input bins, see :meth:`CentreNetHead.decode`."""
         return self.head.decode(outputs, k=k, score_threshold=score_threshold)
+
+
+def backbone_in_channels(doppler_channels: int, history_frames: int = 0) -> int:
+    """The backbone's input channels: the compressed Doppler and the Cartesian (x, y), then per earlier frame
+    its compressed Doppler and a presence channel."""
+    return doppler_channels + CARTESIAN_CHANNELS + history_frames * (doppler_channels + 1)
 
 
 def _resolve_grid(
@@ -231,11 +271,13 @@ def build_centre_detector(
     channels: dict[str, list[int]] | None = None,
     doppler_channels: int = COMPRESSED_DOPPLER_CHANNELS,
     heatmap_classes: int = 1,
+    history_frames: int = 0,
 ) -> CentreDetector:
     """Centre detector for a radar preset.
 
     ``doppler_channels``: width of the 1x1 Doppler compression (the paper's 3); ``heatmap_classes``: 1 (one
-    heatmap for every class, the paper's) or the preset's number of foreground classes (a heatmap per class).
+    heatmap for every class, the paper's) or the preset's number of foreground classes (a heatmap per class);
+    ``history_frames``: earlier frames of the sequence read beside the current one (0: one frame, the paper's).
 
     ``variant`` picks the stage table and head conv type from :data:`VARIANTS`; ``stages`` and
     ``separable_heads`` override them. ``cartesian`` (x, y metres, each (R, A)) defaults to the
@@ -254,7 +296,7 @@ def build_centre_detector(
     chosen = VARIANTS[variant]
     doppler_bins, cartesian = _resolve_grid(preset, cartesian)
     backbone: EfficientNetBackbone = build_efficientnet(
-        in_channels=doppler_channels + CARTESIAN_CHANNELS,
+        in_channels=backbone_in_channels(doppler_channels, history_frames),
         stages=chosen.stages if stages is None else tuple(stages),
         width_mult=width_mult,
         depth_mult=depth_mult,
@@ -269,7 +311,7 @@ def build_centre_detector(
     )
     detector = CentreDetector(
         doppler_bins=doppler_bins, cartesian=cartesian, backbone=backbone, neck=neck, head=head,
-        doppler_channels=doppler_channels,
+        doppler_channels=doppler_channels, history_frames=history_frames,
     )
     if channels:
         apply_channel_table(detector, channels)
@@ -284,6 +326,7 @@ def build_centre_detector_tiny(
     channels: dict[str, list[int]] | None = None,
     doppler_channels: int = COMPRESSED_DOPPLER_CHANNELS,
     heatmap_classes: int = 1,
+    history_frames: int = 0,
 ) -> CentreDetector:
     """A 67 k-parameter detector with the real structure (every stage, BiFPN, three heads), for tests."""
     return build_centre_detector(
@@ -291,6 +334,7 @@ def build_centre_detector_tiny(
         variant=variant,
         doppler_channels=doppler_channels,
         heatmap_classes=heatmap_classes,
+        history_frames=history_frames,
         width_mult=0.25,
         depth_mult=0.25,
         neck_channels=16,

@@ -41,10 +41,18 @@ def decode_centres(detector: nn.Module, outputs: dict[str, torch.Tensor], log_po
 def detect_centres(detector: nn.Module, log_power_dra: torch.Tensor, *, mean_db: float, std_db: float,
                    k: int = MAX_OBJECTS, score_threshold: float,
                    doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
-                   device: torch.device | str = "cpu") -> tuple[dict[str, torch.Tensor], list[Centres]]:
+                   device: torch.device | str = "cpu", history: torch.Tensor | None = None,
+                   history_present: torch.Tensor | None = None) -> tuple[dict[str, torch.Tensor], list[Centres]]:
     """The whole step on a batch of log power (B, D, R, A) dB (the store's layout): the detector's outputs
-    (for a loss) and each frame's centres."""
-    outputs = detector(normalise_log_power(log_power_dra, mean_db, std_db).to(device))
+    (for a loss) and each frame's centres. ``history`` (B, H, D, R, A) dB and ``history_present`` (B, H): the
+    earlier frames of each frame's sequence, for a detector that reads them (absent frames are zeroed)."""
+    x = normalise_log_power(log_power_dra, mean_db, std_db).to(device)
+    if history is None:
+        outputs = detector(x)
+    else:
+        present = history_present.to(device)
+        earlier = normalise_log_power(history, mean_db, std_db).to(device) * present[:, :, None, None, None]
+        outputs = detector(x, history=earlier, history_present=present)
     # (D, R, A) -> (R, A, D) views, for the Doppler refinement
     log_power_rad = [frame.float().cpu().numpy().transpose(1, 2, 0) for frame in log_power_dra]
     return outputs, decode_centres(detector, outputs, log_power_rad, k=k, score_threshold=score_threshold,

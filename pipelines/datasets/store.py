@@ -39,6 +39,7 @@ import torch
 import zarr
 
 from models.detector.targets import OUTPUT_STRIDE, output_grid, render_heatmap
+from pipelines.datasets.history import earlier_slots
 from pipelines.datasets.sharded_store import Sharded, create_sharded_store, done_shards, open_sharded_store
 from radar import transforms
 from radar.detections import MAX_OBJECTS
@@ -194,7 +195,8 @@ def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: 
     (broadside) stays, bin 0 (endfire, sin = -1) maps to itself as it has no +1 partner. Fractional
     centres map to ``A - a``, ``x`` to ``-x``; sub-cell offsets and the heatmap are recomputed from
     the mirrored centres (flipping the stored heatmap would be off by a cell, as floor() is not
-    symmetric). Array axes: ``input`` (D, R, A), ``labels``/``instances`` (R, A, D), ``ra_mask`` (R, A).
+    symmetric). Array axes: ``input`` (D, R, A), ``history`` (H, D, R, A), ``labels``/``instances`` (R, A, D),
+    ``ra_mask`` (R, A).
     """
     n_angle = profile.n_angle
     out = dict(sample)
@@ -202,7 +204,7 @@ def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: 
     def mirror(t: torch.Tensor, axis: int) -> torch.Tensor:
         return torch.roll(torch.flip(t, dims=(axis,)), shifts=1, dims=axis)
 
-    for name, axis in (("input", 2), ("labels", 1), ("instances", 1), ("ra_mask", 1)):
+    for name, axis in (("input", 2), ("history", 3), ("labels", 1), ("instances", 1), ("ra_mask", 1)):
         if name in sample:
             out[name] = mirror(sample[name], axis)
     if "objects" in sample:
@@ -233,7 +235,11 @@ class StoreDataset(torch.utils.data.Dataset):
     - ``heatmap``: float32 (1, R/4, A/4);
     - ``objects``: float32 (K, F) NaN-padded table (columns ``OBJECT_FIELDS``: bins, cells, metres);
       ``n_objects``: int64 scalar; always present together;
-    - ``frame``: int, the store slot; ``flipped``: bool.
+    - ``frame``: int, the store slot; ``flipped``: bool;
+    - with ``history`` H > 0 (and ``input`` among the fields): ``history`` float32 (H, D, R, A), the sequence's
+      earlier frames scaled as ``input`` (the latest first, zero where absent), and ``history_present`` bool (H,)
+      (:mod:`pipelines.datasets.history`); ``history_drop`` > 0 drops a sample's whole history at random
+      (reproducibly from ``seed`` and the slot), so that a model trained on it also runs on a single cube.
 
     ``flip_prob`` > 0 mirrors samples left-right at random (:func:`flip_angle`), reproducibly from
     ``seed`` and the sample index. Arrays are opened lazily in each process (zarr's I/O thread does
@@ -243,12 +249,17 @@ class StoreDataset(torch.utils.data.Dataset):
     ALL_FIELDS = ("input", "labels", "instances", "ra_mask", "rd_mask", "heatmap", "objects")
 
     def __init__(self, path: str | Path, split: str | None = "train", *, fields: Sequence[str] = ALL_FIELDS,
-                 normalise: bool = True, flip_prob: float = 0.0, seed: int = 0):
+                 normalise: bool = True, flip_prob: float = 0.0, seed: int = 0, history: int = 0,
+                 history_drop: float = 0.0):
         unknown = set(fields) - set(self.ALL_FIELDS)
         if unknown:
             raise ValueError(f"unknown fields {sorted(unknown)}; expected a subset of {self.ALL_FIELDS}")
         if not 0.0 <= flip_prob <= 1.0:
             raise ValueError(f"flip_prob must be in [0, 1], got {flip_prob}")
+        if not 0.0 <= history_drop <= 1.0:
+            raise ValueError(f"history_drop must be in [0, 1], got {history_drop}")
+        if history and "input" not in fields:
+            raise ValueError("history needs the 'input' field")
         self.path = Path(path)
         root = open_store(self.path)
         attrs = root.attrs.asdict()
@@ -260,6 +271,8 @@ class StoreDataset(torch.utils.data.Dataset):
         self.normalise = normalise
         self.flip_prob = flip_prob
         self.seed = seed
+        self.history = earlier_slots(root, history) if history else None
+        self.history_drop = history_drop
         stats = attrs["normalisation"]
         self.mean = torch.tensor(stats["mean_per_doppler"], dtype=torch.float32)[:, None, None]  # (D, 1, 1)
         self.std = torch.tensor(stats["std_per_doppler"], dtype=torch.float32)[:, None, None]
@@ -287,20 +300,35 @@ class StoreDataset(torch.utils.data.Dataset):
         for name, array in arrays.items():
             value = array[slot]
             if name == "input":
-                tensor = torch.from_numpy(np.ascontiguousarray(value.astype(np.float32).transpose(2, 0, 1)))
-                sample[name] = (tensor - self.mean) / self.std if self.normalise else tensor
+                sample[name] = self._input(value)
             elif name == "heatmap":
                 sample[name] = torch.from_numpy(value.astype(np.float32))[None]
             elif name == "n_objects":
                 sample[name] = torch.tensor(int(value), dtype=torch.int64)
             else:
                 sample[name] = torch.from_numpy(np.ascontiguousarray(value))
+        if self.history is not None:
+            self._add_history(sample, slot, arrays["input"])
         if self.flip_prob > 0:
             rng = np.random.default_rng([self.seed, slot])
             if rng.random() < self.flip_prob:
                 sample = flip_angle(sample, self.profile, output_stride=self.output_stride)
                 sample["flipped"] = True
         return sample
+
+    def _input(self, value: np.ndarray) -> torch.Tensor:
+        """A stored (R, A, D) log-power cube as the model's (D, R, A) float32, normalised if asked."""
+        tensor = torch.from_numpy(np.ascontiguousarray(value.astype(np.float32).transpose(2, 0, 1)))
+        return (tensor - self.mean) / self.std if self.normalise else tensor
+
+    def _add_history(self, sample: dict[str, Any], slot: int, inputs: zarr.Array) -> None:
+        earlier = self.history[slot]
+        dropped = self.history_drop > 0 and np.random.default_rng([self.seed, slot, 1]).random() < self.history_drop
+        present = torch.from_numpy((earlier >= 0) & (not dropped))
+        frames = [self._input(inputs[int(s)]) if ok else torch.zeros_like(sample["input"])
+                  for s, ok in zip(earlier, present.tolist(), strict=True)]
+        sample["history"] = torch.stack(frames)
+        sample["history_present"] = present
 
 
 # --------------------------------------------------------------------------- summary

@@ -95,22 +95,26 @@ def score_detector(detector: nn.Module, store: str, split: str, profile: RadarPr
                    normalisation: Mapping[str, Any], *, max_frames: int = 0, score_threshold: float = 0.05,
                    batch_size: int = 8, device: torch.device | str = "cpu",
                    with_loss: bool = False,
-                   doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT) -> dict[str, float]:
+                   doppler_refinement: DopplerRefinement | None = DOPPLER_REFINEMENT,
+                   history: int = 0) -> dict[str, float]:
     """Detection AP@1/3/5 and mAP of ``detector`` on ``max_frames`` evenly spread frames of ``split`` (0 = all),
     input normalised with the store's global mean/std in dB exactly as :class:`models.erasenet.model.EraseNet` does;
     with ``with_loss`` also ``loss`` (mean total per frame). The Doppler of each centre is refined from the
     frame's cube (:func:`radar.doppler.refine_doppler`) as EraseNet does, unless ``doppler_refinement`` is None.
-    The model is left in eval mode."""
+    With ``history`` H > 0 the detector also reads each frame's H earlier frames of its sequence (a detector with
+    ``history_frames`` H); without, it sees single cubes. The model is left in eval mode."""
     detector.eval()
-    dataset = StoreDataset(store, split, fields=("input", "objects"), normalise=False)
+    dataset = StoreDataset(store, split, fields=("input", "objects"), normalise=False, history=history)
     indices = subset(len(dataset), max_frames)
     scorer, loss_sum = DetectionScorer(profile), 0.0
     for start in range(0, len(indices), batch_size):
         samples = [dataset[i] for i in indices[start:start + batch_size]]
         log_power = torch.stack([s["input"] for s in samples])  # (B, D, R, A) dB
+        earlier = ({"history": torch.stack([s["history"] for s in samples]),
+                    "history_present": torch.stack([s["history_present"] for s in samples])} if history else {})
         outputs, frames = detect_centres(detector, log_power, mean_db=normalisation["mean"],
                                          std_db=normalisation["std"], score_threshold=score_threshold,
-                                         doppler_refinement=doppler_refinement, device=device)
+                                         doppler_refinement=doppler_refinement, device=device, **earlier)
         if with_loss:
             targets = centre_targets(samples, (profile.n_range, profile.n_angle),
                                      heatmap_classes=getattr(detector.head, "heatmap_classes", 1))

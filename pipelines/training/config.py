@@ -45,6 +45,7 @@ class Hyper:
     jitter_std: tuple[float, float, float] = DEFAULT_JITTER_STD  # segmenter, bins, when no detector is given
     lovasz_weight: float = 0.0  # segmenter: weight of the Lovasz-softmax term beside weighted cross entropy
     class_weights: tuple[float, ...] = ()  # detector: the focal loss's weight at each foreground class's centres
+    history_drop: float = 0.25  # detector reading history (model_config history_frames): share trained on one cube
 
 
 PROFILES: dict[str, dict[str, Hyper]] = {

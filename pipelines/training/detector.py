@@ -26,7 +26,11 @@ class DetectorTask(Task):
     def train_dataset(self) -> Dataset:
         """Training frames with their log power in dB (normalised in :meth:`collate`)."""
         return StoreDataset(self.store.path, self.cfg.train_split, fields=("input", "objects"), normalise=False,
-                            flip_prob=self.hyper.flip_prob, seed=self.cfg.seed)
+                            flip_prob=self.hyper.flip_prob, seed=self.cfg.seed, history=self._history_frames(),
+                            history_drop=self.hyper.history_drop)
+
+    def _history_frames(self) -> int:
+        return int(self.hyper.model_config.get("history_frames", 0))
 
     def collate(self, samples: list[dict[str, Any]]) -> dict[str, Any]:
         """Input ``(B, D, R, A)`` normalised with the store's global mean and std (dB), exactly what
@@ -34,7 +38,12 @@ class DetectorTask(Task):
         grid = (self.store.profile.n_range, self.store.profile.n_angle)
         log_power = torch.stack([s["input"] for s in samples])
         stats = self.store.normalisation
-        return {"input": (log_power - stats["mean"]) / stats["std"],
+        history = {}
+        if self._history_frames():
+            history = {"history": (torch.stack([s["history"] for s in samples]) - stats["mean"]) / stats["std"],
+                       "history_present": torch.stack([s["history_present"] for s in samples])}
+            history["history"] *= history["history_present"][:, :, None, None, None]  # absent frames stay 0
+        return {"input": (log_power - stats["mean"]) / stats["std"], **history,
                 "targets": centre_targets(samples, grid, centre_weights=self._centre_weights(samples),
                                           heatmap_classes=int(self.hyper.model_config.get("heatmap_classes", 1)))}
 
@@ -52,7 +61,8 @@ class DetectorTask(Task):
                 for s in samples]
 
     def loss(self, model: nn.Module, batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
-        outputs = model(batch["input"].to(device))
+        history = {k: batch[k].to(device) for k in ("history", "history_present") if k in batch}
+        outputs = model(batch["input"].to(device), **history)
         targets = {k: v.to(device) for k, v in batch["targets"].items()}
         return unwrap(model).compute_loss(outputs, targets)
 
@@ -61,6 +71,10 @@ class DetectorTask(Task):
             return {}
         scores = score_detector(model, self.store.path, self.cfg.val_split, self.store.profile,
                                 self.store.normalisation, max_frames=self.hyper.val_frames, device=device,
-                                with_loss=True)
+                                with_loss=True, history=self._history_frames())
+        if self._history_frames():  # a model that reads history is scored on single cubes too
+            single = score_detector(model, self.store.path, self.cfg.val_split, self.store.profile,
+                                    self.store.normalisation, max_frames=self.hyper.val_frames, device=device)
+            scores.update({f"{k}_single": v for k, v in single.items()})
         model.train()
         return {f"val_{k}": v for k, v in scores.items()}
