@@ -5,7 +5,8 @@ point (seeds at the score threshold matched within 3 m).
 Reads each run's ``curve.jsonl`` (``radarseg train segmenter --curve-every STEPS``: a validation before the first
 step, every STEPS steps and at each epoch's end, with the training CPU seconds spent to reach it, validation
 excluded) and writes the curves into one JSON file and one picture (four panels). Runs are named ``NAME=RUN_DIR``;
-``NAME=RUN_DIR@MINUTES`` starts a run's curve at MINUTES (a run that continued another's checkpoint, drawn after it).
+``NAME=RUN_DIR@MINUTES`` starts a run's curve at MINUTES (a run that continued another's checkpoint, drawn after it);
+``NAME=RUN_DIR#single`` draws a detector that reads history as scored on single cubes (its ``val_*_single`` figures).
 
     .venv/bin/python -m benchmarks.learning_curves "CE=runs/lc/ft-ce" "CE+Lovasz=runs/lc/ft-ce-lovasz" \\
         --out reports/learning_curves
@@ -33,16 +34,18 @@ KEPT = ("epoch", "step", "cpu_s", "elapsed_s", "val_mIoU", "val_roi_recall", "va
     "val_RA_iou_cyclist", "val_RD_iou_cyclist", "val_RA_iou_car", "val_RD_iou_car")
 
 
-def read_curve(run_dir: Path, start_minutes: float = 0.0) -> dict[str, Any]:
+def read_curve(run_dir: Path, start_minutes: float = 0.0, suffix: str = "") -> dict[str, Any]:
     """One run's points (the figures of :data:`KEPT`), its resolved configuration and its command's options;
-    ``start_minutes`` is where its x axis starts (the CPU minutes of the run it continued)."""
+    ``start_minutes`` is where its x axis starts (the CPU minutes of the run it continued); ``suffix``: read each
+    validation figure ``val_X`` from ``val_X{suffix}`` (``_single``: a history detector on single cubes)."""
     path = run_dir / "curve.jsonl"
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no learning curve (train with --curve-every STEPS)")
     points = [json.loads(line) for line in path.read_text().splitlines() if line]
     config = json.loads((run_dir / "config.json").read_text())
     return {"run": str(run_dir), "config": config, "start_cpu_minutes": start_minutes,
-            "points": [{key: point.get(key) for key in KEPT} for point in points]}
+            "points": [{key: point.get(key + suffix if key.startswith("val_") else key) for key in KEPT}
+                       for point in points]}
 
 
 def plot(curves: dict[str, dict[str, Any]], path: Path, panels: tuple[tuple[str, str], ...]) -> Path:
@@ -78,14 +81,15 @@ def main() -> None:
     curves = {}
     for item in args.runs:
         name, sep, run = item.partition("=")
+        run, hashed, reading = run.partition("#")
         run, at, start = run.partition("@")
-        if not sep or not name or not run:
-            parser.error(f"runs are NAME=RUN_DIR or NAME=RUN_DIR@MINUTES, got {item!r}")
+        if not sep or not name or not run or hashed and reading != "single":
+            parser.error(f"runs are NAME=RUN_DIR, NAME=RUN_DIR@MINUTES or NAME=RUN_DIR#single, got {item!r}")
         try:
             start_minutes = float(start) if at else 0.0
         except ValueError:
             parser.error(f"the start after @ must be CPU minutes, got {start!r} in {item!r}")
-        curves[name] = read_curve(Path(run), start_minutes)
+        curves[name] = read_curve(Path(run), start_minutes, "_single" if hashed else "")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     result = {"load_average": os.getloadavg(), "curves": curves}
