@@ -39,6 +39,7 @@ TINY_CLASSES = ("background", "pedestrian", "cyclist", "car")
 UNTRAINED_NORMALISATION = {"mean": 60.0, "std": 8.0}
 KINDS = {  # key -> (registered model, builder config, stage)
     "detector": ("centre_detector_tiny", {}, "detector"),
+    "detector_history": ("centre_detector_tiny", {"history_frames": 1}, "detector"),  # reads the frame before
     "segmenter": ("minkunet_tiny", {}, "segmenter"),
     "unet_rd": ("unet_tiny", {"view": "rd"}, "baseline"),
     "unet_ra": ("unet_tiny", {"view": "ra"}, "baseline"),

@@ -79,16 +79,32 @@ class FrozenDetector(nn.Module):
             # No `check_trace`: it re-runs and re-traces the model to compare (2.7 of a model load's 4.3 s,
             # most of a service's start); tests/models compare the graph with the eager detector instead.
             self.graph = torch.jit.trace(eager, example, strict=False, check_trace=False)
+        self._eager = eager  # kept for the history graph, traced at its first use
+        self._history_graph: torch.jit.ScriptModule | None = None
 
-    def forward(self, log_power: torch.Tensor) -> dict[str, torch.Tensor]:
-        """The detector's outputs for a normalised input (B, D, R, A) of the traced shape (any layout).
+    def forward(self, log_power: torch.Tensor, history: torch.Tensor | None = None,
+                history_present: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """The detector's outputs for a normalised input (B, D, R, A) of the traced shape (any layout); with
+        ``history`` (B, H, D, R, A) and ``history_present`` (B, H), for a detector that reads earlier frames,
+        through a second graph traced for them at the first call.
 
         Raises:
             ValueError: another input shape (the trace fixed its padding and shapes).
         """
         if tuple(log_power.shape) != self.input_shape:
             raise ValueError(f"frozen detector traced for input {self.input_shape}, got {tuple(log_power.shape)}")
-        return self.graph(log_power.contiguous(memory_format=torch.channels_last))
+        x = log_power.contiguous(memory_format=torch.channels_last)
+        if history is None:
+            return self.graph(x)
+        present = (torch.ones(history.shape[:2], dtype=x.dtype, device=x.device) if history_present is None
+                   else history_present.to(x.dtype))
+        if self._history_graph is None:
+            with torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore", DeprecationWarning)
+                warnings.simplefilter("ignore", torch.jit.TracerWarning)
+                self._history_graph = torch.jit.trace(self._eager, (x, history, present), strict=False,
+                                                      check_trace=False)
+        return self._history_graph(x, history, present)
 
     def decode(self, outputs: dict[str, torch.Tensor], k: int = 100,
                score_threshold: float = 0.1) -> list[dict[str, torch.Tensor]]:

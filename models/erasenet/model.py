@@ -10,6 +10,7 @@ processed.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -173,6 +174,11 @@ class EraseNet:
         expect_stage(seg, Stage.SEGMENTER, option="segmenter")
         return det, seg
 
+    @property
+    def history_frames(self) -> int:
+        """Earlier frames of the sequence the detector reads beside the cube (0: one frame)."""
+        return int(getattr(self.detector, "history_frames", 0) or 0)
+
     def schema(self, content: str = "complex") -> dict[str, Any]:
         """The cube schema this model accepts (radar.schema)."""
         return cube_schema(self.profile, content)
@@ -186,7 +192,8 @@ class EraseNet:
 
     @torch.no_grad()
     def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None,
-                schema: dict[str, Any] | None = None, views: bool = False) -> SegmentationResult:
+                schema: dict[str, Any] | None = None, views: bool = False,
+                history: Sequence[np.ndarray | None] | None = None) -> SegmentationResult:
         """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
 
         ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
@@ -194,6 +201,8 @@ class EraseNet:
         ``schema`` (optional) is the cube's own description; a mismatch with the model's raises
         :class:`radar.schema.SchemaMismatch` naming every difference. ``views``: also return the input's RA and
         RD views in dB (``SegmentationResult.views``), from the frame's log power, inside the timed work.
+        ``history`` (optional, for a detector with :attr:`history_frames`): the earlier frames' log power (R, A, D)
+        dB, the latest first, None for one that does not exist; without it the detector sees a single cube.
         """
         if schema is not None:
             content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
@@ -209,7 +218,7 @@ class EraseNet:
             x = self._detector_input(log_power)
         with _stage(seconds, "detect"):
             if centres is None:
-                centres = self._centres(x, log_power, self.score_threshold)
+                centres = self._centres(x, log_power, self.score_threshold, history)
                 detect_macs = self.detector_macs()
             else:
                 detect_macs = 0
@@ -235,20 +244,42 @@ class EraseNet:
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views)
 
     @torch.no_grad()
-    def detect(self, log_power: np.ndarray, *, score_threshold: float | None = None) -> Centres:
+    def detect(self, log_power: np.ndarray, *, score_threshold: float | None = None,
+               history: Sequence[np.ndarray | None] | None = None) -> Centres:
         """The centres of one frame's log power (R, A, D) dB down to ``score_threshold`` (default the model's), found
         by the detector :meth:`segment` runs (this engine's: the ONNX graph, float or int8, or the PyTorch module),
-        Doppler refined as :meth:`segment` refines it: what detection AP scores."""
+        Doppler refined as :meth:`segment` refines it: what detection AP scores. ``history`` as in :meth:`segment`."""
         if self._run_detector is None:
             raise ValueError("this EraseNet has no detector")
         log_power = log_power.astype(np.float32, copy=False)
         threshold = self.score_threshold if score_threshold is None else score_threshold
-        return self._centres(self._detector_input(log_power), log_power, threshold)
+        return self._centres(self._detector_input(log_power), log_power, threshold, history)
 
-    def _centres(self, x: Any, log_power: np.ndarray, score_threshold: float) -> Centres:
-        """The detector on its input ``x``, decoded down to ``score_threshold``, Doppler refined from ``log_power``."""
-        return decode_centres(self._run_detector, self._run_detector(x), [log_power], k=self.max_objects,
+    def _centres(self, x: Any, log_power: np.ndarray, score_threshold: float,
+                 history: Sequence[np.ndarray | None] | None = None) -> Centres:
+        """The detector on its input ``x`` (and the earlier frames, if any), decoded down to ``score_threshold``,
+        Doppler refined from ``log_power``."""
+        outputs = self._run_detector(x) if history is None else self._run_detector(x, **self._history_input(history))
+        return decode_centres(self._run_detector, outputs, [log_power], k=self.max_objects,
                               score_threshold=score_threshold, doppler_refinement=self.doppler_refinement)[0]
+
+    def _history_input(self, history: Sequence[np.ndarray | None]) -> dict[str, torch.Tensor]:
+        """The detector's ``history`` (1, H, D, R, A), normalised, zero where absent, and ``history_present`` (1, H)."""
+        n_history = self.history_frames
+        if not n_history:
+            raise ValueError("this model's detector reads one frame (history_frames 0): give no history")
+        if len(history) > n_history:
+            raise ValueError(f"{len(history)} earlier frames given, the detector reads {n_history}")
+        frames = [*history, *[None] * (n_history - len(history))]
+        shape = self.profile.shape
+        for frame in frames:
+            if frame is not None and frame.shape != shape:
+                raise ValueError(f"an earlier frame must have the cube's shape {shape}, got {frame.shape}")
+        zeros = torch.zeros(self.profile.n_doppler, *shape[:2], device=self.device)
+        earlier = [zeros if frame is None else self._detector_input(frame.astype(np.float32, copy=False))[0]
+                   for frame in frames]
+        present = torch.tensor([[frame is not None for frame in frames]], device=self.device)
+        return {"history": torch.stack(earlier)[None], "history_present": present}
 
     def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
         """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""

@@ -109,6 +109,12 @@ class OnnxEraseNet(EraseNet):
         self._segmenter_session = _session(self.onnx_dir / "segmenter.onnx", threads)
         self._layers = self.manifest["segmenter"]["layers"]
 
+    @property
+    def history_frames(self) -> int:
+        """0: the exported detector graph reads one cube (a detector that reads history is exported on its
+        single-cube path), so this engine takes no history."""
+        return 0
+
     @classmethod
     def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
                          onnx_dir: str | Path, int8: bool = False, **kwargs: Any) -> OnnxEraseNet:

@@ -40,6 +40,7 @@ from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
+from pipelines.datasets.history import earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import (
     CENTRE_COLUMNS,
@@ -83,6 +84,7 @@ class EvaluateConfig:
     device: str = "cpu"
     threads: int = 0  # torch intra-op threads (0 = torch's default); the per-stage seconds are taken with these
     progress: bool = True
+    single_cube: bool = False  # a detector that reads earlier frames sees each frame alone (no history)
 
     def __post_init__(self) -> None:
         if self.max_frames < 0 or self.pictures < 0 or self.sweep_frames < 0:
@@ -154,12 +156,16 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     if tracking.problem:
         log.warning("tracking not evaluated: %s", tracking.problem)
     sequence_ids, frame_indices = root["sequence_id"][:], root["frame_index"][:]
+    history_frames = 0 if cfg.single_cube else net.history_frames
+    earlier = earlier_slots(root, history_frames) if history_frames else None
     pictures: list[str] = []
     started = time.perf_counter()
     for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
         frame = {name: array[slot] for name, array in arrays.items()}
-        picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames)
+        history = None if earlier is None else [None if s < 0 else arrays["input"][int(s)].astype(np.float32)
+                                                for s in earlier[slot]]
+        picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames, history=history)
         tracking.add(sequence_ids[slot], frame_indices[slot], picture[2], picture[3].objects)
         if slot in picture_frames:
             title = f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)"
@@ -167,6 +173,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     pictures = _summary_pictures(tallies, net.class_names, out, f"{split_name}, {len(frames)} frames") + pictures
     metrics = _metrics(cfg, net, (det_ckpt, seg_ckpt), tallies, split_name, len(frames))
     metrics.update(seconds=time.perf_counter() - started, pictures=pictures)  # in their place among the keys
+    metrics["history_frames"] = history_frames
     if cfg.oracle:
         metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
                                                in tallies.oracle_confusion.summary(net.class_names).items()}
@@ -190,9 +197,10 @@ def _frames(cfg: EvaluateConfig, profile: Any) -> tuple[Any, np.ndarray]:
 
 
 def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: dict[str, np.ndarray], *,
-                 in_sweep: bool) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, Any]:
-    """Add one frame to every tally; returns what its picture needs: log power, truth masks, object table,
-    the segmentation result."""
+                 in_sweep: bool, history: list[np.ndarray | None] | None = None
+                 ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, Any]:
+    """Add one frame to every tally (``history``: its earlier frames' log power, for a detector that reads them);
+    returns what its picture needs: log power, truth masks, object table, the segmentation result."""
     profile = net.profile
     log_power = frame["input"].astype(np.float32)  # (R, A, D) dB
     instances = frame["instances"]
@@ -201,11 +209,11 @@ def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: d
 
     # detection AP: the scored centres of the engine's own detector (the ONNX graph on the ONNX engines) down to a
     # low threshold, Doppler refined as the product refines it: AP of what it outputs
-    scored = net.detect(log_power, score_threshold=AP_SCORE_THRESHOLD)
+    scored = net.detect(log_power, score_threshold=AP_SCORE_THRESHOLD, history=history)
     tallies.detection.add(scored, table)
 
     # the whole chain at the operating threshold
-    result = net.segment(log_power, is_log_power=True)
+    result = net.segment(log_power, is_log_power=True, history=history)
     tallies.confusion.add_masks(truth, result.ra_mask, result.rd_mask)
     tallies.predicted_seeds.add(result.regions, instances)
     for name, value in result.compute.macs_by_stage().items():
@@ -312,6 +320,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=0,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--single-cube", action="store_true",
+                        help="a detector that reads earlier frames of the sequence sees each frame alone")
 
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
@@ -321,7 +331,7 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
                           score_threshold=args.score_threshold, oracle=not args.no_oracle,
                           doppler_refinement=not args.no_doppler_refinement, device=args.device,
-                          threads=args.threads, progress=not args.no_progress)
+                          threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube)
 
 
 def main(cfg: EvaluateConfig) -> dict[str, Any]:

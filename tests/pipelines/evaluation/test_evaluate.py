@@ -128,3 +128,21 @@ def test_shipped_model_reaches_its_report(tmp_path):
         "recall"] - 0.05
     for view in ("RA", "RD"):
         assert metrics["segmentation"][view]["mIoU"] >= shipped["segmentation"][view]["mIoU"] - 0.10, view
+
+
+def test_a_detector_that_reads_history_is_evaluated_with_it_or_on_single_cubes(small_store, tmp_path):
+    from tests.conftest import save_tiny_checkpoints
+
+    made = save_tiny_checkpoints(None, tmp_path / "ckpt", ("detector_history", "segmenter"), mixed_labels=False)
+    runs = {}
+    for single in (False, True):
+        out = tmp_path / f"eval-{single}"
+        runs[single] = evaluate(EvaluateConfig(detector=made["detector_history"], segmenter=made["segmenter"],
+                                               store=str(small_store), out=str(out), split="val", pictures=0,
+                                               sweep_frames=0, score_threshold=0.05, progress=False,
+                                               single_cube=single))
+    assert runs[False]["history_frames"] == 1 and runs[True]["history_frames"] == 0
+    assert runs[False]["frames"] == runs[True]["frames"] == 3
+    # the first frame of the sequence has no history: scored alike; the later two read their earlier frames
+    assert runs[False]["detection"]["n_predictions"] != runs[True]["detection"]["n_predictions"] or \
+        runs[False]["segmentation"]["RA"]["confusion"] != runs[True]["segmentation"]["RA"]["confusion"]
