@@ -47,6 +47,7 @@ import numpy as np
 
 from models.erasenet.engines import ENGINES
 from pipelines.datasets import shard_frames, sharded_job
+from pipelines.datasets.history import earlier_slots
 from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.datasets.sources import SourceKind, add_source_arguments, parse_source, source_from_args
 from pipelines.datasets.store import frames_of_split, open_store
@@ -60,6 +61,7 @@ from pipelines.inference.predictions_store import (
 )
 from pipelines.jobs import run_module
 from process.heap import freeze_loaded_heap
+from radar import transforms
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
 from radar.io.errors import DataError
@@ -232,21 +234,39 @@ def _check_out(plan: BatchPlan) -> None:
 
 
 # --------------------------------------------------------------------------- the segmenter stage
-def _source_cubes(source: sharded_job.SourceSpec,
-                  frames: Sequence[FrameRef]) -> Iterator[tuple[FrameRef, np.ndarray | DataError]]:
-    """Each frame's cube (a store's: float16 log power in dB; a recording's: complex), or the DataError
-    reading it raised."""
+def _source_cubes(source: sharded_job.SourceSpec, frames: Sequence[FrameRef], history: int = 0
+                  ) -> Iterator[tuple[FrameRef, tuple[np.ndarray, list[np.ndarray | None] | None] | DataError]]:
+    """Each frame's cube (a store's: float16 log power in dB; a recording's: complex) with, for ``history`` > 0,
+    its sequence's earlier frames' log power in dB (the latest first, None where there is none or it cannot be
+    read), or the DataError reading the frame raised."""
     if source.kind == "store":
-        inputs = open_store(source.path)["input"]
+        root = open_store(source.path)
+        inputs = root["input"]
+        earlier = earlier_slots(root, history) if history else None
         for ref in frames:
-            yield ref, inputs[ref.source_slot].astype(np.float32)
+            past = None if earlier is None else [None if s < 0 else inputs[int(s)].astype(np.float32)
+                                                 for s in earlier[ref.source_slot]]
+            yield ref, (inputs[ref.source_slot].astype(np.float32), past)
         return
     recording = Recording(source.path)
     for ref in frames:
         try:
-            yield ref, recording.read_frame(ref.sequence, ref.index).cube
+            cube = recording.read_frame(ref.sequence, ref.index).cube
         except DataError as exc:
             yield ref, exc
+            continue
+        past = [_recorded_log_power(recording, ref.sequence, ref.index - 1 - h) for h in range(history)]
+        yield ref, (cube, past if history else None)
+
+
+def _recorded_log_power(recording: Recording, sequence: str, index: int) -> np.ndarray | None:
+    """A recording's frame as log power in dB, or None when it does not exist or cannot be read."""
+    if index < 0:
+        return None
+    try:
+        return transforms.log_power(recording.read_frame(sequence, index).cube)
+    except DataError:
+        return None
 
 
 class ShardSegmenter:
@@ -286,13 +306,15 @@ class ShardSegmenter:
         is_log_power = job.source.kind == "store"  # a store holds log power; a recording, complex cubes
         seconds = []
 
-        def segment(cube: np.ndarray) -> dict[str, np.ndarray]:  # a cube of the wrong shape raises ValueError
+        def segment(frame: tuple[np.ndarray, list[np.ndarray | None] | None]) -> dict[str, np.ndarray]:
+            cube, history = frame  # a cube of the wrong shape raises ValueError
             tick = time.perf_counter()
-            result = self.net.segment(cube, is_log_power=is_log_power)
+            result = self.net.segment(cube, is_log_power=is_log_power, history=history)
             seconds.append(time.perf_counter() - tick)
             return encode_prediction(result, layout)
 
-        buffers, quarantined = shard_frames.fill_shard(job, _source_cubes(job.source, job.frames), segment)
+        cubes = _source_cubes(job.source, job.frames, self.net.history_frames)
+        buffers, quarantined = shard_frames.fill_shard(job, cubes, segment)
         write_shard_arrays(job.store, layout, job.shard, buffers)
         valid = buffers["valid"].astype(bool)
         summary = {

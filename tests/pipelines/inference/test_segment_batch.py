@@ -158,3 +158,30 @@ def test_a_store_of_other_arguments_is_refused(small_store, tiny_checkpoints, tm
     (tmp_path / "other" / "file").write_text("x")
     with pytest.raises(ValueError, match="not a radarseg predictions store"):
         plan_job(_config(f"store:{small_store}", tiny_checkpoints, tmp_path / "other"))
+
+
+def test_a_detector_that_reads_history_gets_each_frames_earlier_one_from_stores_and_recordings(
+        small_store, small_recording, tmp_path):
+    from radar import transforms
+    from radar.io.recording import Recording
+
+    made = save_tiny_checkpoints(small_store, tmp_path / "ckpt", ("detector_history", "segmenter"))
+    pair = (made["detector_history"], made["segmenter"])
+    net = EraseNet.from_checkpoints(*pair, score_threshold=0.0, max_objects=2)
+    assert net.history_frames == 1
+    # a store: shards of 2 frames, so the third frame's earlier one lies in the shard before
+    cfg = _config(f"store:{small_store}", pair, tmp_path / "store-pred.zarr", split="train")
+    main(cfg)
+    source, root = open_store(small_store), open_predictions(cfg.out)
+    for k, slot in enumerate(root["source_slot"][:]):
+        history = [None if slot == 0 else source["input"][slot - 1].astype(np.float32)]
+        expected = net.segment(source["input"][slot].astype(np.float32), is_log_power=True, history=history)
+        np.testing.assert_array_equal(root["labels"][k], expected.labels)
+    # a recording: complex cubes; the earlier frame is read as log power
+    cfg = _config(f"recording:{small_recording}", pair, tmp_path / "rec-pred.zarr", limit=3)
+    main(cfg)
+    recording, root = Recording(small_recording), open_predictions(cfg.out)
+    for k in range(3):
+        cube = recording.read_frame("seq_000", k).cube
+        history = [None if k == 0 else transforms.log_power(recording.read_frame("seq_000", k - 1).cube)]
+        np.testing.assert_array_equal(root["labels"][k], net.segment(cube, history=history).labels)
