@@ -51,6 +51,7 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
+from pipelines.datasets.history import earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import open_store
 from pipelines.datasets.store_info import StoreInfo
@@ -178,7 +179,8 @@ def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: Stage, preset: s
 
 
 class EraseNetPredictor:
-    """ERASE-Net end to end, or (``cfar``) its segmenter behind CFAR seeds. Reads one frame's log power."""
+    """ERASE-Net end to end, or (``cfar``) its segmenter behind CFAR seeds. Reads one frame's log power, and the
+    earlier frames of its sequence from the store when the detector reads history (``n_frames`` 1 + history)."""
 
     n_frames = 1
 
@@ -204,16 +206,23 @@ class EraseNetPredictor:
                                 device=device, **kwargs)
             self.paper_extra = 0
         self.params = sum(self.net.params.values())
+        self.n_frames = 1 + self.net.history_frames
+        self._inputs, self._earlier = None, None  # a history detector's store input and earlier slots (bind)
         self.macs_note = ("mean per frame, detector + segmenter (ROI-dependent)" if spec.kind is Entry.ERASENET
                           else "mean per frame, segmenter only (CFAR not counted)")
 
     def bind(self, store: str, split: str | None, targets: np.ndarray) -> None:
-        """Nothing to prepare: ERASE-Net reads the target frame alone."""
+        """A detector that reads history finds each frame's earlier ones in the store; otherwise nothing to do."""
+        if self.net.history_frames:
+            root = open_store(store)
+            self._inputs, self._earlier = root["input"], earlier_slots(root, self.net.history_frames)
 
     def __call__(self, slot: int, log_power: np.ndarray) -> Prediction:
         started = time.perf_counter()
         centres = cfar_centres(log_power, self.net.profile) if self.spec.kind is Entry.CFAR else None
-        result = self.net.segment(log_power, is_log_power=True, centres=centres)
+        history = None if self._earlier is None else [None if s < 0 else self._inputs[int(s)].astype(np.float32)
+                                                       for s in self._earlier[slot]]
+        result = self.net.segment(log_power, is_log_power=True, centres=centres, history=history)
         seconds = time.perf_counter() - started
         macs = float(result.compute.macs_total)
         return Prediction(result.ra_mask, result.rd_mask, seconds, macs, macs + self.paper_extra)

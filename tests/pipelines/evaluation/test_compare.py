@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from models.checkpoint import load_checkpoint, save_checkpoint
+from pipelines.datasets.store import open_store
 from pipelines.datasets.views import ViewDataset, load_baseline
 from pipelines.evaluation import compare as compare_job
 from pipelines.evaluation.compare import CompareConfig, ModelSpec, compare, parse_model
@@ -152,3 +153,25 @@ def test_cli_compare(seq_store, checkpoints, tmp_path, capsys):
     assert "SMVA-Net" in capsys.readouterr().out
     assert cli(["compare", "--store", str(seq_store), "--out", str(tmp_path), "--baseline", "no-name.pt"]) == 2
     assert "NAME=CHECKPOINT" in capsys.readouterr().err
+
+
+def test_an_erasenet_that_reads_history_gets_its_earlier_frames_and_sets_the_window(seq_store, checkpoints,
+                                                                                    tmp_path):
+    from models.erasenet.model import EraseNet
+
+    history = save_tiny_checkpoints(seq_store, tmp_path / "ckpt", ("detector_history",))["detector_history"]
+    spec = ModelSpec("ERASE-Net (history)", "erasenet", (history, checkpoints["segmenter"]))
+    result = compare(CompareConfig(store=str(seq_store), out=str(tmp_path / "cmp"), models=(spec,), pictures=0,
+                                   score_threshold=0.05, progress=False, command="radarseg compare ..."))
+    assert result["window"] == 2 and result["frames"] == 5  # 6 test frames, each but the first has one before
+    (row,) = result["models"]
+    net = EraseNet.from_checkpoints(history, checkpoints["segmenter"], score_threshold=0.05)
+    root = open_store(seq_store)
+    slots = np.flatnonzero(root["split"][:] == 2)[1:]
+    ra = np.zeros((4, 4), np.int64)
+    for slot in slots:
+        result = net.segment(root["input"][slot].astype(np.float32), is_log_power=True,
+                             history=[root["input"][slot - 1].astype(np.float32)])
+        ra += np.bincount(4 * root["ra_mask"][slot].astype(np.int64).ravel() + result.ra_mask.ravel(),
+                          minlength=16).reshape(4, 4)
+    np.testing.assert_array_equal(row["RA"]["confusion"], ra)
