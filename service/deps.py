@@ -14,6 +14,7 @@ from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import ServiceMetrics
 from service.settings import Settings
+from service.stream_history import StreamHistory
 from service.stream_store import StreamStore
 from service.tenants import Authenticator, Principal
 from service.upload import UploadGate
@@ -22,7 +23,7 @@ from service.upload import UploadGate
 @dataclass
 class ServiceState:
     """Everything one app owns: settings, models, ledger and billing, metrics, authenticator, upload gate, and the
-    streams' tracker state (in the ledger's database)."""
+    streams' tracker state (in the ledger's database) and the earlier frames this replica ran."""
 
     settings: Settings
     pool: ModelPool
@@ -32,6 +33,7 @@ class ServiceState:
     auth: Authenticator
     uploads: UploadGate
     streams: StreamStore
+    stream_history: StreamHistory
 
     @property
     def ledger_error(self) -> str | None:

@@ -35,6 +35,7 @@ from service.routes.docs import install_docs
 from service.schemas import ErrorBody
 from service.security_headers import SecurityHeaders
 from service.settings import Settings
+from service.stream_history import StreamHistory
 from service.stream_store import StreamStore
 from service.tenants import Authenticator
 from service.unread_body import CloseOnUnreadBody
@@ -82,7 +83,8 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
                                max_per_tenant=settings.max_streams_per_tenant)  # its table beside the ledger's
     state = ServiceState(settings=settings, pool=ModelPool(settings), ledger=ledger,
                          billing=Billing(ledger, settings, metrics_), metrics=metrics_, auth=Authenticator(settings),
-                         uploads=UploadGate(settings), streams=stream_store)
+                         uploads=UploadGate(settings), streams=stream_store,
+                         stream_history=StreamHistory(settings.stream_history_bytes))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

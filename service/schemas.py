@@ -306,3 +306,6 @@ class StreamFrameResponse(SegmentResponse):
     objects: list[TrackedObjectOut] | None = None
     seq: int
     stream: StreamInfo
+    history_frames: int = Field(0, description="earlier frames of the stream the model's detector read with this one "
+                                               "(0 for a model that reads one cube, the stream's first frame, a gap, "
+                                               "or an earlier frame another replica ran)")

@@ -129,6 +129,9 @@ class Settings(BaseSettings):
     stream_idle_s: Annotated[float, Field(ge=1, le=86400)] = 300.0
     stream_claim_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
     max_streams_per_tenant: Annotated[int, Field(ge=1, le=10000)] = 16
+    # a detector that reads earlier frames gets a stream's frames before this one from the replica that ran them
+    # (service/stream_history.py), kept as float16 within this many bytes over every stream (0: never kept)
+    stream_history_bytes: Annotated[int, Field(ge=0, le=2**36)] = 256 * 2**20
 
     data_dir: Path = Path("data/service")  # relative to the working directory
     ledger_url: str | None = None  # None: SQLite (WAL) file ledger.sqlite3 under data_dir

@@ -73,6 +73,9 @@ class SegmentationResult:
     # with segment(views=True): the RA (R, A) and RD (R, D) views of the input in dB (radar.transforms), from the
     # log power the model computed (timed with the projections)
     views: tuple[np.ndarray, np.ndarray] | None = None
+    # with segment(keep_log_power=True): the frame's log power (R, A, D) dB, float32, as the model computed it (what
+    # the next frame of a stream reads as its history)
+    log_power: np.ndarray | None = None
 
 
 @contextmanager
@@ -193,7 +196,8 @@ class EraseNet:
     @torch.no_grad()
     def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None,
                 schema: dict[str, Any] | None = None, views: bool = False,
-                history: Sequence[np.ndarray | None] | None = None) -> SegmentationResult:
+                history: Sequence[np.ndarray | None] | None = None, keep_log_power: bool = False
+                ) -> SegmentationResult:
         """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
 
         ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
@@ -203,6 +207,7 @@ class EraseNet:
         RD views in dB (``SegmentationResult.views``), from the frame's log power, inside the timed work.
         ``history`` (optional, for a detector with :attr:`history_frames`): the earlier frames' log power (R, A, D)
         dB, the latest first, None for one that does not exist; without it the detector sees a single cube.
+        ``keep_log_power``: return the frame's log power too (``SegmentationResult.log_power``).
         """
         if schema is not None:
             content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
@@ -241,7 +246,8 @@ class EraseNet:
             detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],
             seconds={name: seconds.get(name, 0.0) for name in STEPS}, roi_voxels=len(regions),
             visited_points=regions.visited, detections=len(centres), engine=self.engine)
-        return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views)
+        return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views,
+                                  log_power if keep_log_power else None)
 
     @torch.no_grad()
     def detect(self, log_power: np.ndarray, *, score_threshold: float | None = None,

@@ -169,12 +169,13 @@ def _take_slot(served: ServedModel, state: ServiceState) -> None:
 
 
 async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, tdm_compensation: bool,
-                 state: ServiceState, *, views: bool) -> SegmentationResult:
+                 state: ServiceState, *, views: bool, history: list[np.ndarray | None] | None = None
+                 ) -> SegmentationResult:
     """Inference in the slot taken by :func:`_take_slot` (the model releases it when inference ends)."""
     try:
         return await served.run(cube, is_log_power=input_kind is InputKind.log_power,
                                 adc_compensation=tdm_compensation if input_kind is InputKind.adc else None,
-                                views=views)
+                                views=views, history=history)
     except NotReady as exc:
         raise ApiError(503, str(exc), error="not_ready",
                        headers={"Retry-After": str(state.settings.retry_after_s)}) from None
@@ -276,14 +277,17 @@ async def read_body(request: Request, state: ServiceState, caller: Principal,
 
 
 async def run_billed(state: ServiceState, caller: Principal, admitted: Admitted, cube: np.ndarray, decode_s: float,
-                     input_kind: InputKind, tdm_compensation: bool, encoding: MaskEncoding) -> Billed:
-    """Take a model slot and a lease on the tenant's quota, run, bill (the lease given back on any other way out)."""
+                     input_kind: InputKind, tdm_compensation: bool, encoding: MaskEncoding,
+                     history: list[np.ndarray | None] | None = None) -> Billed:
+    """Take a model slot and a lease on the tenant's quota, run, bill (the lease given back on any other way out).
+    ``history``: a stream frame's earlier frames, for a detector that reads them."""
     served, name, metrics = admitted.served, admitted.name, state.metrics
     _take_slot(served, state)  # a saturated model answers 503 before the quota is touched (no ledger round trips)
     # reserved (the slot given back if refused); the lease is given back unless settled
     async with state.billing.hold(caller.tenant, served, on_refused=served.release) as quota:
         # the views come from the model's own log power (ADC processed once), inside the compute that is billed
-        result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in admitted.chosen)
+        result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in admitted.chosen,
+                              history=history)
         del cube
         views = None if result.views is None else input_views(*result.views, served.net.profile, encoding)
         report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included

@@ -110,6 +110,7 @@ async def get_stream(stream_id: StreamId, state: State, caller: Caller) -> Strea
 async def delete_stream(stream_id: StreamId, state: State, caller: Caller) -> Response:
     if not await state.billing.read(state.streams.delete, caller.tenant, stream_id):
         raise _refused(Refusal.missing, state, stream_id)
+    state.stream_history.forget((caller.tenant, stream_id))
     return Response(status_code=204)
 
 
@@ -150,8 +151,11 @@ async def stream_frame(
     if isinstance(claim, Refusal):
         raise _refused(claim, state, stream_id, seq)
     committed = False
+    n_history = admitted.served.net.history_frames
+    history = state.stream_history.earlier((caller.tenant, stream_id), seq, n_history) if n_history else None
     try:
-        billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding)
+        billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding,
+                                  history)
         start = time.perf_counter()
         tracker, step = _track(claim, billed.result.objects, state)
         track_s = time.perf_counter() - start
@@ -164,6 +168,8 @@ async def stream_frame(
         raise ApiError(409, f"stream {stream_id!r} was taken by another frame while this one ran (its hold of "
                             f"{state.settings.stream_claim_s:g} s ran out); the frame was billed, its tracks not kept",
                        error="stream_busy")
+    if n_history:  # what the stream's next frame reads
+        state.stream_history.keep((caller.tenant, stream_id), seq, billed.result.log_power, n_history)
     state.metrics.stage_seconds.labels(admitted.name, "track").observe(track_s)
     row = StreamRow(claim.stream.id, claim.stream.tenant, claim.stream.model, claim.stream.created_at,
                     utc_now(), seq, claim.stream.frames + 1, tracker_state)
@@ -173,7 +179,8 @@ async def stream_frame(
     body = StreamFrameResponse(request_id=billed.request_id, model=admitted.name, preset=net.profile.name,
                                shape=list(net.profile.shape), class_names=list(net.class_names), views=billed.views,
                                compute=billed.compute, usage=billed.usage, seq=seq,
-                               stream=_info(row, state, tracker.tracks))
+                               stream=_info(row, state, tracker.tracks),
+                               history_frames=sum(frame is not None for frame in history or ()))
     response = await respond(body, billed, admitted, encoding, state, caller, objects)
     response.headers["X-Stream-Id"] = stream_id
     return response
