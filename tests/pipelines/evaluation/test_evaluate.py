@@ -140,7 +140,7 @@ def test_a_detector_that_reads_history_is_evaluated_with_it_or_on_single_cubes(s
         runs[single] = evaluate(EvaluateConfig(detector=made["detector_history"], segmenter=made["segmenter"],
                                                store=str(small_store), out=str(out), split="val", pictures=0,
                                                sweep_frames=0, score_threshold=0.05, progress=False,
-                                               single_cube=single))
+                                               oracle=False, single_cube=single))
     assert runs[False]["history_frames"] == 1 and runs[True]["history_frames"] == 0
     assert runs[False]["frames"] == runs[True]["frames"] == 3
     # the first frame of the sequence has no history: scored alike; the later two read their earlier frames
