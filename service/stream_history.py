@@ -1,4 +1,5 @@
-"""The earlier frames a stream's detector reads (issue 34's temporal input), kept by the replica that ran them.
+"""The earlier frames a stream's detector reads (``history_frames``, docs/design.md section 5), kept by the replica
+that ran them.
 
 A model whose detector reads ``history_frames`` earlier frames gets, on each frame of a stream, the log power of
 the frames before it in the stream, when this replica ran them and they are consecutive (``seq - 1``, ``seq - 2``,

@@ -27,3 +27,9 @@ def earlier_slots(root: zarr.Group, history: int) -> np.ndarray:
         for h in range(history):
             out[slot, h] = slot_of.get((s, i - 1 - h), ABSENT)
     return out
+
+
+def earlier_frames(inputs: zarr.Array, slots: np.ndarray) -> list[np.ndarray | None]:
+    """The store's log power (R, A, D) dB, float32, of each of ``slots`` (one frame's row of :func:`earlier_slots`),
+    None where ``ABSENT``."""
+    return [None if s == ABSENT else inputs[int(s)].astype(np.float32) for s in slots]

@@ -51,7 +51,7 @@ from models.checkpoint import Checkpoint, load_checkpoint
 from models.compute import count_macs, count_params
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
-from pipelines.datasets.history import earlier_slots
+from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import open_store
 from pipelines.datasets.store_info import StoreInfo
@@ -220,8 +220,7 @@ class EraseNetPredictor:
     def __call__(self, slot: int, log_power: np.ndarray) -> Prediction:
         started = time.perf_counter()
         centres = cfar_centres(log_power, self.net.profile) if self.spec.kind is Entry.CFAR else None
-        history = None if self._earlier is None else [None if s < 0 else self._inputs[int(s)].astype(np.float32)
-                                                       for s in self._earlier[slot]]
+        history = None if self._earlier is None else earlier_frames(self._inputs, self._earlier[slot])
         result = self.net.segment(log_power, is_log_power=True, centres=centres, history=history)
         seconds = time.perf_counter() - started
         macs = float(result.compute.macs_total)

@@ -40,7 +40,7 @@ from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
-from pipelines.datasets.history import earlier_slots
+from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import (
     CENTRE_COLUMNS,
@@ -163,8 +163,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
         frame = {name: array[slot] for name, array in arrays.items()}
-        history = None if earlier is None else [None if s < 0 else arrays["input"][int(s)].astype(np.float32)
-                                                for s in earlier[slot]]
+        history = None if earlier is None else earlier_frames(arrays["input"], earlier[slot])
         picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames, history=history)
         tracking.add(sequence_ids[slot], frame_indices[slot], picture[2], picture[3].objects)
         if slot in picture_frames:

@@ -47,7 +47,7 @@ import numpy as np
 
 from models.erasenet.engines import ENGINES
 from pipelines.datasets import shard_frames, sharded_job
-from pipelines.datasets.history import earlier_slots
+from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
 from pipelines.datasets.sources import SourceKind, add_source_arguments, parse_source, source_from_args
 from pipelines.datasets.store import frames_of_split, open_store
@@ -244,8 +244,7 @@ def _source_cubes(source: sharded_job.SourceSpec, frames: Sequence[FrameRef], hi
         inputs = root["input"]
         earlier = earlier_slots(root, history) if history else None
         for ref in frames:
-            past = None if earlier is None else [None if s < 0 else inputs[int(s)].astype(np.float32)
-                                                 for s in earlier[ref.source_slot]]
+            past = None if earlier is None else earlier_frames(inputs, earlier[ref.source_slot])
             yield ref, (inputs[ref.source_slot].astype(np.float32), past)
         return
     recording = Recording(source.path)
