@@ -149,12 +149,15 @@ def test_store_postgres(postgres_url, pg_prefix):
 @pytest.mark.slow
 def test_a_replica_restarted_mid_stream_loses_no_track(make_settings, client_for, sequence, tmp_path):
     """The shipped pair on one sequence: a stream whose replica restarts after frame 2 answers frames 3-5 exactly
-    as a stream that ran through, and keeps every confirmed track."""
+    as a stream that ran through, and keeps every confirmed track. The shipped detector reads the frame before,
+    which lives in the replica's memory only (a restarted replica would run frame 3 alone): with no earlier frames
+    kept (``stream_history_bytes=0``) both streams run every frame alone, so what this compares is the ledger's
+    track state."""
     from fastapi.testclient import TestClient
 
     from service.main import create_app
 
-    settings = make_settings(models=[SHIPPED], data_dir=tmp_path / "restart")
+    settings = make_settings(models=[SHIPPED], data_dir=tmp_path / "restart", stream_history_bytes=0)
     with TestClient(create_app(settings)) as first:
         through = first.post("/v1/streams").json()["id"]
         reference = [_frame(first, through, seq, cube).json() for seq, cube in enumerate(sequence)]

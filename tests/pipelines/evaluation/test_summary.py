@@ -22,8 +22,9 @@ def test_default_rows_are_the_shipped_checkpoints(capsys):
     assert detector["model"] == "centre_detector" and segmenter["model"] == "minkunet"
     # The shipped, ratio-0.25 MinkUNet (1.36 M), not the paper-size one (2.92 M).
     assert 1.2e6 < segmenter["params"] < 1.5e6
-    # the shipped detector: the paper's smaller backbone with a 12-channel Doppler compression (0.131 G; 0.116 G at 3)
-    assert 0.12e9 < detector["macs"] < 0.14e9
+    # the shipped detector: the paper's smaller backbone with a 12-channel Doppler compression that also reads the
+    # frame before (0.147 G; 0.131 G on one frame, 0.116 G with the paper's 3 channels)
+    assert 0.14e9 < detector["macs"] < 0.155e9
 
 
 def test_a_given_checkpoint_is_described(tmp_path, capsys):
