@@ -60,6 +60,7 @@ import torch
 from models.checkpoint import load_checkpoint
 from models.erasenet.detection import detect_centres
 from models.erasenet.model import EraseNet
+from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
 from pipelines.evaluation.evaluate import AP_SCORE_THRESHOLD
@@ -110,12 +111,24 @@ def take(centres, keep):
 
 
 # --------------------------------------------------------------------------- one frame
+def history_tensors(history: list[np.ndarray | None] | None, shape: tuple[int, ...]) -> dict[str, torch.Tensor]:
+    """``detect_centres``' ``history`` (1, H, D, R, A) dB, zero where absent, and ``history_present`` (1, H); no
+    keyword at all for a one-frame detector."""
+    if history is None:
+        return {}
+    earlier = [np.zeros(shape, np.float32) if frame is None else frame for frame in history]
+    cubes = torch.from_numpy(np.stack([frame.transpose(2, 0, 1) for frame in earlier]))[None]
+    return {"history": cubes, "history_present": torch.tensor([[frame is not None for frame in history]])}
+
+
 class Frame:
     """One frame's truth and detector output; :meth:`status` scores any seed set against it."""
 
-    def __init__(self, net, log_power: np.ndarray, instances: np.ndarray, table: np.ndarray, args, cells_xy):
+    def __init__(self, net, log_power: np.ndarray, instances: np.ndarray, table: np.ndarray, args, cells_xy,
+                 history: list[np.ndarray | None] | None = None):
         col, profile = OBJECT_COLUMN, net.profile
         self.net, self.args, self.profile = net, args, profile
+        self.history = history  # the earlier frames a detector that reads them gets (None: one frame)
         self.log_power, self.instances, self.table = log_power, instances, table
         self.class_id = table[:, col["class_id"]].astype(int)
         self.truth_xy = table[:, [col["x"], col["y"]]]
@@ -128,7 +141,8 @@ class Frame:
         with torch.no_grad():  # every 3x3 peak down to AP_SCORE_THRESHOLD, Doppler refined as EraseNet does
             outputs, (peaks,) = detect_centres(net.detector, dra, mean_db=net.mean_db, std_db=net.std_db,
                                                     k=args.peaks, score_threshold=AP_SCORE_THRESHOLD,
-                                                    doppler_refinement=net.doppler_refinement)
+                                                    doppler_refinement=net.doppler_refinement,
+                                                    **history_tensors(history, log_power.shape))
         self.heatmap = outputs["heatmap"][0, 0].float().numpy()
         self.peaks = peaks  # sorted by descending score
         self.peaks_xy = np.stack(profile.xy(peaks.range_bin, peaks.angle_bin), axis=1).reshape(-1, 2)
@@ -412,7 +426,7 @@ def tally_operating(tally: StoreTally, net, frame: Frame, log_power, slot: int, 
                     picture_pool: list):
     """The operating point, through the product's own path: checks it against the diagnosis' decode and growth,
     adds a row per object. Returns its regions and status."""
-    result = net.segment(log_power, is_log_power=True)
+    result = net.segment(log_power, is_log_power=True, history=frame.history)
     seeds, regions = result.centres, result.regions
     mine = frame.seeds_at(net.score_threshold)
     checked = tally.checked
@@ -466,7 +480,8 @@ def tally_lower_threshold(tally: StoreTally, net, frame: Frame, log_power, args,
     """The what-ifs at ``--low-threshold``: global, oracle pedestrian-only and segmenter-gated."""
     thr = net.score_threshold
     wide = frame.seeds_at(args.low_threshold)
-    wide_result = net.segment(log_power, is_log_power=True, centres=wide)  # segment every seed >= low
+    # segment every seed >= low
+    wide_result = net.segment(log_power, is_log_power=True, centres=wide, history=frame.history)
     extra = np.flatnonzero(wide.score < thr)
     # oracle: an extra seed stays when the true object it matches (the match rule, k) is a pedestrian
     wide_xy = np.stack(net.profile.xy(wide.range_bin, wide.angle_bin), axis=1).reshape(-1, 2)
@@ -588,6 +603,7 @@ def run_store(net, store: str, args, class_names: list[str], cells_xy, picture_p
     if args.frames:
         frames = frames[spread(len(frames), args.frames)]
     arrays = {name: root[name] for name in ("input", "instances", "objects", "n_objects")}
+    earlier = earlier_slots(root, net.history_frames) if net.history_frames else None  # each frame's earlier ones
     ped = class_names.index("pedestrian")
     tally = StoreTally()
     scorer = DetectionScorer(net.profile)
@@ -597,7 +613,8 @@ def run_store(net, store: str, args, class_names: list[str], cells_xy, picture_p
         data = {name: a[slot] for name, a in arrays.items()}
         table = data["objects"][: int(data["n_objects"])].astype(np.float64)
         log_power = data["input"].astype(np.float32)
-        frame = Frame(net, log_power, data["instances"], table, args, cells_xy)
+        history = None if earlier is None else earlier_frames(arrays["input"], earlier[slot])
+        frame = Frame(net, log_power, data["instances"], table, args, cells_xy, history)
         scorer.add(take(frame.peaks, np.arange(min(len(frame.peaks), net.max_objects))), table)  # as evaluate
         regions, status = tally_operating(tally, net, frame, log_power, slot, store, ped, picture_pool)
         # what-ifs, each scored with the same rule
@@ -640,8 +657,10 @@ def pictures(net, args, class_names, picture_pool, results, cells_xy) -> list[st
         n_obj = int(root["n_objects"][slot])
         table = root["objects"][slot][:n_obj].astype(np.float64)
         log_power = root["input"][slot].astype(np.float32)
-        frame = Frame(net, log_power, root["instances"][slot], table, args, cells_xy)
-        result = net.segment(log_power, is_log_power=True)
+        history = earlier_frames(root["input"], earlier_slots(root, net.history_frames)[slot]) \
+            if net.history_frames else None
+        frame = Frame(net, log_power, root["instances"][slot], table, args, cells_xy, history)
+        result = net.segment(log_power, is_log_power=True, history=history)
         row = next(r for r in results[store]["objects_table"] if r["slot"] == slot and r["object"] == j)
         title = (f"{Path(store).name} frame {slot}: pedestrian at {row['range_m']:.1f} m, {row['n_voxels']} voxels, "
                  f"Doppler {table[j, col['doppler_bin']]:.1f}\ncause {cause}; heat {row['heat']:.2f}, "
