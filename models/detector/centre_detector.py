@@ -190,6 +190,10 @@ class CentreDetector(nn.Module):
             [self.doppler_compress(log_power), self.cartesian.expand(batch, -1, -1, -1),
              *self._history_channels(log_power, history, history_present)], dim=1
         )  # (B, C + 2 [+ H (C + 1)], R, A)
+        if self.history_frames and history is None:
+            # a single cube: every earlier frame is absent, so all its channels are zero; padded rather than built,
+            # so that an exported graph carries no constant block of zeros (H (C + 1) x R x A floats)
+            image = F.pad(image, (0, 0, 0, 0, 0, self.history_frames * (self.doppler_compress.out_channels + 1)))
         pad_range = -n_range % self.pad_multiple
         pad_angle = -n_angle % self.pad_multiple
         if pad_range or pad_angle:
@@ -202,17 +206,16 @@ class CentreDetector(nn.Module):
     def _history_channels(self, log_power: torch.Tensor, history: torch.Tensor | None,
                           history_present: torch.Tensor | None) -> list[torch.Tensor]:
         """Each earlier frame compressed by the same 1x1 conv (zero where absent), then one presence channel
-        per earlier frame: ``[]`` for a single-frame detector."""
+        per earlier frame: ``[]`` for a single-frame detector, and without ``history`` (:meth:`forward` pads the
+        zeros then)."""
         if not self.history_frames:
             if history is not None:
                 raise ValueError("this detector reads one frame (history_frames 0): give no history")
             return []
+        if history is None:
+            return []
         batch, _, n_range, n_angle = log_power.shape
         n_history = self.history_frames
-        if history is None:
-            present = log_power.new_zeros(batch, n_history)
-            compressed = log_power.new_zeros(batch, n_history * self.doppler_compress.out_channels, n_range, n_angle)
-            return [compressed, present[:, :, None, None].expand(-1, -1, n_range, n_angle)]
         expected = (batch, n_history, self.doppler_bins, n_range, n_angle)
         if tuple(history.shape) != expected:
             raise ValueError(f"expected history {expected} (B, H, D, R, A), got {tuple(history.shape)}")

@@ -102,6 +102,21 @@ def test_export_writes_checked_standard_graphs_and_a_manifest(shipped):
     assert {"Gather", "MatMul"} <= set(seg["operators"]) and not {"ScatterND", "Loop"} & set(seg["operators"])
 
 
+def test_the_exported_detector_stores_no_block_of_zeros(shipped):
+    """A detector that reads history is exported on its single-cube path, where every earlier frame is absent: those
+    channels are padded at run time, not stored (they were 0.8 MB of zeros in each detector file)."""
+    import onnx
+
+    detector, _, out = shipped
+    assert load_checkpoint(detector).config.get("history_frames", 0) > 0  # the case this guards
+    n_range, n_angle = json.loads((out / "manifest.json").read_text())["cube_shape"][:2]
+    graph = onnx.load(str(out / "detector.onnx")).graph
+    tensors = [*graph.initializer, *(a.t for node in graph.node if node.op_type == "Constant"
+                                     for a in node.attribute if a.t.dims)]
+    grids = [list(t.dims) for t in tensors if len(t.dims) == 4 and list(t.dims[-2:]) == [n_range, n_angle]]
+    assert grids == [[1, 2, n_range, n_angle]], grids  # only the Cartesian channels have the cube's size
+
+
 def engines(detector: Path, segmenter: Path, out: Path):
     torch.set_num_threads(1)
     return (load_erasenet(detector, segmenter), load_erasenet(detector, segmenter, engine="onnx", onnx_dir=out))
