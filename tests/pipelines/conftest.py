@@ -90,7 +90,7 @@ def ray_job_submit(dashboard_url: str, *job: str, timeout_s: float = 240) -> str
     :data:`TRANSIENT_SUBMIT_ERRORS`, are retried."""
     cmd = [str(BIN / "ray"), "job", "submit", "--address", dashboard_url, "--working-dir", ".", "--",
            "python", "-m", *job]
-    deadline = time.monotonic() + 180  # a loaded 2-core machine has taken more than 90 s to start the agent
+    deadline = time.monotonic() + 300  # a 2-core machine has taken more than 180 s to start the agent (CI, 2026-12-03)
     while True:
         proc = subprocess.run(cmd, cwd=REPO, env=ray_env(), capture_output=True, text=True, timeout=timeout_s)
         log = proc.stdout + proc.stderr
