@@ -41,9 +41,9 @@ from radar.roi import N_FEATURES
 OPSET = 17
 """ONNX opset of both graphs (onnxruntime >= 1.14, OpenVINO, TensorRT 8.6 read it)."""
 FORMAT = "radarseg.onnx"
-VERSION = 2
+VERSION = 3
 """Bump when the graphs' inputs, outputs or formulation change: the export cache keys on it (2: row blocks
-as Slice, not SplitToSequence)."""
+as Slice, not SplitToSequence; 3: each sparse conv's bias is its Gemm's C input, not an Add)."""
 DETECTOR_OUTPUTS = ("heatmap", "offset", "doppler")
 SEGMENTER_OUTPUTS = ("logits", "labels")
 STANDARD_DOMAINS = ("", "ai.onnx")

@@ -101,14 +101,16 @@ class GatherConv(nn.Module):
         padded = torch.cat([feats, torch.zeros_like(feats[:1])])  # row N_in: the zero of a missing neighbour
         if self.pieces == 1:
             out = self._gemm(padded, neighbours)
-        else:  # one Gather and MatMul per block of rows: the gathered block stays in cache for its product
+        else:  # one Gather and Gemm per block of rows: the gathered block stays in cache for its product
             out = torch.cat([self._gemm(padded, block) for block in row_blocks(neighbours, self.pieces)])
-        out = out + self.bias
         return torch.relu(out) if self.relu else out
 
     def _gemm(self, padded: Tensor, neighbours: Tensor) -> Tensor:
+        """One Gemm with the bias as its C input (``addmm``): the int8 graph quantises it as one QGemm with an
+        int32 bias, where a MatMul and a separate Add cost a float Add between a DequantizeLinear and a
+        QuantizeLinear on every block (``benchmarks/onnx_profile.py``)."""
         gathered = padded[neighbours.reshape(-1)].reshape(neighbours.shape[0], self.weight.shape[0])
-        return gathered @ self.weight
+        return torch.addmm(self.bias, gathered, self.weight)
 
 
 class PickConv(nn.Module):
@@ -121,12 +123,12 @@ class PickConv(nn.Module):
         weight, bias = _fold(conv.weight, conv.bias, norm)  # (K, C_in, C_out)
         num_offsets, c_in, c_out = weight.shape
         self.weight = nn.Parameter(weight.permute(1, 0, 2).reshape(c_in, num_offsets * c_out), requires_grad=False)
-        self.bias = nn.Parameter(bias, requires_grad=False)
+        self.bias = nn.Parameter(bias.repeat(num_offsets), requires_grad=False)  # every product carries it
         self.out_channels = c_out
 
     def forward(self, feats: Tensor, slots: Tensor) -> Tensor:
-        products = (feats @ self.weight).reshape(-1, self.out_channels)  # (N_coarse * K, C_out)
-        return torch.relu(products[slots] + self.bias)
+        products = torch.addmm(self.bias, feats, self.weight).reshape(-1, self.out_channels)  # (N_coarse * K, C_out)
+        return torch.relu(products[slots])
 
 
 class Pointwise(nn.Module):
@@ -139,7 +141,7 @@ class Pointwise(nn.Module):
         self.bias = nn.Parameter(bias, requires_grad=False)
 
     def forward(self, feats: Tensor) -> Tensor:
-        return feats @ self.weight + self.bias
+        return torch.addmm(self.bias, feats, self.weight)  # one Gemm, as GatherConv's
 
 
 class Residual(nn.Module):

@@ -99,7 +99,30 @@ def test_export_writes_checked_standard_graphs_and_a_manifest(shipped):
     seg = manifest["segmenter"]
     assert list(seg["inputs"]) == ["features", *input_names()]
     assert seg["inputs"]["features"]["shape"] == ["voxels_s1", 4]  # dynamic voxel count
-    assert {"Gather", "MatMul"} <= set(seg["operators"]) and not {"ScatterND", "Loop"} & set(seg["operators"])
+    assert {"Gather", "Gemm"} <= set(seg["operators"]) and not {"ScatterND", "Loop"} & set(seg["operators"])
+
+
+def test_every_segmenter_product_carries_its_bias(shipped):
+    """Each sparse conv, transposed conv and 1x1 conv is one Gemm per row block with its (folded) bias as the C
+    input, so the only Adds left are the residual sums: a separate bias Add cost a DequantizeLinear, a float Add
+    and a QuantizeLinear per block in the int8 graph."""
+    from collections import Counter
+
+    import onnx
+
+    from models.export.sparse_graph import Residual
+
+    _, segmenter, out = shipped
+    graph = onnx.shape_inference.infer_shapes(onnx.load(str(out / "segmenter.onnx"))).graph
+    ops = Counter(node.op_type for node in graph.node)
+    floats = {info.name for info in graph.value_info if info.type.tensor_type.elem_type == onnx.TensorProto.FLOAT}
+    float_adds = [node for node in graph.node if node.op_type == "Add" and node.output[0] in floats]
+    model = ExportMinkUNet(load_checkpoint(segmenter).build().eval())
+    residuals = sum(isinstance(module, Residual) for module in model.modules())
+    assert residuals > 0 and len(float_adds) == residuals, ops  # the others are row-block bounds (integers)
+    assert "MatMul" not in ops and ops["Gemm"] >= len(model.layer_costs()), ops
+    gemm_biases = {node.input[2] for node in graph.node if node.op_type == "Gemm" and len(node.input) == 3}
+    assert len(gemm_biases) == len(model.layer_costs())  # one bias per product, shared by its row blocks
 
 
 def test_the_exported_detector_stores_no_block_of_zeros(shipped):

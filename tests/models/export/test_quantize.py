@@ -51,7 +51,7 @@ def test_int8_graphs_are_standard_onnx_and_the_manifest_names_their_precision(in
             assert "QuantizeLinear" not in checked["operators"] and "DequantizeLinear" in checked["operators"]
             assert manifest[stage]["bytes"] < 0.5 * manifest[stage]["float_bytes"]
     precision = manifest["segmenter"]["operator_precision"]
-    assert precision["MatMul"].get("int8", 0) > 0 and precision["Gather"].get("int8", 0) > 0
+    assert precision["Gemm"].get("int8", 0) > 0 and precision["Gather"].get("int8", 0) > 0
     assert precision["Gather"].get("index", 0) > 0  # shape arithmetic stays integer
     assert precision["Add"].get("float", 0) > 0 and "int8" not in precision["Add"]  # the sums stay float
     assert (manifest["detector"]["operator_precision"]["Conv"].get("int8", 0) > 0) == detector_int8

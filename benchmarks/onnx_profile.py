@@ -1,0 +1,204 @@
+"""Where an int8 frame's time goes: each stage of a frame on the float ONNX, int8 ONNX and default engines, and the
+segmenter graph's time by operator type (onnxruntime's own profiler), side by side on the same frames.
+
+    nice -n 5 .venv/bin/python -m benchmarks.onnx_profile --store out/stage1/seed25440.zarr \
+        --calibration out/edge-calib.zarr
+
+The edge table (``benchmarks/edge.py``) gives each engine's end-to-end time; this splits it, so that what stands
+between the int8 graphs and the default engine is a figure: per stage (``FrameCompute.seconds``: transform,
+detect, grow, segment, project; each frame's fastest of ``--repeats`` runs, engines interleaved, median over
+frames), the segment stage of the ONNX engines split into its kernel maps (numpy, the same on both) and the graph
+run, and the graph run split by operator type over the same ROIs (a second session per graph with profiling on;
+its total is a little above the plain run's: the profiler's own cost). ``ceiling`` is the int8 frame with its
+matrix products at zero cost: if that is still slower than the default engine, no faster int8 arithmetic gets
+the int8 graphs past it.
+
+Writes ``benchmarks/results/onnx_profile.json`` with the CPU's flags and the load average before and after.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import tempfile
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.edge import PAIRS, ROOT, cpu_flags
+from models.erasenet.compute_report import STEPS
+from models.erasenet.engines import load_erasenet
+from models.export.export_cache import exported_dir
+from models.export.kernel_maps_numpy import kernel_maps
+from pipelines.datasets.calibration import store_calibration
+from pipelines.datasets.store import frames_of_split, open_store
+
+ENGINES = ("onnx", "onnx-int8", "torch")
+PRODUCTS = ("MatMul", "QLinearMatMul", "MatMulInteger", "MatMulIntegerToFloat", "Gemm", "QGemm",
+            "DynamicQuantizeMatMul", "FusedMatMul")
+"""Operator types that are a graph's matrix products (float or 8-bit), for the ceiling."""
+
+
+def stage_times(nets: dict, cubes: list[np.ndarray], repeats: int) -> tuple[dict, list]:
+    """Per engine, the median over frames of each stage's seconds in the frame's fastest run; and every ROI the
+    ONNX engine's segmenter graph was fed (coords, features), one per frame."""
+    best: dict[str, list[dict[str, float]]] = {name: [] for name in nets}
+    feeds: list[tuple[np.ndarray, np.ndarray]] = []
+    original = nets["onnx"].voxel_logits
+
+    def recording(coords: np.ndarray, features: np.ndarray):  # the float engine's feeds, once per frame
+        if len(feeds) < len(best["onnx"]) + 1:
+            feeds.append((coords.copy(), features.copy()))
+        return original(coords, features)
+
+    nets["onnx"].voxel_logits = recording
+    for index, cube in enumerate(cubes):
+        runs: dict[str, list[dict[str, float]]] = {name: [] for name in nets}
+        for repeat in range(repeats):
+            order = list(nets) if (index + repeat) % 2 == 0 else list(nets)[::-1]
+            for name in order:
+                runs[name].append(dict(nets[name].segment(cube, is_log_power=True).compute.seconds))
+        for name in nets:
+            best[name].append(min(runs[name], key=lambda seconds: sum(seconds.values())))
+    nets["onnx"].voxel_logits = original
+    medians = {name: {stage: 1e3 * statistics.median(run.get(stage, 0.0) for run in runs) for stage in STEPS}
+               for name, runs in best.items()}
+    for name in medians:
+        medians[name]["total"] = 1e3 * statistics.median(sum(run.values()) for run in best[name])
+    return medians, feeds
+
+
+def segment_split(nets: dict, feeds: list, repeats: int) -> dict[str, float]:
+    """Median ms over the ROIs of the kernel maps (numpy) and of each ONNX engine's segmenter graph run."""
+    maps_ms, run_ms = [], {name: [] for name in ("onnx", "onnx-int8")}
+    for coords, features in feeds:
+        started = time.perf_counter()
+        maps = kernel_maps(coords)
+        maps_ms.append(time.perf_counter() - started)
+        for name in run_ms:
+            session = nets[name]._segmenter_session
+            times = []
+            for _ in range(repeats):
+                started = time.perf_counter()
+                session.run(None, {"features": features, **maps})
+                times.append(time.perf_counter() - started)
+            run_ms[name].append(min(times))
+    out = {"kernel_maps": 1e3 * statistics.median(maps_ms)}
+    out.update({f"graph_{name}": 1e3 * statistics.median(times) for name, times in run_ms.items()})
+    return out
+
+
+def operator_profile(path: Path, feeds: list, fold_weights: bool = False) -> dict[str, float]:
+    """ms per ROI by operator type of one graph over ``feeds`` (onnxruntime's profiler, one thread)."""
+    import onnxruntime as ort
+
+    from models.export.compact import FOLD_WEIGHTS
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    if fold_weights:
+        options.add_session_config_entry(*FOLD_WEIGHTS)
+    with tempfile.TemporaryDirectory(prefix="ort-profile-") as directory:
+        options.enable_profiling = True
+        options.profile_file_prefix = str(Path(directory) / "profile")
+        session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        for feed in feeds:
+            session.run(None, feed)
+        trace = json.loads(Path(session.end_profiling()).read_text())
+    by_type: dict[str, float] = defaultdict(float)
+    for event in trace:
+        if event.get("cat") == "Node" and event.get("name", "").endswith("_kernel_time"):
+            by_type[event["args"]["op_name"]] += event["dur"] / 1e3 / len(feeds)
+    return dict(sorted(by_type.items(), key=lambda item: -item[1]))
+
+
+def detector_feeds(cubes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
+    return [{"log_power": np.ascontiguousarray(cube, dtype=np.float32)} for cube in cubes]
+
+
+def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], cache: Path) -> dict:
+    detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
+    float_dir = exported_dir(detector, segmenter, cache)
+    profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
+    calibration = store_calibration(args.calibration, profile, frames=args.calibration_frames,
+                                    methods=tuple(args.methods))
+    int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
+    nets = {"onnx": load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir),
+            "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
+            "torch": load_erasenet(detector, segmenter)}
+    for net in nets.values():  # warm-up
+        net.segment(cubes[0], is_log_power=True)
+    stages, feeds = stage_times(nets, cubes, args.repeats)
+    split = segment_split(nets, feeds, args.repeats)
+    graph_feeds = [{"features": features, **kernel_maps(coords)} for coords, features in feeds]
+    int8_manifest = json.loads((int8_dir / "manifest.json").read_text())
+    fold = int8_manifest["detector"].get("precision") == "int8-weights"
+    operators = {
+        "segmenter": {"float": operator_profile(float_dir / "segmenter.onnx", graph_feeds),
+                      "int8": operator_profile(int8_dir / "segmenter.onnx", graph_feeds)},
+        "detector": {"float": operator_profile(float_dir / "detector.onnx", detector_feeds(cubes)),
+                     "int8": operator_profile(int8_dir / "detector.onnx", detector_feeds(cubes), fold)},
+    }
+    int8_products = sum(ms for op, ms in operators["segmenter"]["int8"].items() if op in PRODUCTS)
+    int8_products += sum(ms for op, ms in operators["detector"]["int8"].items() if op in ("QLinearConv", "Conv"))
+    ceiling = stages["onnx-int8"]["total"] - int8_products
+    return {"detector": PAIRS[pair][0], "segmenter": PAIRS[pair][1],
+            "roi_voxels": [int(len(coords)) for coords, _ in feeds],
+            "stages_ms": stages, "segment_split_ms": split, "operators_ms": operators,
+            "ceiling": {"int8_products_ms": int8_products, "int8_without_products_ms": ceiling,
+                        "torch_ms": stages["torch"]["total"],
+                        "int8_without_products_over_torch": ceiling / stages["torch"]["total"]}}
+
+
+def print_pair(pair: str, entry: dict) -> None:
+    stages = entry["stages_ms"]
+    print(f"\n{pair}: ROI voxels {entry['roi_voxels']}")
+    print(f"{'stage':>10} " + " ".join(f"{name:>10}" for name in ENGINES))
+    for stage in (*STEPS, "total"):
+        print(f"{stage:>10} " + " ".join(f"{stages[name][stage]:10.2f}" for name in ENGINES))
+    print("segment split (ms):", {key: round(value, 2) for key, value in entry["segment_split_ms"].items()})
+    for graph, precisions in entry["operators_ms"].items():
+        for precision, ops in precisions.items():
+            top = ", ".join(f"{op} {ms:.2f}" for op, ms in list(ops.items())[:8])
+            print(f"{graph} {precision}: total {sum(ops.values()):.2f} ms: {top}")
+    print("ceiling:", {key: round(value, 3) for key, value in entry["ceiling"].items()})
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--store", required=True, help="store whose frames are timed (a fresh seed)")
+    parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
+    parser.add_argument("--calibration-frames", type=int, default=6)
+    parser.add_argument("--methods", nargs="+", default=["Percentile"])
+    parser.add_argument("--frames", type=int, default=8)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--pairs", nargs="+", choices=sorted(PAIRS), default=["shipped"])
+    parser.add_argument("--cache", default=None, help="export cache (default: a temporary directory)")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "onnx_profile.json"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    results: dict[str, object] = {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1,
+                                  "store": args.store, "calibration_store": args.calibration,
+                                  "frames": args.frames, "repeats": args.repeats, "pairs": {}}
+    cache = Path(args.cache or tempfile.mkdtemp(prefix="onnx-profile-"))
+    root = open_store(args.store)
+    slots = frames_of_split(root, None)
+    chosen = slots[np.linspace(0, len(slots) - 1, min(args.frames, len(slots))).round().astype(int)]
+    cubes = [np.asarray(root["input"][int(slot)], dtype=np.float32) for slot in chosen]
+    for pair in args.pairs:
+        results["pairs"][pair] = entry = profile_pair(pair, args, cubes, cache)
+        print_pair(pair, entry)
+    results["load_average_after"] = os.getloadavg()
+    Path(args.out).write_text(json.dumps(results, indent=2))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
