@@ -7,11 +7,11 @@ segmenter graph's time by operator type (onnxruntime's own profiler), side by si
 The edge table (``benchmarks/edge.py``) gives each engine's end-to-end time; this splits it, so that what stands
 between the int8 graphs and the default engine is a figure: per stage (``FrameCompute.seconds``: transform,
 detect, grow, segment, project; each frame's fastest of ``--repeats`` runs, engines interleaved, median over
-frames), the segment stage of the ONNX engines split into its kernel maps (numpy, the same on both) and the graph
-run, and the graph run split by operator type over the same ROIs (a second session per graph with profiling on;
-its total is a little above the plain run's: the profiler's own cost). ``ceiling`` is the int8 frame with its
-matrix products at zero cost: if that is still slower than the default engine, no faster int8 arithmetic gets
-the int8 graphs past it.
+frames), the segment stage of the ONNX engines split into its kernel maps (the same on both: the compiled
+engine's, numpy's beside them) and the graph run, and the graph run split by operator type over the same ROIs (a
+second session per graph with profiling on; its sums run 1.3-1.5x above the plain run's, the profiler's own cost
+per node, so read its shares). ``ceiling`` is the int8 frame less its profiled matrix products: what the int8
+arithmetic could save at most.
 
 Writes ``benchmarks/results/onnx_profile.json`` with the CPU's flags and the load average before and after.
 """
@@ -34,6 +34,7 @@ from benchmarks.edge import PAIRS, ROOT, cpu_flags
 from models.erasenet.compute_report import STEPS
 from models.erasenet.engines import load_erasenet
 from models.export.export_cache import exported_dir
+from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
 from pipelines.datasets.calibration import store_calibration
 from pipelines.datasets.store import frames_of_split, open_store
@@ -74,12 +75,15 @@ def stage_times(nets: dict, cubes: list[np.ndarray], repeats: int) -> tuple[dict
 
 
 def segment_split(nets: dict, feeds: list, repeats: int) -> dict[str, float]:
-    """Median ms over the ROIs of the kernel maps (numpy) and of each ONNX engine's segmenter graph run."""
-    maps_ms, run_ms = [], {name: [] for name in ("onnx", "onnx-int8")}
+    """Median ms over the ROIs of the kernel maps (numpy's, and the compiled ones the engine uses) and of each
+    ONNX engine's segmenter graph run."""
+    maps_ms: dict[str, list[float]] = {"kernel_maps_numpy": [], "kernel_maps_compiled": []}
+    run_ms: dict[str, list[float]] = {name: [] for name in ("onnx", "onnx-int8")}
     for coords, features in feeds:
-        started = time.perf_counter()
-        maps = kernel_maps(coords)
-        maps_ms.append(time.perf_counter() - started)
+        for name, build in (("kernel_maps_numpy", kernel_maps), ("kernel_maps_compiled", fastest_kernel_maps)):
+            started = time.perf_counter()
+            maps = build(coords)
+            maps_ms[name].append(time.perf_counter() - started)
         for name in run_ms:
             session = nets[name]._segmenter_session
             times = []
@@ -88,7 +92,7 @@ def segment_split(nets: dict, feeds: list, repeats: int) -> dict[str, float]:
                 session.run(None, {"features": features, **maps})
                 times.append(time.perf_counter() - started)
             run_ms[name].append(min(times))
-    out = {"kernel_maps": 1e3 * statistics.median(maps_ms)}
+    out = {name: 1e3 * statistics.median(times) for name, times in maps_ms.items()}
     out.update({f"graph_{name}": 1e3 * statistics.median(times) for name, times in run_ms.items()})
     return out
 

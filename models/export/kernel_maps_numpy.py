@@ -125,13 +125,16 @@ def segmenter_macs(maps: dict[str, np.ndarray], layers: list[dict]) -> tuple[int
         products a transposed conv computes for absent children.
     """
     voxels = {s: len(maps[f"neighbours_s{s}"]) for s in STRIDES}
+    pairs: dict[str, int] = {}  # present pairs per map, counted once: a frame's layers share 9 maps
     useful = executed = 0
     for layer in layers:
         stride, channels = layer["stride"], layer["in_channels"] * layer["out_channels"]
         if layer["kind"] == "gather":
             table = maps[layer["map"]]
-            num_in = voxels[stride // 2] if layer["map"].startswith("down") else voxels[stride]
-            useful += int(np.count_nonzero(table != num_in)) * channels
+            if layer["map"] not in pairs:
+                num_in = voxels[stride // 2] if layer["map"].startswith("down") else voxels[stride]
+                pairs[layer["map"]] = int(np.count_nonzero(table != num_in))
+            useful += pairs[layer["map"]] * channels
             executed += table.size * channels
         elif layer["kind"] == "pick":
             useful += voxels[stride] * channels

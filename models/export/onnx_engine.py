@@ -3,9 +3,9 @@
 The same stages as the PyTorch engine (transform, detect, grow, segment, project) and the same result
 and compute report (``compute.engine == "onnx"``): the detector graph replaces the traced detector
 (its outputs are decoded by the detector's own ``decode``), the segmenter graph replaces the sparse
-MinkUNet (kernel maps from :mod:`models.export.kernel_maps_numpy`); region growing, Doppler refinement,
-projection and objects are the shared code. Useful MACs are counted from the kernel maps exactly as the
-PyTorch engine counts them; executed MACs are what the graph's matrix products run.
+MinkUNet (kernel maps from :mod:`models.export.kernel_maps_compiled`, equal to numpy's); region growing,
+Doppler refinement, projection and objects are the shared code. Useful MACs are counted from the kernel maps
+exactly as the PyTorch engine counts them; executed MACs are what the graph's matrix products run.
 
 :mod:`models.export.export_cache` exports on demand into a cache keyed by the checkpoints' sha256
 (``RADARSEG_ONNX_CACHE``, default ``~/.cache/radarseg/onnx``), so the .pt files are all it needs.
@@ -24,7 +24,8 @@ from torch import nn
 
 from models.checkpoint import Checkpoint, load_checkpoint
 from models.erasenet.model import EraseNet
-from models.export.kernel_maps_numpy import kernel_maps, segmenter_macs
+from models.export.kernel_maps_compiled import fastest_kernel_maps
+from models.export.kernel_maps_numpy import segmenter_macs
 from models.export.onnx_export import FORMAT, VERSION
 from radar.profiles import RadarProfile
 from radar.region_growing import Regions
@@ -135,7 +136,7 @@ class OnnxEraseNet(EraseNet):
     def voxel_logits(self, coords: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
         """The segmenter graph on voxels (N, 3) bins with features (N, 4): logits (N, C), labels (N,) int64,
         useful and executed MACs."""
-        maps = kernel_maps(coords)
+        maps = fastest_kernel_maps(coords)  # the compiled engine's where it runs, else numpy's
         logits, labels = self._segmenter_session.run(None, {"features": features, **maps})
         return (logits, labels, *segmenter_macs(maps, self._layers))
 

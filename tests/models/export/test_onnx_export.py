@@ -46,6 +46,29 @@ def test_numpy_kernel_maps_equal_the_sparse_engines():
         assert np.array_equal(maps[f"up_s{stride}"], down.parent_slots.numpy())
 
 
+def test_compiled_kernel_maps_equal_numpys_on_sorted_voxels():
+    """The ONNX engine's maps (the compiled engine's one-pass pyramid) are numpy's tables, entry for entry, on
+    sorted voxels (as region growing gives them); unsorted ones fall back to numpy."""
+    from models.export.kernel_maps_compiled import compiled_kernel_maps, fastest_kernel_maps
+    from models.sparse import compiled
+
+    rng = np.random.default_rng(1)
+    coords = np.unique(rng.integers(0, 40, size=(3000, 3)), axis=0)  # np.unique sorts the rows
+    want = kernel_maps(coords)
+    got = compiled_kernel_maps(coords)
+    if not compiled.enabled_on(torch.device("cpu")):
+        assert got is None
+    else:
+        assert got is not None and list(got) == list(want)
+        for name in want:
+            assert got[name].dtype == np.int64 and np.array_equal(got[name], want[name]), name
+    shuffled = coords[rng.permutation(len(coords))]
+    assert compiled_kernel_maps(shuffled) is None
+    assert all(np.array_equal(fastest_kernel_maps(shuffled)[k], v) for k, v in kernel_maps(shuffled).items())
+    with pytest.raises(ValueError, match=">= 0"):
+        fastest_kernel_maps(np.array([[1, -2, 3]]))
+
+
 def test_kernel_maps_refuse_bad_coordinates():
     with pytest.raises(ValueError, match="repeated rows"):
         kernel_maps(np.array([[1, 2, 3], [1, 2, 3]]))
