@@ -16,10 +16,12 @@ What stays float is chosen by measurement, one thread:
   int8 4.8-4.9 ms: the small convolutions pay more for the QDQ conversions than they gain), so an int8 export is
   usually an int8 segmenter beside the float detector; the manifest gives each graph's ``precision`` and both
   timings;
-- in the segmenter, ``Add`` (the bias and residual sums after each MatMul) is not quantised
-  (:data:`NOT_QUANTISED`): a QLinearAdd per sum cost more than the float Add between a dequantised MatMul and the
-  next quantisation (shipped segmenter, 6 calibration frames of 12-49 k voxels, median of each frame's best:
-  float 42-46 ms, every op int8 31-34 ms, all but Add 29-32 ms; voxel label agreement with float 99.8 %).
+- in the segmenter, ``Add`` (since export format 3 only the residual sums: each bias is its Gemm's C input, which
+  quantises to one QGemm with an int32 bias) is not quantised (:data:`NOT_QUANTISED`). With the biases as Adds, a
+  QLinearAdd per sum cost more than the float Add (shipped segmenter, 6 calibration frames of 12-49 k voxels,
+  median of each frame's best: float 42-46 ms, every op int8 31-34 ms, all but Add 29-32 ms; voxel label agreement
+  with float 99.8 %); with the 16 residual sums alone, QLinearAdd was within 2 % (46.5 against 47.2 ms on 8
+  frames of 14-42 k voxels, a training job on the other core): kept float.
 
 Calibration frames come from the train split of a preprocessed store (read by
 :mod:`pipelines.datasets.calibration`, which hands the cubes in), or, when none is given, from the project's
