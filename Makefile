@@ -38,7 +38,7 @@ $(STAMP): pyproject.toml
 # The suite runs on one pytest-xdist worker per core (TEST_WORKERS=0 runs it in this process); the Ray tests
 # share one worker (tests/conftest.py), so one cluster runs at a time.
 TEST_WORKERS ?= auto
-PYTEST := $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+PYTEST := $(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadgroup --durations=30
 
 test: venv
 	$(PYTEST)

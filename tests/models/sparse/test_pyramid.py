@@ -17,7 +17,10 @@ LEVELS = 5
 
 @pytest.fixture(scope="module", autouse=True)
 def built_engine():
+    """These test the compiled pass itself: it runs even where RADARSEG_SPARSE_ENGINE forces the reference engine."""
     compiled.load()
+    with compiled.using_engine("compiled"):
+        yield
 
 
 def sorted_voxels(seed: int, per_sample: int, batch_size: int, spread: int, low: int) -> torch.Tensor:
