@@ -58,6 +58,31 @@ def cpu_flags() -> dict[str, object]:
             "vnni": "avx512_vnni" in flags or "avx_vnni" in flags, "cores": os.cpu_count()}
 
 
+def spread_frames(store: str, frames: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``frames`` slots spread evenly over every frame of ``store`` and their cubes (log power, float32)."""
+    root = open_store(store)
+    slots = frames_of_split(root, None)
+    chosen = slots[np.linspace(0, len(slots) - 1, min(frames, len(slots))).round().astype(int)]
+    return chosen, [np.asarray(root["input"][int(slot)], dtype=np.float32) for slot in chosen]
+
+
+def pair_engines(pair: str, cache: Path, calibration_store: str, calibration_frames: int, methods: tuple[str, ...],
+                 warm_up: np.ndarray) -> tuple[Path, Path, dict]:
+    """A pair's float and int8 exports (made in ``cache`` if absent) and its three engines, each run once on
+    ``warm_up``: (float dir, int8 dir, {"onnx", "onnx-int8", "torch": EraseNet})."""
+    detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
+    float_dir = exported_dir(detector, segmenter, cache)
+    profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
+    calibration = store_calibration(calibration_store, profile, frames=calibration_frames, methods=methods)
+    int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
+    nets = {"onnx": load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir),
+            "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
+            "torch": load_erasenet(detector, segmenter)}
+    for net in nets.values():
+        net.segment(warm_up, is_log_power=True)
+    return float_dir, int8_dir, nets
+
+
 def timing(nets: dict, cubes: list[np.ndarray], repeats: int) -> dict[str, object]:
     """Median over frames of each frame's best end-to-end time per engine (interleaved), and segment MACs."""
     best: dict[str, list[float]] = {name: [] for name in nets}
@@ -123,24 +148,13 @@ def main() -> None:
                                   "mAP_from": "the engine scored (EraseNet.detect: ONNX detector graph on ONNX)",
                                   "pairs": {}}
     cache = Path(args.cache or tempfile.mkdtemp(prefix="edge-onnx-"))
-    root = open_store(args.store)
-    slots = frames_of_split(root, None)
-    chosen = slots[np.linspace(0, len(slots) - 1, min(args.timing_frames, len(slots))).round().astype(int)]
-    cubes = [np.asarray(root["input"][int(slot)], dtype=np.float32) for slot in chosen]
+    chosen, cubes = spread_frames(args.store, args.timing_frames)
     for pair in args.pairs:
         detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
-        float_dir = exported_dir(detector, segmenter, cache)
-        profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
-        calibration = store_calibration(args.calibration, profile, frames=args.calibration_frames,
-                                        methods=tuple(args.methods))
-        int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
+        float_dir, int8_dir, nets = pair_engines(pair, cache, args.calibration, args.calibration_frames,
+                                                 tuple(args.methods), cubes[0])
         manifests = {"float": json.loads((float_dir / "manifest.json").read_text()),
                      "int8": json.loads((int8_dir / "manifest.json").read_text())}
-        nets = {"onnx": load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir),
-                "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
-                "torch": load_erasenet(detector, segmenter)}
-        for net in nets.values():  # warm-up
-            net.segment(cubes[0], is_log_power=True)
         entry: dict[str, object] = {
             "detector": PAIRS[pair][0], "segmenter": PAIRS[pair][1],
             "params": {stage: manifests["float"][stage]["params"] for stage in ("detector", "segmenter")},

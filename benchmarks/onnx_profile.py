@@ -30,14 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.edge import PAIRS, ROOT, cpu_flags
+from benchmarks.edge import PAIRS, ROOT, cpu_flags, pair_engines, spread_frames
 from models.erasenet.compute_report import STEPS
-from models.erasenet.engines import load_erasenet
-from models.export.export_cache import exported_dir
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
-from pipelines.datasets.calibration import store_calibration
-from pipelines.datasets.store import frames_of_split, open_store
 
 ENGINES = ("onnx", "onnx-int8", "torch")
 PRODUCTS = ("MatMul", "QLinearMatMul", "MatMulInteger", "MatMulIntegerToFloat", "Gemm", "QGemm",
@@ -128,17 +124,8 @@ def detector_feeds(cubes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
 
 
 def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], cache: Path) -> dict:
-    detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
-    float_dir = exported_dir(detector, segmenter, cache)
-    profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
-    calibration = store_calibration(args.calibration, profile, frames=args.calibration_frames,
-                                    methods=tuple(args.methods))
-    int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
-    nets = {"onnx": load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir),
-            "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
-            "torch": load_erasenet(detector, segmenter)}
-    for net in nets.values():  # warm-up
-        net.segment(cubes[0], is_log_power=True)
+    float_dir, int8_dir, nets = pair_engines(pair, cache, args.calibration, args.calibration_frames,
+                                             tuple(args.methods), cubes[0])
     stages, feeds = stage_times(nets, cubes, args.repeats)
     split = segment_split(nets, feeds, args.repeats)
     graph_feeds = [{"features": features, **kernel_maps(coords)} for coords, features in feeds]
@@ -192,10 +179,7 @@ def main() -> None:
                                   "store": args.store, "calibration_store": args.calibration,
                                   "frames": args.frames, "repeats": args.repeats, "pairs": {}}
     cache = Path(args.cache or tempfile.mkdtemp(prefix="onnx-profile-"))
-    root = open_store(args.store)
-    slots = frames_of_split(root, None)
-    chosen = slots[np.linspace(0, len(slots) - 1, min(args.frames, len(slots))).round().astype(int)]
-    cubes = [np.asarray(root["input"][int(slot)], dtype=np.float32) for slot in chosen]
+    _, cubes = spread_frames(args.store, args.frames)
     for pair in args.pairs:
         results["pairs"][pair] = entry = profile_pair(pair, args, cubes, cache)
         print_pair(pair, entry)
