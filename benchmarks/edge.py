@@ -58,6 +58,17 @@ def cpu_flags() -> dict[str, object]:
             "vnni": "avx512_vnni" in flags or "avx_vnni" in flags, "cores": os.cpu_count()}
 
 
+def add_engine_arguments(parser: argparse.ArgumentParser, *, methods: list[str], pairs: list[str]) -> None:
+    """The options of :func:`pair_engines` and the timing repeats (``edge`` and ``onnx_profile`` share them)."""
+    parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
+    parser.add_argument("--calibration-frames", type=int, default=6)
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=methods,
+                        help="calibration methods tried (the best ROI label agreement is kept)")
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--pairs", nargs="+", choices=sorted(PAIRS), default=pairs)
+    parser.add_argument("--cache", default=None, help="export cache (default: a temporary directory)")
+
+
 def spread_frames(store: str, frames: int) -> tuple[np.ndarray, list[np.ndarray]]:
     """``frames`` slots spread evenly over every frame of ``store`` and their cubes (log power, float32)."""
     root = open_store(store)
@@ -130,15 +141,9 @@ def accuracy(detector: str, segmenter: str, store: str, engine: str, onnx_dir: P
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--store", required=True, help="evaluation store (a fresh seed), every frame scored")
-    parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
-    parser.add_argument("--calibration-frames", type=int, default=6)
-    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS),
-                        help="calibration methods tried (the best ROI label agreement is kept)")
+    add_engine_arguments(parser, methods=list(METHODS), pairs=list(PAIRS))
     parser.add_argument("--eval-frames", type=int, default=0, help="0: every frame of --store")
     parser.add_argument("--timing-frames", type=int, default=8)
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--pairs", nargs="+", choices=sorted(PAIRS), default=list(PAIRS))
-    parser.add_argument("--cache", default=None, help="export cache (default: a temporary directory)")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "edge.json"))
     args = parser.parse_args()
     torch.set_num_threads(1)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.edge import PAIRS, ROOT, cpu_flags, pair_engines, spread_frames
+from benchmarks.edge import PAIRS, ROOT, add_engine_arguments, cpu_flags, pair_engines, spread_frames
 from models.erasenet.compute_report import STEPS
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
@@ -165,13 +165,8 @@ def print_pair(pair: str, entry: dict) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--store", required=True, help="store whose frames are timed (a fresh seed)")
-    parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
-    parser.add_argument("--calibration-frames", type=int, default=6)
-    parser.add_argument("--methods", nargs="+", default=["Percentile"])
+    add_engine_arguments(parser, methods=["Percentile"], pairs=["shipped"])
     parser.add_argument("--frames", type=int, default=8)
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--pairs", nargs="+", choices=sorted(PAIRS), default=["shipped"])
-    parser.add_argument("--cache", default=None, help="export cache (default: a temporary directory)")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "onnx_profile.json"))
     args = parser.parse_args()
     torch.set_num_threads(1)
