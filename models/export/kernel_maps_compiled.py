@@ -19,8 +19,9 @@ def compiled_kernel_maps(coords: np.ndarray) -> dict[str, np.ndarray] | None:
     """``kernel_maps(coords)`` from the compiled engine, or None where it does not build them here (the engine
     is not available or forced off, or the voxels are not sorted lexicographically, as region growing gives them)."""
     coords = np.asarray(coords)
-    if coords.ndim != 2 or coords.shape[1] != 3 or len(coords) == 0 or coords.min() < 0:
-        return None  # the numpy path says what is wrong
+    if (coords.ndim != 2 or coords.shape[1] != 3 or len(coords) == 0 or not np.issubdtype(coords.dtype, np.integer)
+            or coords.min() < 0):
+        return None  # the numpy path says what is wrong (a repeated row the compiled pass declines too)
     batch = np.zeros((len(coords), 1), np.int64)
     cache = SparseTensor(torch.from_numpy(np.hstack([batch, coords.astype(np.int64)])),
                          torch.zeros(len(coords), 1)).cache

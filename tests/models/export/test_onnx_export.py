@@ -67,6 +67,10 @@ def test_compiled_kernel_maps_equal_numpys_on_sorted_voxels():
     assert all(np.array_equal(fastest_kernel_maps(shuffled)[k], v) for k, v in kernel_maps(shuffled).items())
     with pytest.raises(ValueError, match=">= 0"):
         fastest_kernel_maps(np.array([[1, -2, 3]]))
+    with pytest.raises(ValueError, match="integers"):
+        fastest_kernel_maps(np.array([[1.5, 2.0, 3.0]]))
+    with pytest.raises(ValueError, match="repeated rows"):  # sorted, so the compiled pass sees them first
+        fastest_kernel_maps(np.array([[1, 2, 3], [1, 2, 3], [1, 2, 4]]))
 
 
 def test_kernel_maps_refuse_bad_coordinates():
