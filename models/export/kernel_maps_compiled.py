@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from models.export.kernel_maps_numpy import STRIDES, kernel_maps
+from models.export.kernel_maps_numpy import STRIDES, column_tables, input_names, kernel_maps
 from models.sparse import SparseTensor
 
 
@@ -27,12 +27,15 @@ def compiled_kernel_maps(coords: np.ndarray) -> dict[str, np.ndarray] | None:
                          torch.zeros(len(coords), 1)).cache
     if not cache.build_pyramid(1, len(STRIDES)):
         return None
-    maps = {f"neighbours_s{s}": cache.kernel_map(s, 3, 1).neighbours.numpy() for s in STRIDES}
+    maps: dict[str, np.ndarray] = {}
+    for stride in STRIDES:
+        maps[f"columns_s{stride}"], maps[f"neighbours_s{stride}"] = column_tables(
+            cache.kernel_map(stride, 3, 1).neighbours.numpy())
     for stride in STRIDES[:-1]:
         down = cache.kernel_map(stride, 2, 2)
         maps[f"down_s{stride}"] = down.neighbours.numpy()
         maps[f"up_s{stride}"] = down.parent_slots.numpy()
-    return maps
+    return {name: maps[name] for name in input_names()}  # the graph's order, as numpy's
 
 
 def fastest_kernel_maps(coords: np.ndarray) -> dict[str, np.ndarray]:

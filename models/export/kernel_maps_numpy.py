@@ -7,16 +7,25 @@ graph: which voxel each sparse convolution reads. The float input is the voxels'
 Voxels at tensor stride ``s`` (s = 1, 2, 4, 8, 16) are the input voxels at ``s = 1`` (in the caller's
 order) and ``unique(floor(coords / s))`` (sorted lexicographically) above. Per stride the graph takes:
 
-- ``neighbours_s{s}`` (N_s, 27) int64: row of the voxel at ``q + d`` for every voxel ``q`` and offset
-  ``d`` in ``{-1, 0, 1}^3`` (x outermost, z innermost), ``N_s`` where there is none (the graph appends a
-  zero row to the features, so a missing neighbour multiplies zeros): the 3^3 submanifold convolutions;
+- the 3^3 submanifold convolutions' neighbours, as z-columns (export format 4): the voxel at ``q + d`` for every
+  voxel ``q`` and offset ``d`` in ``{-1, 0, 1}^3`` (x outermost, z innermost) is entry ``d_z`` of the column at
+  ``q + (d_x, d_y, 0)``, so the graph gathers each column's three rows once and then 9 columns per voxel, about
+  half the row copies of 27 single rows (a `small` ROI has 1.3 columns per voxel):
+
+  - ``columns_s{s}`` (M_s, 3) int64: rows of the voxels at ``p - z``, ``p``, ``p + z`` of each column ``p``,
+    ``N_s`` where there is none (the graph appends a zero row to the features, so a missing neighbour
+    multiplies zeros). Row ``j < N_s`` is voxel ``j``'s own column; rows from ``N_s`` on are the empty
+    positions next to a voxel in x / y that have one at z - 1 or z + 1;
+  - ``neighbours_s{s}`` (N_s, 9) int64: the ``columns_s{s}`` row of ``q + (d_x, d_y, 0)`` for every voxel ``q``
+    and ``(d_x, d_y)`` in ``{-1, 0, 1}^2`` (x outer), ``M_s`` where the column is empty (the graph appends a zero
+    row to the gathered columns). :func:`expand_neighbours` gives the (N_s, 27) table back;
 - ``down_s{s}`` (N_2s, 8) int64 for s < 16: row at stride ``s`` of the voxel ``2 q + d`` for every
   coarse voxel ``q`` and ``d`` in ``{0, 1}^3``, ``N_s`` where there is none: the 2^3 stride-2 convolutions;
 - ``up_s{s}`` (N_s,) int64 for s < 16: ``8 * parent_row + k`` for every voxel at stride ``s``, its
   parent at stride ``2s`` and ``k`` the index of its corner in ``{0, 1}^3``: the transposed convolutions.
 
-These are exactly the maps ``models.sparse`` builds (``VoxelIndex.neighbour_table``, ``KernelMap.parent_slots``);
-a test in this package checks that they agree.
+These are exactly the maps ``models.sparse`` builds (``VoxelIndex.neighbour_table``, ``KernelMap.parent_slots``;
+the 3^3 tables through :func:`expand_neighbours`); a test in this package checks that they agree.
 """
 
 from __future__ import annotations
@@ -33,7 +42,8 @@ DOWN_OFFSETS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int6
 
 def input_names() -> list[str]:
     """Names of the integer graph inputs, in the graph's order (after ``features``)."""
-    names = [f"neighbours_s{s}" for s in STRIDES]
+    names = [f"columns_s{s}" for s in STRIDES]
+    names += [f"neighbours_s{s}" for s in STRIDES]
     names += [f"down_s{s}" for s in STRIDES[:-1]]
     names += [f"up_s{s}" for s in STRIDES[:-1]]
     return names
@@ -75,6 +85,34 @@ def stride_coords(coords: np.ndarray) -> dict[int, np.ndarray]:
     return levels
 
 
+def column_tables(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A 3^3 neighbour table (N, 27) (``N`` = missing) as z-columns: (``columns`` (M, 3), ``table`` (N, 9)), see
+    the module docstring. An empty position is named by the voxel below it (key ``2 row``) or, without one, above
+    it (``2 row + 1``): the same key whichever voxel reads it, so the columns are deduplicated in O(N)."""
+    n = len(neighbours)
+    triples = neighbours.reshape(n, 9, 3)
+    below, centre, above = triples[:, :, 0], triples[:, :, 1], triples[:, :, 2]
+    extra = (centre == n) & ((below != n) | (above != n))  # an empty position with a voxel above or below
+    key = np.where(below != n, 2 * below, 2 * above + 1)
+    marked = np.zeros(2 * n + 2, dtype=bool)
+    marked[key[extra]] = True
+    keys = np.flatnonzero(marked)
+    slot = np.cumsum(marked) - 1  # key -> its index among the empty positions
+    ends = np.zeros((2 * n + 2, 2), dtype=np.int64)
+    ends[key[extra]] = np.stack([below[extra], above[extra]], axis=1)  # the same pair for every reader of a key
+    extras = np.stack([ends[keys, 0], np.full(len(keys), n, dtype=np.int64), ends[keys, 1]], axis=1)
+    columns = np.concatenate([neighbours[:, 12:15], extras])
+    empty = len(columns)
+    table = np.where(centre != n, centre, np.where(extra, n + slot[key], empty))
+    return columns, table.astype(np.int64, copy=False)
+
+
+def expand_neighbours(columns: np.ndarray, table: np.ndarray, num_voxels: int) -> np.ndarray:
+    """The (N, 27) 3^3 neighbour table (``num_voxels`` = missing) from its z-columns (:func:`column_tables`)."""
+    padded = np.concatenate([columns, np.full((1, 3), num_voxels, dtype=columns.dtype)])
+    return padded[table].reshape(len(table), 27)
+
+
 def kernel_maps(coords: np.ndarray) -> dict[str, np.ndarray]:
     """The graph's integer inputs for one frame's voxels.
 
@@ -102,14 +140,14 @@ def kernel_maps(coords: np.ndarray) -> dict[str, np.ndarray]:
         raise ValueError("coords contain repeated rows (a voxel is given once)")
     maps: dict[str, np.ndarray] = {}
     for s in STRIDES:
-        maps[f"neighbours_s{s}"] = grids[s].rows(levels[s], SUBMANIFOLD_OFFSETS)
+        maps[f"columns_s{s}"], maps[f"neighbours_s{s}"] = column_tables(grids[s].rows(levels[s], SUBMANIFOLD_OFFSETS))
     for finer, coarser in zip(STRIDES[:-1], STRIDES[1:], strict=True):
         maps[f"down_s{finer}"] = grids[finer].rows(2 * levels[coarser], DOWN_OFFSETS)
         fine = levels[finer]
         parent = np.take(grids[coarser].grid, grids[coarser].flat(fine // 2)).astype(np.int64)
         corner = (fine % 2) @ np.array([4, 2, 1], dtype=np.int64)
         maps[f"up_s{finer}"] = parent * 8 + corner
-    return maps
+    return {name: maps[name] for name in input_names()}  # the graph's order
 
 
 def segmenter_macs(maps: dict[str, np.ndarray], layers: list[dict]) -> tuple[int, int]:
@@ -130,12 +168,11 @@ def segmenter_macs(maps: dict[str, np.ndarray], layers: list[dict]) -> tuple[int
     for layer in layers:
         stride, channels = layer["stride"], layer["in_channels"] * layer["out_channels"]
         if layer["kind"] == "gather":
-            table = maps[layer["map"]]
-            if layer["map"] not in pairs:
-                num_in = voxels[stride // 2] if layer["map"].startswith("down") else voxels[stride]
-                pairs[layer["map"]] = int(np.count_nonzero(table != num_in))
-            useful += pairs[layer["map"]] * channels
-            executed += table.size * channels
+            name = layer["map"]
+            if name not in pairs:
+                pairs[name] = _present_pairs(maps, name, voxels, stride)
+            useful += pairs[name] * channels
+            executed += len(maps[name]) * layer["kernel_volume"] * channels
         elif layer["kind"] == "pick":
             useful += voxels[stride] * channels
             executed += voxels[2 * stride] * layer["kernel_volume"] * channels
@@ -143,3 +180,13 @@ def segmenter_macs(maps: dict[str, np.ndarray], layers: list[dict]) -> tuple[int
             useful += voxels[stride] * channels
             executed += voxels[stride] * channels
     return useful, executed
+
+
+def _present_pairs(maps: dict[str, np.ndarray], name: str, voxels: dict[int, int], stride: int) -> int:
+    """Input/output voxel pairs of a map: entries that name a voxel (a 3^3 map through its columns)."""
+    if name.startswith("down"):
+        return int(np.count_nonzero(maps[name] != voxels[stride // 2]))
+    columns = maps[f"columns_s{stride}"]
+    per_column = np.append(np.count_nonzero(columns != voxels[stride], axis=1), 0)  # the empty column: none
+    return int(per_column[maps[name]].sum())
+

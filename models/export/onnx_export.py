@@ -41,9 +41,10 @@ from radar.roi import N_FEATURES
 OPSET = 17
 """ONNX opset of both graphs (onnxruntime >= 1.14, OpenVINO, TensorRT 8.6 read it)."""
 FORMAT = "radarseg.onnx"
-VERSION = 3
+VERSION = 4
 """Bump when the graphs' inputs, outputs or formulation change: the export cache keys on it (2: row blocks
-as Slice, not SplitToSequence; 3: each sparse conv's bias is its Gemm's C input, not an Add)."""
+as Slice, not SplitToSequence; 3: each sparse conv's bias is its Gemm's C input, not an Add; 4: the 3^3 maps as
+z-columns, ``columns_s*`` inputs)."""
 DETECTOR_OUTPUTS = ("heatmap", "offset", "doppler")
 SEGMENTER_OUTPUTS = ("logits", "labels")
 STANDARD_DOMAINS = ("", "ai.onnx")
@@ -71,9 +72,9 @@ class DetectorGraph(nn.Module):
 class SegmenterGraph(nn.Module):
     """The segmenter as exported: features and kernel maps -> logits and labels."""
 
-    def __init__(self, segmenter: nn.Module) -> None:
+    def __init__(self, segmenter: nn.Module, *, column_gathers: bool = False) -> None:
         super().__init__()
-        self.net = ExportMinkUNet(segmenter)
+        self.net = ExportMinkUNet(segmenter, column_gathers=column_gathers)
 
     def forward(self, feats: Tensor, *maps: Tensor) -> tuple[Tensor, Tensor]:
         logits = self.net(feats, *maps)
@@ -142,16 +143,19 @@ def example_voxels(profile: RadarProfile) -> np.ndarray:
     return voxels[keep] + np.array(profile.shape) // 4
 
 
-def export_segmenter(segmenter: nn.Module, profile: RadarProfile, path: Path) -> list[dict[str, Any]]:
-    """Write ``segmenter.onnx`` (see the module docstring); returns its layer table for MAC counts."""
-    graph = SegmenterGraph(segmenter).eval()
+def export_segmenter(segmenter: nn.Module, profile: RadarProfile, path: Path, *,
+                     column_gathers: bool = False) -> list[dict[str, Any]]:
+    """Write ``segmenter.onnx`` (see the module docstring); returns its layer table for MAC counts.
+    ``column_gathers``: the form quantised for int8 (:class:`models.export.sparse_graph.ExportMinkUNet`)."""
+    graph = SegmenterGraph(segmenter, column_gathers=column_gathers).eval()
     maps = kernel_maps(example_voxels(profile))
     names = map_input_names()
     feats = torch.zeros(len(maps["neighbours_s1"]), N_FEATURES)
     dynamic = {"features": {0: "voxels_s1"}, "logits": {0: "voxels_s1"}, "labels": {0: "voxels_s1"}}
     for name in names:
         stride = int(name.rsplit("_s", 1)[1])
-        rows = f"voxels_s{2 * stride}" if name.startswith("down") else f"voxels_s{stride}"
+        rows = {"down": f"voxels_s{2 * stride}", "columns": f"columns_s{stride}"}.get(name.split("_")[0],
+                                                                                   f"voxels_s{stride}")
         dynamic[name] = {0: rows}
     _trace_to_onnx(graph, (feats, *(torch.from_numpy(maps[n]) for n in names)), path, ["features", *names],
                    list(SEGMENTER_OUTPUTS), dynamic)

@@ -60,8 +60,9 @@ from models.export.onnx_engine import INT8_WEIGHTS
 
 log = logging.getLogger(__name__)
 
-QUANT_VERSION = 3
-"""Bump when the quantisation recipe changes: the int8 export cache keys on it."""
+QUANT_VERSION = 4
+"""Bump when the quantisation recipe changes: the int8 export cache keys on it (4: the segmenter quantised from
+its z-column form, :func:`_column_segmenter`)."""
 METHODS = ("MinMax", "Entropy", "Percentile")
 CALIBRATION_FRAMES = 8
 """Default calibration frames (each frame's ROI gives the segmenter tens of thousands of voxel rows)."""
@@ -284,7 +285,8 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     for method in methods:
         (out / f".{method}").mkdir(exist_ok=True)
     int8_detector, detector_ms = _detector_precision(out, float_dir, det_feeds, methods[0], int8_detector)
-    _quantise_trials(out, float_dir, feeds, methods, int8_detector)
+    sources = {"detector.onnx": float_dir / "detector.onnx", "segmenter.onnx": _column_segmenter(seg, out)}
+    _quantise_trials(out, sources, feeds, methods, int8_detector)
     agreement = _agreement_by_method(out, det, seg, cubes, float_labels, float_manifest, methods, pipeline)
     best = max(methods, key=lambda method: agreement[method])  # the first of equals
     for name in QUANTISED_FILES:  # the chosen graphs, with short internal names (most of a sparse graph's bytes)
@@ -295,9 +297,11 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     for method in methods:
         shutil.rmtree(out / f".{method}", ignore_errors=True)
     (out / ".detector-int8-weights.onnx").unlink(missing_ok=True)
+    sources["segmenter.onnx"].unlink(missing_ok=True)
     manifest = _int8_manifest(float_manifest, float_dir, out, int8_detector)
     manifest["quantization"] = {
         "version": QUANT_VERSION, "tool": "onnxruntime.quantization.quantize_static", "format": "QDQ",
+        "segmenter_form": "3^3 convs gather z-columns, then 9 columns per voxel (the float graph gathers 27 rows)",
         "weights": "int8, symmetric, per output channel", "activations": "uint8, asymmetric, per tensor",
         "graphs": {"detector": manifest["detector"]["precision"], "segmenter": "int8"},
         "files": "internal tensor names shortened, node names and doc strings dropped (models.export.compact)",
@@ -336,18 +340,28 @@ def _detector_precision(out: Path, float_dir: Path, feeds: Sequence[dict[str, np
     return int8_detector, detector_ms
 
 
-def _quantise_trials(out: Path, float_dir: Path, feeds: dict[str, Sequence[dict[str, np.ndarray]]],
+def _column_segmenter(segmenter: Checkpoint, out: Path) -> Path:
+    """The float segmenter graph in the form its int8 graph is quantised from: 3^3 convs gathering z-columns
+    (``ExportMinkUNet(column_gathers=True)``; the float export gathers 27 rows). Same inputs and outputs."""
+    from models.export.onnx_export import export_segmenter
+
+    path = out / ".segmenter-columns.onnx"
+    export_segmenter(segmenter.build().eval(), segmenter.profile, path, column_gathers=True)
+    return path
+
+
+def _quantise_trials(out: Path, sources: dict[str, Path], feeds: dict[str, Sequence[dict[str, np.ndarray]]],
                      methods: Sequence[str], int8_detector: bool) -> None:
-    """Each method's graphs into ``out/.METHOD`` (the first method's int8 detector is there already); the float
-    detector there when ``int8_detector`` is false."""
+    """Each method's graphs, quantised from ``sources`` (float graphs by file name), into ``out/.METHOD`` (the
+    first method's int8 detector is there already); the float detector there when ``int8_detector`` is false."""
     for method in methods:
         for name in QUANTISED_FILES:
             target = out / f".{method}" / name
             if name == "detector.onnx" and not int8_detector:
-                shutil.copyfile(float_dir / name, target)
+                shutil.copyfile(sources[name], target)
             elif not (name == "detector.onnx" and method == methods[0]):
                 log.info("quantising %s (%s, %d calibration inputs)", name, method, len(feeds[name]))
-                quantise_graph(float_dir / name, target, feeds[name], method, NOT_QUANTISED[name])
+                quantise_graph(sources[name], target, feeds[name], method, NOT_QUANTISED[name])
 
 
 def _agreement_by_method(out: Path, det: Checkpoint, seg: Checkpoint, cubes: Sequence[np.ndarray],

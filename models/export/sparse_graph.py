@@ -6,7 +6,8 @@ them in numpy), so nothing in the graph depends on the voxel count but its dynam
 
 Each conv is the implicit GEMM of ``models.sparse.conv`` (``neighbour_gemm``, ``pick_products``) without
 its chunking: a submanifold or strided conv gathers all K neighbours of every output voxel (a zero row
-serves the missing ones) into (N_out, K x C_in) and multiplies by the stacked weight (K x C_in, C_out); a
+serves the missing ones) into (N_out, K x C_in) and multiplies by the stacked weight (K x C_in, C_out), a 3^3
+one through z-columns (three rows gathered once per column, then nine columns per voxel: export format 4); a
 transposed conv multiplies every coarse voxel by all K weights, (N_coarse, C_in) @ (C_in, K x C_out), and
 each fine voxel picks its one product. The issue's prototype measured this form 1.4-2.2x faster in
 onnxruntime than eager PyTorch, and the per-offset form 2-5x slower.
@@ -71,6 +72,13 @@ class LayerCost:
                 "out_channels": self.out_channels, "kernel_volume": self.kernel_volume}
 
 
+def expand_in_graph(columns: Tensor, table: Tensor) -> Tensor:
+    """A level's (N, 27) neighbour table from its z-columns (M, 3) and column table (N, 9), as graph operators
+    (``models.export.kernel_maps_numpy.expand_neighbours``): one integer gather per level."""
+    missing = torch.full_like(columns[:1], table.shape[0])
+    return torch.cat([columns, missing])[table.reshape(-1)].reshape(table.shape[0], 27)
+
+
 def _fold(weight: Tensor, bias: Tensor | None, norm: nn.BatchNorm1d | None) -> tuple[Tensor, Tensor]:
     """A conv's weight (..., C_out) and bias (C_out) with the eval-mode BatchNorm after it folded in."""
     c_out = weight.shape[-1]
@@ -97,8 +105,14 @@ class GatherConv(nn.Module):
         self.pieces = 1
         """Row blocks the gather and product run in (``chunk_pieces``): set by :class:`ExportMinkUNet`."""
 
-    def forward(self, feats: Tensor, neighbours: Tensor) -> Tensor:
+    def forward(self, feats: Tensor, neighbours: Tensor, columns: Tensor | None = None) -> Tensor:
+        """``columns`` (M, 3) for a 3^3 conv, whose ``neighbours`` (N_out, 9) then name columns (see
+        :mod:`models.export.kernel_maps_numpy`): each column's three rows are gathered once, then 9 columns per
+        voxel, the same (N_out, 27 x C_in) matrix from about half the row copies."""
         padded = torch.cat([feats, torch.zeros_like(feats[:1])])  # row N_in: the zero of a missing neighbour
+        if columns is not None:
+            stacked = padded[columns.reshape(-1)].reshape(columns.shape[0], 3 * feats.shape[1])
+            padded = torch.cat([stacked, torch.zeros_like(stacked[:1])])  # row M: an empty column
         if self.pieces == 1:
             out = self._gemm(padded, neighbours)
         else:  # one Gather and Gemm per block of rows: the gathered block stays in cache for its product
@@ -154,8 +168,8 @@ class Residual(nn.Module):
         self.conv2 = GatherConv(conv2, norm2, relu=False)
         self.shortcut = None if isinstance(block.shortcut, nn.Identity) else Pointwise(*block.shortcut)
 
-    def forward(self, feats: Tensor, neighbours: Tensor) -> Tensor:
-        out = self.conv2(self.conv1(feats, neighbours), neighbours)
+    def forward(self, feats: Tensor, neighbours: Tensor, columns: Tensor | None) -> Tensor:
+        out = self.conv2(self.conv1(feats, neighbours, columns), neighbours, columns)
         return torch.relu(out + (feats if self.shortcut is None else self.shortcut(feats)))
 
 
@@ -171,9 +185,15 @@ class ExportMinkUNet(nn.Module):
     :func:`models.export.kernel_maps_numpy.input_names` -> logits (N, num_classes).
     """
 
-    def __init__(self, model: MinkUNet, *, reference_voxels: dict[int, int] | None = None) -> None:
-        """``reference_voxels``: voxels per stride the row blocks are sized for (default ``REFERENCE_VOXELS``)."""
+    def __init__(self, model: MinkUNet, *, reference_voxels: dict[int, int] | None = None,
+                 column_gathers: bool = False) -> None:
+        """``reference_voxels``: voxels per stride the row blocks are sized for (default ``REFERENCE_VOXELS``).
+        ``column_gathers``: each 3^3 conv gathers z-columns, then 9 columns per voxel (the int8 graph's form: about
+        half the row copies, 0.81x its time); otherwise each level's 27-row table is expanded from the columns once
+        in the graph and every conv gathers 27 rows (the float graph's form: its 4-byte rows are bandwidth-bound,
+        and the column form, which moves 15 % more bytes, ran 1.08x its time). Same inputs either way."""
         super().__init__()
+        self.column_gathers = column_gathers
         if isinstance(model, SPVCNN) or type(model) is not MinkUNet:
             raise ValueError(f"ONNX export supports MinkUNet segmenters, got {type(model).__name__}")
         if model.training:
@@ -202,22 +222,26 @@ class ExportMinkUNet(nn.Module):
 
     def forward(self, feats: Tensor, *maps: Tensor) -> Tensor:
         levels = len(STRIDES)
-        neighbours, down, up = maps[:levels], maps[levels:2 * levels - 1], maps[2 * levels - 1:]
+        columns, neighbours = list(maps[:levels]), list(maps[levels:2 * levels])
+        down, up = maps[2 * levels:3 * levels - 1], maps[3 * levels - 1:]
+        if not self.column_gathers:
+            neighbours = [expand_in_graph(c, n) for c, n in zip(columns, neighbours, strict=True)]
+            columns = [None] * levels
         y = feats
         for conv in self.stem:
-            y = conv(y, neighbours[0])
+            y = conv(y, neighbours[0], columns[0])
         skips = [y]
         for level, (conv, blocks) in enumerate(zip(self.down, self.encoder, strict=True)):
             y = conv(y, down[level])
             for block in blocks:
-                y = block(y, neighbours[level + 1])
+                y = block(y, neighbours[level + 1], columns[level + 1])
             skips.append(y)
         skips.pop()
         for step, (conv, blocks) in enumerate(zip(self.up, self.decoder, strict=True)):
             level = levels - 2 - step  # the finer stride this stage up-samples to
             y = torch.cat([conv(y, up[level]), skips[level]], dim=1)
             for block in blocks:
-                y = block(y, neighbours[level])
+                y = block(y, neighbours[level], columns[level])
         return self.classifier(y)
 
     def _gather_convs(self) -> list[GatherConv]:

@@ -13,7 +13,7 @@ import torch
 from models.checkpoint import load_checkpoint
 from models.erasenet.engines import load_erasenet
 from models.export.centres_numpy import decode_centres
-from models.export.kernel_maps_numpy import STRIDES, input_names, kernel_maps
+from models.export.kernel_maps_numpy import STRIDES, expand_neighbours, input_names, kernel_maps
 from models.export.sparse_graph import ExportMinkUNet
 from models.registry import create_model
 from models.sparse import SparseTensor
@@ -39,7 +39,11 @@ def test_numpy_kernel_maps_equal_the_sparse_engines():
     batch = np.zeros((len(coords), 1), np.int64)
     cache = SparseTensor(torch.from_numpy(np.hstack([batch, coords])), torch.zeros(len(coords), 4)).cache
     for stride in STRIDES:
-        assert np.array_equal(maps[f"neighbours_s{stride}"], cache.kernel_map(stride, 3, 1).neighbours.numpy())
+        table, columns = maps[f"neighbours_s{stride}"], maps[f"columns_s{stride}"]
+        assert table.shape == (len(cache.coords(stride)), 9) and len(columns) >= len(table)
+        full = expand_neighbours(columns, table, len(table))
+        assert np.array_equal(full, cache.kernel_map(stride, 3, 1).neighbours.numpy()), stride
+    assert len(maps["columns_s1"]) > len(maps["neighbours_s1"])  # empty positions beside voxels have columns too
     for stride in STRIDES[:-1]:
         down = cache.kernel_map(stride, 2, 2)
         assert np.array_equal(maps[f"down_s{stride}"], down.neighbours.numpy())
@@ -71,6 +75,21 @@ def test_compiled_kernel_maps_equal_numpys_on_sorted_voxels():
         fastest_kernel_maps(np.array([[1.5, 2.0, 3.0]]))
     with pytest.raises(ValueError, match="repeated rows"):  # sorted, so the compiled pass sees them first
         fastest_kernel_maps(np.array([[1, 2, 3], [1, 2, 3], [1, 2, 4]]))
+
+
+def test_column_and_row_gathers_give_the_same_logits():
+    """The int8 graph's source (3^3 convs gathering z-columns) and the float graph (27 rows from the table expanded
+    in the graph) compute the same function of the same inputs."""
+    model = load_checkpoint(PAIRS[0].values[0][1]).build()
+    rng = np.random.default_rng(3)
+    coords = np.unique(rng.integers(0, 30, size=(2500, 3)), axis=0)
+    maps = kernel_maps(coords)
+    feats = torch.from_numpy(rng.standard_normal((len(coords), 4)).astype(np.float32))
+    inputs = [torch.from_numpy(maps[name]) for name in input_names()]
+    with torch.no_grad():
+        rows = ExportMinkUNet(model)(feats, *inputs)
+        columns = ExportMinkUNet(model, column_gathers=True)(feats, *inputs)
+    torch.testing.assert_close(columns, rows, rtol=1e-4, atol=1e-4)
 
 
 def test_kernel_maps_refuse_bad_coordinates():

@@ -50,6 +50,7 @@ def test_int8_graphs_are_standard_onnx_and_the_manifest_names_their_precision(in
         else:
             assert "QuantizeLinear" not in checked["operators"] and "DequantizeLinear" in checked["operators"]
             assert manifest[stage]["bytes"] < 0.5 * manifest[stage]["float_bytes"]
+    assert "z-columns" in manifest["quantization"]["segmenter_form"]  # quantised from the column-gather form
     precision = manifest["segmenter"]["operator_precision"]
     assert precision["Gemm"].get("int8", 0) > 0 and precision["Gather"].get("int8", 0) > 0
     assert precision["Gather"].get("index", 0) > 0  # shape arithmetic stays integer
