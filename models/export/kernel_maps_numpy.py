@@ -14,11 +14,12 @@ order) and ``unique(floor(coords / s))`` (sorted lexicographically) above. Per s
 
   - ``columns_s{s}`` (M_s, 3) int64: rows of the voxels at ``p - z``, ``p``, ``p + z`` of each column ``p``,
     ``N_s`` where there is none (the graph appends a zero row to the features, so a missing neighbour
-    multiplies zeros). Row ``j < N_s`` is voxel ``j``'s own column; rows from ``N_s`` on are the empty
-    positions next to a voxel in x / y that have one at z - 1 or z + 1;
+    multiplies zeros). Row ``j < N_s`` is voxel ``j``'s own column; the rows after them are the empty
+    positions next to a voxel in x / y that have one at z - 1 or z + 1, and the last row is an empty column
+    (``N_s`` three times);
   - ``neighbours_s{s}`` (N_s, 9) int64: the ``columns_s{s}`` row of ``q + (d_x, d_y, 0)`` for every voxel ``q``
-    and ``(d_x, d_y)`` in ``{-1, 0, 1}^2`` (x outer), ``M_s`` where the column is empty (the graph appends a zero
-    row to the gathered columns). :func:`expand_neighbours` gives the (N_s, 27) table back;
+    and ``(d_x, d_y)`` in ``{-1, 0, 1}^2`` (x outer), ``M_s - 1`` (the empty column) where there is no voxel in
+    it. :func:`expand_neighbours` gives the (N_s, 27) table back;
 - ``down_s{s}`` (N_2s, 8) int64 for s < 16: row at stride ``s`` of the voxel ``2 q + d`` for every
   coarse voxel ``q`` and ``d`` in ``{0, 1}^3``, ``N_s`` where there is none: the 2^3 stride-2 convolutions;
 - ``up_s{s}`` (N_s,) int64 for s < 16: ``8 * parent_row + k`` for every voxel at stride ``s``, its
@@ -88,29 +89,32 @@ def stride_coords(coords: np.ndarray) -> dict[int, np.ndarray]:
 def column_tables(neighbours: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """A 3^3 neighbour table (N, 27) (``N`` = missing) as z-columns: (``columns`` (M, 3), ``table`` (N, 9)), see
     the module docstring. An empty position is named by the voxel below it (key ``2 row``) or, without one, above
-    it (``2 row + 1``): the same key whichever voxel reads it, so the columns are deduplicated in O(N)."""
+    it (``2 row + 1``): the same key whichever voxel reads it, so the columns are deduplicated in O(N) (a `small`
+    ROI of 22 k voxels: 2.2 ms at stride 1, one thread)."""
     n = len(neighbours)
-    triples = neighbours.reshape(n, 9, 3)
-    below, centre, above = triples[:, :, 0], triples[:, :, 1], triples[:, :, 2]
-    extra = (centre == n) & ((below != n) | (above != n))  # an empty position with a voxel above or below
+    table = np.ascontiguousarray(neighbours[:, 1::3])  # (n, 9) the column centres: a voxel's own column row
+    flat_table = table.reshape(-1)
+    hole = np.flatnonzero(flat_table == n)  # columns whose centre is empty
+    triples = neighbours.reshape(-1, 3)
+    below, above = triples[hole, 0], triples[hole, 2]
+    nothing = 2 * n + 1  # the key of a column with no voxel at all
     key = np.where(below != n, 2 * below, 2 * above + 1)
     marked = np.zeros(2 * n + 2, dtype=bool)
-    marked[key[extra]] = True
+    marked[key] = True
+    marked[nothing] = False
     keys = np.flatnonzero(marked)
     slot = np.cumsum(marked) - 1  # key -> its index among the empty positions
-    ends = np.zeros((2 * n + 2, 2), dtype=np.int64)
-    ends[key[extra]] = np.stack([below[extra], above[extra]], axis=1)  # the same pair for every reader of a key
+    ends = np.empty((2 * n + 2, 2), dtype=np.int64)
+    ends[key, 0], ends[key, 1] = below, above  # the same pair for every reader of a key
     extras = np.stack([ends[keys, 0], np.full(len(keys), n, dtype=np.int64), ends[keys, 1]], axis=1)
-    columns = np.concatenate([neighbours[:, 12:15], extras])
-    empty = len(columns)
-    table = np.where(centre != n, centre, np.where(extra, n + slot[key], empty))
-    return columns, table.astype(np.int64, copy=False)
+    columns = np.concatenate([neighbours[:, 12:15], extras, np.full((1, 3), n, dtype=np.int64)])
+    flat_table[hole] = np.where(key == nothing, len(columns) - 1, n + slot[key])
+    return columns, table
 
 
-def expand_neighbours(columns: np.ndarray, table: np.ndarray, num_voxels: int) -> np.ndarray:
-    """The (N, 27) 3^3 neighbour table (``num_voxels`` = missing) from its z-columns (:func:`column_tables`)."""
-    padded = np.concatenate([columns, np.full((1, 3), num_voxels, dtype=columns.dtype)])
-    return padded[table].reshape(len(table), 27)
+def expand_neighbours(columns: np.ndarray, table: np.ndarray) -> np.ndarray:
+    """The (N, 27) 3^3 neighbour table from its z-columns (:func:`column_tables`)."""
+    return columns[table].reshape(len(table), 27)
 
 
 def kernel_maps(coords: np.ndarray) -> dict[str, np.ndarray]:
@@ -187,6 +191,6 @@ def _present_pairs(maps: dict[str, np.ndarray], name: str, voxels: dict[int, int
     if name.startswith("down"):
         return int(np.count_nonzero(maps[name] != voxels[stride // 2]))
     columns = maps[f"columns_s{stride}"]
-    per_column = np.append(np.count_nonzero(columns != voxels[stride], axis=1), 0)  # the empty column: none
+    per_column = np.count_nonzero(columns != voxels[stride], axis=1)
     return int(per_column[maps[name]].sum())
 

@@ -75,8 +75,7 @@ class LayerCost:
 def expand_in_graph(columns: Tensor, table: Tensor) -> Tensor:
     """A level's (N, 27) neighbour table from its z-columns (M, 3) and column table (N, 9), as graph operators
     (``models.export.kernel_maps_numpy.expand_neighbours``): one integer gather per level."""
-    missing = torch.full_like(columns[:1], table.shape[0])
-    return torch.cat([columns, missing])[table.reshape(-1)].reshape(table.shape[0], 27)
+    return columns[table.reshape(-1)].reshape(table.shape[0], 27)
 
 
 def _fold(weight: Tensor, bias: Tensor | None, norm: nn.BatchNorm1d | None) -> tuple[Tensor, Tensor]:
@@ -110,9 +109,8 @@ class GatherConv(nn.Module):
         :mod:`models.export.kernel_maps_numpy`): each column's three rows are gathered once, then 9 columns per
         voxel, the same (N_out, 27 x C_in) matrix from about half the row copies."""
         padded = torch.cat([feats, torch.zeros_like(feats[:1])])  # row N_in: the zero of a missing neighbour
-        if columns is not None:
-            stacked = padded[columns.reshape(-1)].reshape(columns.shape[0], 3 * feats.shape[1])
-            padded = torch.cat([stacked, torch.zeros_like(stacked[:1])])  # row M: an empty column
+        if columns is not None:  # the last column is empty: its row of the gathered columns is zeros already
+            padded = padded[columns.reshape(-1)].reshape(columns.shape[0], 3 * feats.shape[1])
         if self.pieces == 1:
             out = self._gemm(padded, neighbours)
         else:  # one Gather and Gemm per block of rows: the gathered block stays in cache for its product

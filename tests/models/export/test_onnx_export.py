@@ -41,7 +41,7 @@ def test_numpy_kernel_maps_equal_the_sparse_engines():
     for stride in STRIDES:
         table, columns = maps[f"neighbours_s{stride}"], maps[f"columns_s{stride}"]
         assert table.shape == (len(cache.coords(stride)), 9) and len(columns) >= len(table)
-        full = expand_neighbours(columns, table, len(table))
+        full = expand_neighbours(columns, table)
         assert np.array_equal(full, cache.kernel_map(stride, 3, 1).neighbours.numpy()), stride
     assert len(maps["columns_s1"]) > len(maps["neighbours_s1"])  # empty positions beside voxels have columns too
     for stride in STRIDES[:-1]:
