@@ -187,7 +187,7 @@ class ExportMinkUNet(nn.Module):
                  column_gathers: bool = False) -> None:
         """``reference_voxels``: voxels per stride the row blocks are sized for (default ``REFERENCE_VOXELS``).
         ``column_gathers``: each 3^3 conv gathers z-columns, then 9 columns per voxel (the int8 graph's form: about
-        half the row copies, 0.81x its time); otherwise each level's 27-row table is expanded from the columns once
+        half the row copies, 0.75x its time); otherwise each level's 27-row table is expanded from the columns once
         in the graph and every conv gathers 27 rows (the float graph's form: its 4-byte rows are bandwidth-bound,
         and the column form, which moves 15 % more bytes, ran 1.08x its time). Same inputs either way."""
         super().__init__()
