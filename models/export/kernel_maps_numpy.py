@@ -193,4 +193,3 @@ def _present_pairs(maps: dict[str, np.ndarray], name: str, voxels: dict[int, int
     columns = maps[f"columns_s{stride}"]
     per_column = np.count_nonzero(columns != voxels[stride], axis=1)
     return int(per_column[maps[name]].sum())
-

@@ -277,19 +277,25 @@ def test_graphs_run_with_numpy_and_onnxruntime_alone(shipped, tmp_path):
     np.testing.assert_allclose(result["range_bin"], expected.centres.range_bin, atol=1e-3)
 
 
-def test_documented_example_segments_like_the_engine_without_torch(shipped, tmp_path):
-    detector, segmenter, out = shipped
-    reference = load_erasenet(detector, segmenter)
-    frame = next(simulate_sequence(reference.profile.name, 1, seed=7))
-    np.save(tmp_path / "cube.npy", frame.cube)
-    run = subprocess.run([sys.executable, "-I", str(ROOT / "docs" / "onnx_example.py"), str(out),
+def run_documented_example(onnx_dir: Path, cube: np.ndarray, tmp_path: Path) -> np.ndarray:
+    """docs/onnx_example.py on ``cube`` in a fresh interpreter (``-I``): the labels it writes, after checking that
+    it ran and imported neither torch nor this package."""
+    np.save(tmp_path / "cube.npy", cube)
+    run = subprocess.run([sys.executable, "-I", str(ROOT / "docs" / "onnx_example.py"), str(onnx_dir),
                           str(tmp_path / "cube.npy"), str(tmp_path / "labels.npy")],
                          capture_output=True, text=True, timeout=120)
     assert run.returncode == 0, run.stderr
     assert "imported: none" in run.stdout
+    return np.load(tmp_path / "labels.npy")
+
+
+def test_documented_example_segments_like_the_engine_without_torch(shipped, tmp_path):
+    detector, segmenter, out = shipped
+    reference = load_erasenet(detector, segmenter)
+    frame = next(simulate_sequence(reference.profile.name, 1, seed=7))
+    labels = run_documented_example(out, frame.cube, tmp_path)
     expected = reference.segment(frame.cube)
     roi = tuple(expected.regions.voxels.T)
-    labels = np.load(tmp_path / "labels.npy")
     assert len(expected.regions) > 0 and (labels[roi] == expected.labels[roi]).mean() >= 0.999
     outside = np.ones(labels.shape, bool)
     outside[roi] = False

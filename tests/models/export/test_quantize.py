@@ -79,21 +79,14 @@ def test_int8_engine_agrees_with_float_on_roi_labels_and_objects(int8_export):
 
 def test_documented_example_runs_the_int8_graphs_without_torch(int8_export, tmp_path):
     """docs/onnx_example.py (numpy and onnxruntime only) on the int8 export labels the ROI as the onnx-int8 engine."""
-    import subprocess
-    import sys
+    from tests.models.export.test_onnx_export import run_documented_example
 
     _, int8_dir = int8_export
     engine = load_erasenet(DETECTOR, SEGMENTER, engine="onnx-int8", onnx_dir=int8_dir)
     frame = next(simulate_sequence(engine.profile.name, 1, seed=7))
-    np.save(tmp_path / "cube.npy", frame.cube)
-    run = subprocess.run([sys.executable, "-I", str(ROOT / "docs" / "onnx_example.py"), str(int8_dir),
-                          str(tmp_path / "cube.npy"), str(tmp_path / "labels.npy")],
-                         capture_output=True, text=True, timeout=120)
-    assert run.returncode == 0, run.stderr
-    assert "imported: none" in run.stdout
+    labels = run_documented_example(int8_dir, frame.cube, tmp_path)
     expected = engine.segment(frame.cube)
     roi = tuple(expected.regions.voxels.T)
-    labels = np.load(tmp_path / "labels.npy")
     assert len(expected.regions) > 0 and (labels[roi] == expected.labels[roi]).mean() >= 0.99
 
 
