@@ -27,6 +27,7 @@ from tests.pipelines.conftest import (  # noqa: F401
     BIN,
     REPO,
     free_port,
+    node_ports,
     ray_env,
     ray_job_submit,
     small_store,
@@ -69,12 +70,6 @@ def _ray_start(args: list[str], log_name: str, temp_dir: Path) -> tuple[int, str
     return proc.pid, out
 
 
-def _node_ports() -> list[str]:
-    """Per-node ports that default to fixed numbers (two nodes on one machine, and other engineers' Rays)."""
-    return [f"--dashboard-agent-listen-port={free_port()}", f"--metrics-export-port={free_port()}",
-            f"--runtime-env-agent-port={free_port()}"]
-
-
 @pytest.fixture(scope="package")
 def cluster() -> Iterator[LocalCluster]:
     """Ray head (1 CPU, dashboard and jobs API) + one worker node (1 CPU) joined to it, on 127.0.0.1."""
@@ -86,9 +81,9 @@ def cluster() -> Iterator[LocalCluster]:
     try:
         head_pgid, _ = _ray_start(["--head", f"--port={gcs_port}", "--dashboard-host", "127.0.0.1",
                                    f"--dashboard-port={dashboard_port}", "--include-dashboard=true",
-                                   f"--ray-client-server-port={free_port()}", *common, *_node_ports()],
+                                   f"--ray-client-server-port={free_port()}", *common, *node_ports()],
                                   "head", temp_dir)
-        worker_pgid, _ = _ray_start([f"--address=127.0.0.1:{gcs_port}", *common, *_node_ports()], "worker", temp_dir)
+        worker_pgid, _ = _ray_start([f"--address=127.0.0.1:{gcs_port}", *common, *node_ports()], "worker", temp_dir)
         cluster = LocalCluster(f"127.0.0.1:{gcs_port}", f"http://127.0.0.1:{dashboard_port}", head_pgid, worker_pgid,
                                temp_dir)
         # the jobs API comes up a little after `ray start` returns; then both nodes must be alive

@@ -47,6 +47,15 @@ def free_port(preferred: int | None = None) -> int:
     raise RuntimeError("no free port")
 
 
+def node_ports() -> list[str]:
+    """``ray start`` options for the per-node ports that default to fixed numbers (the dashboard agent's among them):
+    free ones, so that two nodes on one machine, a ``ray.init`` cluster of another test, or other engineers' Rays
+    never take them first. A head whose agent lost its port never serves ``ray job submit`` ("No available
+    agent"), however long a submission retries."""
+    return [f"--dashboard-agent-listen-port={free_port()}", f"--metrics-export-port={free_port()}",
+            f"--runtime-env-agent-port={free_port()}"]
+
+
 def group_alive(pgid: int) -> list[int]:
     """Pids (not zombies) whose process group is ``pgid``."""
     alive = []
@@ -117,7 +126,7 @@ def ray_head(tmp_path_factory):
     cmd = [str(BIN / "ray"), "start", "--head", f"--port={free_port()}", "--node-ip-address", "127.0.0.1",
            "--dashboard-host", "127.0.0.1", f"--dashboard-port={dashboard_port}", "--include-dashboard=true",
            f"--ray-client-server-port={free_port()}", "--num-cpus", "2", "--object-store-memory", "200000000",
-           "--temp-dir", str(temp_dir), "--disable-usage-stats"]
+           "--temp-dir", str(temp_dir), "--disable-usage-stats", *node_ports()]
     proc = subprocess.Popen(cmd, env=ray_env(), cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
     pgid = proc.pid
