@@ -77,6 +77,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
         with compiled.using_engine(SPARSE_ENGINE[engine]):
             net.segment(cubes[0], is_log_power=True)
     times, macs, macs_paper, executed = {engine: [] for engine in ENGINES}, [], [], []
+    stages: dict[str, list[float]] = {}  # the compiled engine's seconds per stage (FrameCompute.seconds)
     r, a, d = net.profile.shape
     detector = count_macs(net.detector, (1, d, r, a))
     for frame, cube in zip(frames, cubes, strict=True):
@@ -88,6 +89,8 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
                     started = time.perf_counter()
                     result = net.segment(cube, is_log_power=True)
                     times[engine].append(time.perf_counter() - started)
+            for stage, seconds in result.compute.seconds.items():
+                stages.setdefault(stage, []).append(seconds)
         macs.append(result.compute.macs_total)
         executed.append(result.compute.executed_macs_total)
         macs_paper.append(result.compute.macs_total + detector.macs_paper - detector.macs)
@@ -95,6 +98,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
     return {"median_s": statistics.median(times["native"]), "min_s": min(times["native"]),
             "runs": len(times["native"]), "sparse_engine": engine,
             "torch_engine": {"median_s": statistics.median(times["torch"]), "min_s": min(times["torch"])},
+            "stages_ms": {stage: 1e3 * statistics.median(values) for stage, values in stages.items()},
             "macs": float(np.mean(macs)), "macs_paper": float(np.mean(macs_paper)),
             "executed_macs": float(np.mean(executed)),
             "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute.roi_voxels),
@@ -161,6 +165,8 @@ def main() -> None:
     print(f"{args.preset}, {args.threads} torch thread(s), sparse engine {reference['sparse_engine']} "
           f"(pure-PyTorch engine: {torch_engine['median_s'] * 1e3:.1f} ms/frame, {torch_engine['latency_ratio']:.2f}x; "
           f"TMVA-Net {rows['tmvanet']['median_s'] / torch_engine['median_s']:.1f}x it)")
+    stage_ms = ", ".join(f"{stage} {ms:.1f}" for stage, ms in reference["stages_ms"].items())
+    print(f"ERASE-Net stages, median ms: {stage_ms}")
     print(f"{'model':24} {'params':>11} {'GMACs':>8} {'[paper]':>8} {'ms/frame':>9} {'(eager)':>8} "
           f"{'x ERASE-Net':>12} {'x MACs':>8} {'GMAC/s':>7}")
     for key, row in rows.items():

@@ -297,6 +297,14 @@ class EraseNet:
         """Class of every ROI voxel (N,) uint8 and the segmenter's useful and executed MACs."""
         if len(regions) == 0:
             return np.zeros(0, np.uint8), 0, 0
+        logits, inverse, macs, executed = self.point_logits(regions, log_power)
+        classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
+        return classes[inverse], macs, executed
+
+    @torch.no_grad()
+    def point_logits(self, regions: Regions, log_power: np.ndarray) -> tuple[torch.Tensor, np.ndarray, int, int]:
+        """The segmenter's class logits of a non-empty ROI: ``(P, C)`` over its points (:func:`radar.roi.roi_points`),
+        ``inverse`` (N,) the point of each ROI voxel, and the useful and executed MACs."""
         points = roi_points(regions.voxels, log_power, self.profile, mean_db=self.mean_db, std_db=self.std_db)
         feats = torch.from_numpy(points.features).to(self.device)
         coords = torch.from_numpy(points.coords).to(self.device)
@@ -311,8 +319,7 @@ class EraseNet:
                 logits = self.segmenter(sparse)
             report = recorder.report()
             macs, executed = report.macs, report.executed
-        classes = logits.argmax(dim=1).to(torch.uint8).cpu().numpy()
-        return classes[points.inverse], macs, executed
+        return logits, points.inverse, macs, executed
 
     def _objects(self, regions: Regions, voxel_classes: np.ndarray, centres: Centres) -> list[SegmentedObject]:
         """One object per seed whose region holds foreground voxels; class by majority vote of those voxels, position

@@ -61,6 +61,13 @@ def common_config(args: argparse.Namespace) -> dict[str, Any]:
 def format_training(result: dict[str, Any]) -> str:
     """What a trainer prints for people: the run, its checkpoint and the last epoch's figures (``--json``: all of
     ``result`` as one JSON line); for ``train export``, the copy and its size."""
+    if "class_offsets" in result:
+        record = result["class_offsets"]
+        views = {when: " / ".join(f"{100 * record[when][view]['mIoU']:.2f}" for view in ("RA", "RD"))
+                 for when in ("before", "after")}
+        offsets = ", ".join(f"{name} {value:+.3f}" for name, value in record["offsets"].items())
+        return (f"{result['checkpoint']}: offsets {offsets} on {record['frames']} frames; RA / RD mIoU "
+                f"{views['before']} -> {views['after']}")
     if "class_gains" in result:
         classes = result["class_gains"]["classes"]
         return f"{result['checkpoint']}: " + ", ".join(

@@ -5,6 +5,7 @@ of a shippable checkpoint::
     radarseg train segmenter --store STORE.zarr --out runs/seg --jitter-from runs/det/model.pt
     radarseg train export RUN/model.pt checkpoints/detector.pt   # float16 weights only
     radarseg train class-gains RUN/model.pt TUNED.pt --store STORE.zarr   # a threshold per class (heatmap per class)
+    radarseg train class-offsets SEG.pt TUNED.pt --store STORE.zarr --detector DET.pt   # the segmenter's logit offsets
     python -m pipelines.training.train ...                                # the same arguments
 
 The loop, the tasks and the profiles live in :mod:`pipelines.training`; this module is the job
@@ -24,6 +25,7 @@ from pipelines.datasets.store_info import StoreInfo
 from pipelines.jobs import run_module
 from pipelines.training.arguments import add_common_arguments, common_config, format_training
 from pipelines.training.class_gains import write_class_gains
+from pipelines.training.class_offsets import write_class_offsets
 from pipelines.training.config import TrainConfig
 from pipelines.training.loop import train
 from radar.errors import UserError
@@ -49,8 +51,22 @@ class ClassGainsConfig:
     frames: int = 0
 
 
+@dataclass(frozen=True)
+class ClassOffsetsConfig:
+    """``radarseg train class-offsets SOURCE TARGET --store STORE --detector DET``: the segmenter's logit offsets."""
+
+    source: str
+    target: str
+    stores: tuple[str, ...]
+    detector: str
+    split: str | None = "val"
+    frames: int = 0
+    progress: bool = True
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    stages = parser.add_subparsers(dest="stage", required=True, metavar="{detector,segmenter,export,class-gains}")
+    stages = parser.add_subparsers(dest="stage", required=True,
+                                   metavar="{detector,segmenter,export,class-gains,class-offsets}")
     for stage in ERASENET_STAGES:
         sub = stages.add_parser(stage, help=f"train the {stage} from a store")
         sub.add_argument("--model", help="registered model name (default: the profile's)")
@@ -77,15 +93,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gains.add_argument("--store", required=True, help="preprocessed store whose split chooses the thresholds")
     gains.add_argument("--split", default="val", help="split of the store (default val)")
     gains.add_argument("--frames", type=int, default=0, help="frames of the split, evenly spread (default 0: all)")
+    offsets = stages.add_parser("class-offsets", help="a segmenter's offset per class on its logits (best mean RA/RD "
+                                                      "mIoU on a store's frames from a detector's seeds), written "
+                                                      "into a copy of the checkpoint")
+    offsets.add_argument("source", help="segmenter checkpoint")
+    offsets.add_argument("target", help="the copy to write, the offsets in its classifier's bias")
+    offsets.add_argument("--store", required=True, action="append", help="preprocessed store whose frames choose "
+                                                                         "the offsets (repeat it for several)")
+    offsets.add_argument("--detector", required=True, help="the detector whose seeds the segmenter is paired with")
+    offsets.add_argument("--split", default="val", help="split of the store (default val; 'all': every frame)")
+    offsets.add_argument("--frames", type=int, default=0, help="frames of the split, evenly spread (default 0: all)")
+    offsets.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | ClassGainsConfig:
+def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | ClassGainsConfig | ClassOffsetsConfig:
     if args.stage == "export":
         return ExportConfig(args.source, args.target, float16=not args.float32)
+    if args.stage in ("class-gains", "class-offsets") and args.frames < 0:
+        raise UserError(f"--frames must be >= 0, got {args.frames}")
     if args.stage == "class-gains":
-        if args.frames < 0:
-            raise UserError(f"--frames must be >= 0, got {args.frames}")
         return ClassGainsConfig(args.source, args.target, args.store, split=args.split, frames=args.frames)
+    if args.stage == "class-offsets":
+        return ClassOffsetsConfig(args.source, args.target, tuple(args.store), args.detector,
+                                  split=None if args.split == "all" else args.split, frames=args.frames,
+                                  progress=not args.no_progress)
     jitter_std = getattr(args, "jitter_std", None)
     return TrainConfig(stage=args.stage, model=args.model, jitter_from=getattr(args, "jitter_from", None),
                        jitter_std=tuple(jitter_std) if jitter_std else None,
@@ -94,9 +125,13 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | C
                        **common_config(args))
 
 
-def main(cfg: TrainConfig | ExportConfig | ClassGainsConfig) -> dict[str, Any]:
+def main(cfg: TrainConfig | ExportConfig | ClassGainsConfig | ClassOffsetsConfig) -> dict[str, Any]:
     """Train (the last epoch's metrics and where the run lives), export (the checkpoint and its size), or tune the
-    class gains (the chosen thresholds)."""
+    class gains (the chosen thresholds) or the segmenter's class offsets."""
+    if isinstance(cfg, ClassOffsetsConfig):
+        record = write_class_offsets(cfg.source, cfg.target, detector=cfg.detector, stores=list(cfg.stores),
+                                     split=cfg.split, max_frames=cfg.frames, show_progress=cfg.progress)
+        return {"checkpoint": cfg.target, "class_offsets": record}
     if isinstance(cfg, ClassGainsConfig):
         record = write_class_gains(cfg.source, cfg.target, StoreInfo.read(cfg.store), split=cfg.split,
                                    max_frames=cfg.frames)
