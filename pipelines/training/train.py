@@ -60,7 +60,7 @@ class ClassOffsetsConfig:
     stores: tuple[str, ...]
     detector: str
     split: str | None = "val"
-    frames: int = 0
+    max_frames: int = 0  # of each store's split, evenly spread; 0: all
     progress: bool = True
 
 
@@ -115,7 +115,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | C
         return ClassGainsConfig(args.source, args.target, args.store, split=args.split, frames=args.frames)
     if args.stage == "class-offsets":
         return ClassOffsetsConfig(args.source, args.target, tuple(args.store), args.detector,
-                                  split=None if args.split == "all" else args.split, frames=args.frames,
+                                  split=None if args.split == "all" else args.split, max_frames=args.frames,
                                   progress=not args.no_progress)
     jitter_std = getattr(args, "jitter_std", None)
     return TrainConfig(stage=args.stage, model=args.model, jitter_from=getattr(args, "jitter_from", None),
@@ -130,7 +130,7 @@ def main(cfg: TrainConfig | ExportConfig | ClassGainsConfig | ClassOffsetsConfig
     class gains (the chosen thresholds) or the segmenter's class offsets."""
     if isinstance(cfg, ClassOffsetsConfig):
         record = write_class_offsets(cfg.source, cfg.target, detector=cfg.detector, stores=list(cfg.stores),
-                                     split=cfg.split, max_frames=cfg.frames, show_progress=cfg.progress)
+                                     split=cfg.split, max_frames=cfg.max_frames, show_progress=cfg.progress)
         return {"checkpoint": cfg.target, "class_offsets": record}
     if isinstance(cfg, ClassGainsConfig):
         record = write_class_gains(cfg.source, cfg.target, StoreInfo.read(cfg.store), split=cfg.split,
