@@ -8,7 +8,11 @@ One process, one thread, simulated frames with objects (seed 5), after two warm-
   sets) and the rest (input features, 1x1 shortcuts, concatenations, argmax;
   with ``--eager``, also BatchNorm, ReLU, residual sums, module calls and hooks);
 - ``layers``: every sparse convolution shape (kernel voxels, C_in, C_out) with its calls, milliseconds per frame and
-  useful GMAC/s (present neighbour pairs x C_in x C_out over its time).
+  useful GMAC/s (present neighbour pairs x C_in x C_out over its time). Counting the pairs runs inside the segment
+  stage; its time is measured and deducted from that stage (``pair_counting_ms_deducted``), so ``rest`` is the
+  model's, not the profile's.
+- ``widths`` (``--widths``): the compiled 3^3 kernel at 8-64 channels in and out on the last frame's own
+  submanifold maps at strides 1 and 2, so a layer's rate can be read apart from its level (``kernel_widths``).
 
 Prints a table and writes benchmarks/results/frame_profile.json with the CPU flags and load average. Never asserts.
 
@@ -41,6 +45,8 @@ class _Clock:
 
     def __init__(self) -> None:
         self.parts: collections.Counter[str] = collections.Counter()
+        self.counting = 0.0  # seconds spent counting each kernel's pairs: the profile's own cost, deducted
+        self.maps: dict[int, torch.Tensor] = {}  # a 3^3 neighbour table per output size (one per level)
         self.layers: dict[tuple[str, int, int, int], list[float]] = collections.defaultdict(lambda: [0, 0.0, 0.0])
 
     def wrap(self, owner: object, name: str, part: str) -> None:
@@ -63,6 +69,9 @@ class _Clock:
             seconds = time.perf_counter() - started
             missing = src.shape[0] if name.startswith("neighbour_conv") else rest[0]
             pairs = int((neighbours < missing).sum())
+            if neighbours.shape[1] == 27 and neighbours.shape[0] == missing:
+                self.maps.setdefault(missing, neighbours)
+            self.counting += time.perf_counter() - started - seconds
             row = self.layers[(name, weight.shape[0], weight.shape[1], weight.shape[2])]
             row[0] += 1
             row[1] += seconds
@@ -73,11 +82,40 @@ class _Clock:
         setattr(compiled, name, timed)
 
 
+WIDTHS = (8, 16, 24, 32, 48, 64)
+
+
+def kernel_widths(maps: dict[int, torch.Tensor], levels: int = 2, repeats: int = 9) -> list[dict]:
+    """The compiled 3^3 kernel at C_in = C_out = :data:`WIDTHS` on one frame's own submanifold maps of its ``levels``
+    finest levels (full resolution first): how its rate depends on the width on one map."""
+    rows = []
+    generator = torch.Generator().manual_seed(0)
+    for voxels in sorted(maps, reverse=True)[:levels]:
+        neighbours = maps[voxels]
+        pairs = int((neighbours < voxels).sum())
+        for width in WIDTHS:
+            src = torch.randn(voxels, width, generator=generator)
+            weight = torch.randn(27, width, width, generator=generator) / width
+            times = []
+            for i in range(repeats + 2):
+                started = time.perf_counter()
+                compiled.neighbour_conv_fused(src, neighbours, weight)
+                if i >= 2:  # two warm-up calls
+                    times.append(time.perf_counter() - started)
+            seconds = sorted(times)[len(times) // 2]
+            rows.append({"voxels": voxels, "pairs_per_voxel": pairs / voxels, "channels": width,
+                         "ms": 1e3 * seconds, "gmacs_per_s": pairs * width * width / seconds / 1e9,
+                         "ns_per_pair": 1e9 * seconds / pairs})
+    return rows
+
+
 def main() -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=10, help="timed frames (after 2 warm-up frames)")
     parser.add_argument("--output", default=str(RESULTS))
     parser.add_argument("--eager", action="store_true", help="the eager segmenter instead of its fused form")
+    parser.add_argument("--widths", action="store_true", help="also time the compiled 3^3 kernel at 8-64 channels "
+                                                               "on the last frame's maps at strides 1 and 2")
     args = parser.parse_args()
     torch.set_num_threads(1)
     model = EraseNet.from_checkpoints(REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt",
@@ -95,12 +133,15 @@ def main() -> dict:
     freeze_loaded_heap()  # as the service and the batch jobs do: no full garbage collection over torch and the model
     clock.parts.clear()
     clock.layers.clear()
+    clock.counting = 0.0
     stages: collections.Counter[str] = collections.Counter()
     for cube in cubes[2:]:
+        clock.maps.clear()  # the last frame's maps are kept, one per level
         for stage, seconds in model.segment(cube, is_log_power=True).compute.seconds.items():
             stages[stage] += seconds
     n = args.frames
     per_frame = {stage: 1e3 * seconds / n for stage, seconds in stages.items()}
+    per_frame["segment"] -= 1e3 * clock.counting / n  # the pair counting above ran inside the segment stage
     parts = {part: 1e3 * seconds / n for part, seconds in clock.parts.items()}
     parts["rest"] = per_frame["segment"] - sum(parts.values())
     layers = [{"kernel": name, "offsets": k, "c_in": c_in, "c_out": c_out, "calls_per_frame": calls / n,
@@ -109,6 +150,7 @@ def main() -> dict:
               in sorted(clock.layers.items(), key=lambda kv: -kv[1][1])]
     result = {"frames": n, "engine": model.engine, "segmenter": "eager" if args.eager else "fused",
               "ms_per_frame": per_frame, "segment_parts_ms": parts,
+              "pair_counting_ms_deducted": 1e3 * clock.counting / n,
               "layers": layers, "cpu_flags": [f for f in compiled.cpu_flags().split() if f.startswith(("avx", "fma"))],
               "load_average_before": load_before, "load_average_after": os.getloadavg()}
     print("ms per frame: " + ", ".join(f"{k} {v:.1f}" for k, v in per_frame.items())
@@ -118,6 +160,12 @@ def main() -> dict:
     for row in layers:
         print(f"{row['kernel']:15s} {row['offsets']:3d} {row['c_in']:5d} {row['c_out']:5d} "
               f"{row['calls_per_frame']:6.1f} {row['ms_per_frame']:9.2f} {row['useful_gmacs_per_s']:7.1f}")
+    if args.widths:
+        result["widths"] = kernel_widths(clock.maps)
+        for row in result["widths"]:
+            print(f"{row['voxels']:6d} voxels, {row['pairs_per_voxel']:5.1f} pairs/voxel, {row['channels']:3d} -> "
+                  f"{row['channels']:3d} channels: {row['ms']:6.2f} ms, {row['gmacs_per_s']:5.1f} GMAC/s, "
+                  f"{row['ns_per_pair']:5.1f} ns per pair")
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(json.dumps(result, indent=1))
     print(f"written to {args.output}; load average {load_before} -> {result['load_average_after']}")
