@@ -139,7 +139,6 @@ def write_class_offsets(source: str | Path, target: str | Path, *, detector: str
     checkpoint = load_checkpoint(source, stage=Stage.SEGMENTER, option="SOURCE")
     if CLASSIFIER_BIAS not in checkpoint.state_dict:
         raise UserError(f"{source}: a segmenter whose classifier has a bias ({CLASSIFIER_BIAS}) is needed")
-    torch.set_num_threads(1)
     net = load_erasenet(load_checkpoint(detector, stage=Stage.DETECTOR, option="--detector"), checkpoint)
     frames = [frame for store in stores
               for frame in frame_logits(net, store, split, max_frames=max_frames, show_progress=show_progress)]

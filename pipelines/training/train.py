@@ -19,6 +19,8 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
+import torch
+
 from models.capabilities import ERASENET_STAGES, Stage
 from models.checkpoint import export_checkpoint
 from pipelines.datasets.store_info import StoreInfo
@@ -62,6 +64,7 @@ class ClassOffsetsConfig:
     split: str | None = "val"
     max_frames: int = 0  # of each store's split, evenly spread; 0: all
     progress: bool = True
+    threads: int = 0  # torch intra-op threads (0: torch's default)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -103,6 +106,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     offsets.add_argument("--detector", required=True, help="the detector whose seeds the segmenter is paired with")
     offsets.add_argument("--split", default="val", help="split of the store (default val; 'all': every frame)")
     offsets.add_argument("--frames", type=int, default=0, help="frames of the split, evenly spread (default 0: all)")
+    offsets.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
     offsets.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -111,12 +115,14 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | C
         return ExportConfig(args.source, args.target, float16=not args.float32)
     if args.stage in ("class-gains", "class-offsets") and args.frames < 0:
         raise UserError(f"--frames must be >= 0, got {args.frames}")
+    if args.stage == "class-offsets" and args.threads < 0:
+        raise UserError(f"--threads must be >= 0, got {args.threads}")
     if args.stage == "class-gains":
         return ClassGainsConfig(args.source, args.target, args.store, split=args.split, frames=args.frames)
     if args.stage == "class-offsets":
         return ClassOffsetsConfig(args.source, args.target, tuple(args.store), args.detector,
                                   split=None if args.split == "all" else args.split, max_frames=args.frames,
-                                  progress=not args.no_progress)
+                                  progress=not args.no_progress, threads=args.threads)
     jitter_std = getattr(args, "jitter_std", None)
     return TrainConfig(stage=args.stage, model=args.model, jitter_from=getattr(args, "jitter_from", None),
                        jitter_std=tuple(jitter_std) if jitter_std else None,
@@ -129,6 +135,8 @@ def main(cfg: TrainConfig | ExportConfig | ClassGainsConfig | ClassOffsetsConfig
     """Train (the last epoch's metrics and where the run lives), export (the checkpoint and its size), or tune the
     class gains (the chosen thresholds) or the segmenter's class offsets."""
     if isinstance(cfg, ClassOffsetsConfig):
+        if cfg.threads:
+            torch.set_num_threads(cfg.threads)
         record = write_class_offsets(cfg.source, cfg.target, detector=cfg.detector, stores=list(cfg.stores),
                                      split=cfg.split, max_frames=cfg.max_frames, show_progress=cfg.progress)
         return {"checkpoint": cfg.target, "class_offsets": record}

@@ -110,6 +110,8 @@ def test_bad_arguments_are_refused(small_store, tiny_checkpoints, tmp_path, caps
     base = ["train", "class-offsets", str(segmenter), str(tmp_path / "t.pt"), "--store", str(small_store)]
     assert cli([*base, "--detector", str(detector), "--frames", "-1"]) != 0
     assert "--frames must be >= 0" in capsys.readouterr().err
+    assert cli([*base, "--detector", str(detector), "--threads", "-2"]) != 0
+    assert "--threads must be >= 0" in capsys.readouterr().err
     assert cli([*base, "--detector", str(segmenter)]) != 0  # a segmenter where the detector belongs
     assert "--detector" in capsys.readouterr().err
     assert cli([*base, "--detector", str(detector), "--split", "test"]) != 0  # the store has no test split
