@@ -28,6 +28,7 @@ import os
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 import models.sparse.tensor as sparse_tensor
@@ -46,7 +47,6 @@ class _Clock:
     def __init__(self) -> None:
         self.parts: collections.Counter[str] = collections.Counter()
         self.counting = 0.0  # seconds spent counting each kernel's pairs: the profile's own cost, deducted
-        self.maps: dict[int, torch.Tensor] = {}  # a 3^3 neighbour table per output size (one per level)
         self.layers: dict[tuple[str, int, int, int], list[float]] = collections.defaultdict(lambda: [0, 0.0, 0.0])
 
     def wrap(self, owner: object, name: str, part: str) -> None:
@@ -69,8 +69,6 @@ class _Clock:
             seconds = time.perf_counter() - started
             missing = src.shape[0] if name.startswith("neighbour_conv") else rest[0]
             pairs = int((neighbours < missing).sum())
-            if neighbours.shape[1] == 27 and neighbours.shape[0] == missing:
-                self.maps.setdefault(missing, neighbours)
             self.counting += time.perf_counter() - started - seconds
             row = self.layers[(name, weight.shape[0], weight.shape[1], weight.shape[2])]
             row[0] += 1
@@ -83,6 +81,24 @@ class _Clock:
 
 
 WIDTHS = (8, 16, 24, 32, 48, 64)
+
+
+def submanifold_maps(model: EraseNet, log_power: np.ndarray) -> dict[int, torch.Tensor]:
+    """The 3^3 submanifold neighbour tables one frame's fused segmenter runs, one per level, keyed by its voxels."""
+    maps: dict[int, torch.Tensor] = {}
+    original = compiled.neighbour_conv_fused
+
+    def keep(src, neighbours, weight, *rest, **kwargs):
+        if neighbours.shape[1] == 27 and neighbours.shape[0] == src.shape[0]:
+            maps.setdefault(src.shape[0], neighbours.clone())
+        return original(src, neighbours, weight, *rest, **kwargs)
+
+    compiled.neighbour_conv_fused = keep
+    try:
+        model.segment(log_power, is_log_power=True)
+    finally:
+        compiled.neighbour_conv_fused = original
+    return maps
 
 
 def kernel_widths(maps: dict[int, torch.Tensor], levels: int = 2, repeats: int = 9) -> list[dict]:
@@ -136,7 +152,6 @@ def main() -> dict:
     clock.counting = 0.0
     stages: collections.Counter[str] = collections.Counter()
     for cube in cubes[2:]:
-        clock.maps.clear()  # the last frame's maps are kept, one per level
         for stage, seconds in model.segment(cube, is_log_power=True).compute.seconds.items():
             stages[stage] += seconds
     n = args.frames
@@ -161,7 +176,7 @@ def main() -> dict:
         print(f"{row['kernel']:15s} {row['offsets']:3d} {row['c_in']:5d} {row['c_out']:5d} "
               f"{row['calls_per_frame']:6.1f} {row['ms_per_frame']:9.2f} {row['useful_gmacs_per_s']:7.1f}")
     if args.widths:
-        result["widths"] = kernel_widths(clock.maps)
+        result["widths"] = kernel_widths(submanifold_maps(model, cubes[-1]))
         for row in result["widths"]:
             print(f"{row['voxels']:6d} voxels, {row['pairs_per_voxel']:5.1f} pairs/voxel, {row['channels']:3d} -> "
                   f"{row['channels']:3d} channels: {row['ms']:6.2f} ms, {row['gmacs_per_s']:5.1f} GMAC/s, "

@@ -3,6 +3,7 @@
 For every frame: the shipped pair's seeds (with history as evaluate), the segmenter's voxel logits kept; then for
 each offset vector, the classes, RA/RD projections and the confusion against the store's masks.
 """
+
 import argparse
 import itertools
 import json
@@ -56,7 +57,6 @@ earlier = earlier_slots(root, net.history_frames) if net.history_frames else Non
 grid = list(itertools.product(args.ped, args.cyc, args.car))
 confusions = {g: ViewConfusion(net.profile.num_classes) for g in grid}
 shape, ncls = net.profile.shape, net.profile.num_classes
-from models.erasenet import model as model_module  # noqa: E402
 
 for i, slot in enumerate(slots):
     lp = arrays["input"][int(slot)].astype(np.float32)
@@ -75,6 +75,7 @@ for i, slot in enumerate(slots):
         continue
     # logits are per unique point; map back with the inverse used by _segment_voxels
     from radar.roi import roi_points
+
     points = roi_points(voxels, lp, net.profile, mean_db=net.mean_db, std_db=net.std_db)
     logits = captured["logits"].numpy()
     base = logits.argmax(1)[points.inverse]
@@ -93,9 +94,20 @@ for i, slot in enumerate(slots):
 rows = []
 for g in grid:
     s = confusions[g].summary(net.class_names)
-    rows.append({"offsets": g, "ra_miou": s["ra"]["mIoU"], "rd_miou": s["rd"]["mIoU"],
-                 "ra_iou": s["ra"]["iou"], "rd_iou": s["rd"]["iou"]})
-    print(g, f"RA {100*s['ra']['mIoU']:.2f} RD {100*s['rd']['mIoU']:.2f} ped {100*s['ra']['iou']['pedestrian']:.1f}/"
-          f"{100*s['rd']['iou']['pedestrian']:.1f} cyc {100*s['ra']['iou']['cyclist']:.1f}/{100*s['rd']['iou']['cyclist']:.1f}"
-          f" car {100*s['ra']['iou']['car']:.1f}/{100*s['rd']['iou']['car']:.1f}")
+    rows.append(
+        {
+            "offsets": g,
+            "ra_miou": s["ra"]["mIoU"],
+            "rd_miou": s["rd"]["mIoU"],
+            "ra_iou": s["ra"]["iou"],
+            "rd_iou": s["rd"]["iou"],
+        }
+    )
+    print(
+        g,
+        f"RA {100 * s['ra']['mIoU']:.2f} RD {100 * s['rd']['mIoU']:.2f} ped {100 * s['ra']['iou']['pedestrian']:.1f}/"
+        f"{100 * s['rd']['iou']['pedestrian']:.1f} cyc {100 * s['ra']['iou']['cyclist']:.1f}/"
+        f"{100 * s['rd']['iou']['cyclist']:.1f}"
+        f" car {100 * s['ra']['iou']['car']:.1f}/{100 * s['rd']['iou']['car']:.1f}",
+    )
 json.dump(rows, open(args.out, "w"), indent=1)
