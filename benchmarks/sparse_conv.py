@@ -3,7 +3,8 @@ Conv3d, and a MinkUNet training step.
 
 Measured side by side in one run, the engines interleaved (`ENGINES`):
 - a 3^3 submanifold conv 32 -> 32, forward + backward, at 20k and 100k voxels filling about 5% of their
-  bounding grid, next to a dense `nn.Conv3d` on that bounding grid; two layouts: solid blobs like
+  bounding grid, next to a dense `nn.Conv3d` on that bounding grid (the compiled engine also timed alone, after the
+  interleaved rounds: `dense_over_native_alone`); two layouts: solid blobs like
   region-grown ROIs (about 21 neighbours per voxel) and uniformly random voxels (about 2);
 - a MinkUNet (ratio 0.37, 4 features, 5 classes) SGD training step at 5k and 20k voxels, kernel maps
   built inside the step as in training;
@@ -193,6 +194,8 @@ def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, d
         conv(x).feats.sum().backward()
 
     sparse_times = interleaved(sparse_step, cfg.repeats, device)
+    with compiled.using_engine(SPARSE_ENGINE["native"]):  # the compiled engine alone, no other engine's runs between
+        native_alone = timed(sparse_step, cfg.repeats, device)
 
     dense_conv = nn.Conv3d(32, 32, 3, padding=1, bias=False).to(device)
     dense_input = torch.randn(1, 32, *grid_shape, generator=generator).to(device).requires_grad_(True)
@@ -218,6 +221,8 @@ def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, d
         "dense_fwd_bwd_s": dense_s,
         "dense_fwd_bwd_min_s": min(dense_times),
         "dense_over_sparse": {engine: dense_s / t for engine, t in sparse_s.items()},
+        "native_alone_fwd_bwd_s": statistics.median(native_alone),
+        "dense_over_native_alone": dense_s / statistics.median(native_alone),
         "torch_over_native": sparse_s["torch"] / sparse_s["native"],
     }
 
@@ -369,14 +374,16 @@ def report(results: dict) -> None:
     print(f"native engine: {results['engine_build']}")
     print("submanifold 3^3 conv 32->32, forward+backward (median s; dense/sparse per engine)")
     print(f"{'layout':>8} {'voxels':>8} {'grid':>16} {'density':>8} {'pairs/vox':>9} {'map s':>8} "
-          f"{'native s':>9} {'torch s':>9} {'dense s':>9} {'dense/native':>12} {'dense/torch':>11}")  # fmt: skip
+          f"{'native s':>9} {'torch s':>9} {'dense s':>9} {'dense/native':>12} {'dense/torch':>11} "
+          f"{'native alone':>12}")  # fmt: skip
     for row in results["submanifold_conv_32_32"]:
         grid = "x".join(str(v) for v in row["bounding_grid"])
         sparse, ratio = row["sparse_fwd_bwd_s"], row["dense_over_sparse"]
         print(
             f"{row['layout']:>8} {row['voxels']:>8} {grid:>16} {row['density']:>8.3f} {row['pairs_per_voxel']:>9.2f} "
             f"{row['kernel_map_build_s']:>8.4f} {sparse['native']:>9.4f} {sparse['torch']:>9.4f} "
-            f"{row['dense_fwd_bwd_s']:>9.3f} {ratio['native']:>12.1f} {ratio['torch']:>11.1f}"
+            f"{row['dense_fwd_bwd_s']:>9.3f} {ratio['native']:>12.1f} {ratio['torch']:>11.1f} "
+            f"{row['dense_over_native_alone']:>12.1f}"
         )
     _print_paths(results["paths"])
     print("MinkUNet ratio 0.37 training step (SGD, maps built in the step)")
