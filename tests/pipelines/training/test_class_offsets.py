@@ -69,7 +69,7 @@ def test_score_projects_the_offset_argmax():
         assert matrix[:, 1:].sum() == 0 and matrix.sum() == frames[0].truth[view].size
 
 
-def test_the_cli_writes_the_offsets_into_the_classifier_bias(small_store, tmp_path):
+def test_the_cli_writes_the_offsets_into_the_classifier_bias(small_store, tmp_path, caplog):
     """The shipped pair, its segmenter's car logit raised by 1.5 (a segmenter that labels cars all over the ROI;
     cars are most of the store's objects): the offsets chosen bring it back down, and the copy labels as logits +
     offsets."""
@@ -82,6 +82,7 @@ def test_the_cli_writes_the_offsets_into_the_classifier_bias(small_store, tmp_pa
     assert cli(["train", "class-offsets", str(segmenter), str(target), "--store", str(small_store),
                 "--store", str(small_store), "--detector", detector, "--split", "all", "--no-progress"]) == 0
     source, tuned = load_checkpoint(segmenter), load_checkpoint(target)
+    assert "class offsets chosen on 12 frames" in caplog.text  # few frames: the user is told
     record = tuned.extra["class_offsets"]
     offsets = torch.tensor([record["offsets"][name] for name in tuned.class_names])
     earlier = shipped.extra.get("class_offsets", {}).get("total", {})  # the shipped segmenter's own offsets
