@@ -2,14 +2,13 @@
 
 import json
 import os
-import statistics
 import sys
-import time
 
 import torch
 from torch import nn
 
 from benchmarks.sparse_conv import LAYOUTS
+from benchmarks.timing import time_call
 from models.sparse import SparseTensor, SubmanifoldConv3d
 
 torch.set_num_threads(1)
@@ -26,13 +25,7 @@ for n in (20000, 100000):
     dinp = torch.randn(1, 32, *grid, generator=g).requires_grad_(True)
 
     def t(fn, r):
-        fn()
-        ts = []
-        for _ in range(r):
-            s = time.perf_counter()
-            fn()
-            ts.append(time.perf_counter() - s)
-        return statistics.median(ts)
+        return time_call(fn, r)["median_s"]
 
     def sf(conv=conv, x=x):
         with torch.no_grad():
