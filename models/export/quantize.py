@@ -288,6 +288,7 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     feeds = {"detector.onnx": det_feeds, "segmenter.onnx": seg_feeds}
     for method in methods:
         (out / f".{method}").mkdir(exist_ok=True)
+    chosen = "given" if int8_detector is not None else "measured"
     int8_detector, detector_ms = _detector_precision(out, float_dir, det_feeds, methods[0], int8_detector)
     sources = {"detector.onnx": float_dir / "detector.onnx", "segmenter.onnx": _column_segmenter(seg, out)}
     _quantise_trials(out, sources, feeds, methods, int8_detector)
@@ -312,8 +313,7 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
         "not_quantised_op_types": {"detector": list(NOT_QUANTISED["detector.onnx"]) if int8_detector else "all",
                                    "segmenter": list(NOT_QUANTISED["segmenter.onnx"])},
         "detector_ms_one_thread": {**detector_ms, "measure": "median over the calibration frames of each one's "
-                                   f"best of {DETECTOR_TIMING_ROUNDS}, interleaved", "chosen": "measured"
-                                   if int8_detector == (detector_ms["int8"] < detector_ms[INT8_WEIGHTS]) else "given"},
+                                   f"best of {DETECTOR_TIMING_ROUNDS}, interleaved", "chosen": chosen},
         "method": best, "label_agreement_by_method": agreement,
         "agreement_measure": "share of the ROI voxels (non-background in float or int8) with the same label, "
                              "int8 pipeline against float, on the calibration frames",

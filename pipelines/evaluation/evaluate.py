@@ -146,7 +146,7 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
     net = load_erasenet(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
     freeze_loaded_heap()  # no full garbage collection over torch and the models every few frames
-    root, frames = _frames(cfg, net.profile)
+    root, frames = store_frames(cfg.store, net.profile, cfg.split, cfg.max_frames)
     split_name = cfg.split or "all"
     arrays = {name: root[name] for name in ("input", "instances", "ra_mask", "rd_mask", "objects", "n_objects")}
     picture_frames = {int(frames[i]) for i in spread(len(frames), cfg.pictures)}
@@ -182,16 +182,17 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     return metrics
 
 
-def _frames(cfg: EvaluateConfig, profile: Any) -> tuple[Any, np.ndarray]:
-    """The store (checked against the model's preset) and the slots to score."""
-    root = open_store(cfg.store)
+def store_frames(store: str | Path, profile: Any, split: str | None, max_frames: int = 0) -> tuple[Any, np.ndarray]:
+    """The store (checked against the model's preset) and the slots of ``split`` to score (``max_frames`` evenly
+    spread, 0: all; None: every frame of the store)."""
+    root = open_store(store)
     if root.attrs["preset"] != profile.name:
-        raise UserError(f"store {cfg.store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
-    frames = frames_of_split(root, cfg.split)
-    if cfg.max_frames:
-        frames = frames[spread(len(frames), cfg.max_frames)]
+        raise UserError(f"store {store} is preset {root.attrs['preset']!r}, the model {profile.name!r}")
+    frames = frames_of_split(root, split)
+    if max_frames:
+        frames = frames[spread(len(frames), max_frames)]
     if len(frames) == 0:
-        raise UserError(f"split {cfg.split!r} of {cfg.store} has no frames")
+        raise UserError(f"split {split!r} of {store} has no frames")
     return root, frames
 
 

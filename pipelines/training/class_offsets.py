@@ -34,8 +34,7 @@ from models.capabilities import Stage
 from models.checkpoint import load_checkpoint, save_checkpoint
 from models.erasenet.engines import load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
-from pipelines.datasets.spread import spread
-from pipelines.datasets.store import frames_of_split, open_store
+from pipelines.evaluation.evaluate import store_frames
 from pipelines.evaluation.scoring import ViewConfusion
 from pipelines.progress import progress
 from radar import transforms
@@ -65,14 +64,7 @@ class FrameLogits:
 def frame_logits(net: Any, store: str | Path, split: str | None, *, max_frames: int = 0,
                  show_progress: bool = True) -> list[FrameLogits]:
     """Every frame of the split (``max_frames`` evenly spread, 0: all) through the product's path, logits kept."""
-    root = open_store(store)
-    if root.attrs["preset"] != net.profile.name:
-        raise UserError(f"store {store} is preset {root.attrs['preset']!r}, the model {net.profile.name!r}")
-    slots = frames_of_split(root, split)
-    if max_frames:
-        slots = slots[spread(len(slots), max_frames)]
-    if len(slots) == 0:
-        raise UserError(f"split {split!r} of {store} has no frames")
+    root, slots = store_frames(store, net.profile, split, max_frames)
     inputs, ra_masks, rd_masks = root["input"], root["ra_mask"], root["rd_mask"]
     earlier = earlier_slots(root, net.history_frames) if net.history_frames else None
     frames = []
