@@ -6,7 +6,7 @@ as a stream would give it, and is also timed alone on single cubes. One thread. 
 and the ratio to the old detector; writes benchmarks/results/detector_swap.json with the CPU flags and the load
 average. Never asserts a time.
 
-    .venv/bin/python -m benchmarks.detector_swap --old OLD.pt --new checkpoints/detector.pt \
+    .venv/bin/python -m experiments.studies.detector_swap --old OLD.pt --new checkpoints/detector.pt \
         [--segmenter checkpoints/segmenter.pt] [--frames 13] [--rounds 3]
 """
 
@@ -25,8 +25,8 @@ from benchmarks.sparse_conv import machine_info
 from models.erasenet.model import EraseNet
 from radar.simulate import simulate_sequence
 
-REPO = Path(__file__).resolve().parents[1]
-RESULTS = REPO / "benchmarks" / "results" / "detector_swap.json"
+REPO = Path(__file__).resolve().parents[2]
+RESULTS = REPO / "experiments" / "reports" / "detector_swap.json"
 
 
 def time_pairs(old: EraseNet, new: EraseNet, frames: list, rounds: int) -> dict[str, list[float]]:

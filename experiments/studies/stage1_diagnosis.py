@@ -35,8 +35,8 @@ permits; the segmenter pays the whole ROI at t). Pictures of pedestrian misses (
 to ``--pictures-dir``. The what-if table also gives, per class and operating cause, what the same objects
 become at the lower threshold, and where its extra seeds fall (matched, near an object of a class, clutter).
 
-    .venv/bin/python -m benchmarks.stage1_diagnosis --store out/stage1/seed25270.zarr \\
-        --store out/stage1/seed25280.zarr --threads 1 --out reports/stage1.json
+    .venv/bin/python -m experiments.studies.stage1_diagnosis --store out/stage1/seed25270.zarr \\
+        --store out/stage1/seed25280.zarr --threads 1 --out experiments/reports/stage1.json
 
 Stores: ``radarseg preprocess --source sim --preset small --sequences 48 --frames 4 --seed S --out ...`` (every frame
 of every split is scored; ``--frames N`` scores N evenly spread frames per store).
@@ -70,7 +70,7 @@ from radar.detections import Centres
 from radar.metrics import match_frame
 from radar.region_growing import grow_regions
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CAUSES = ("a_no_peak", "a_no_own_peak", "b_below_threshold", "c_doppler", "c_misplaced", "c_growth", "d_peak",
           "d_suppressed", "d_region", "e_false_seed")
 CAUSE_LETTER = {"a_no_peak": "a", "a_no_own_peak": "a", "b_below_threshold": "b", "c_doppler": "c",
@@ -766,7 +766,7 @@ def main(argv=None) -> None:
     parser.add_argument("--store", action="append", required=True, help="preprocessed store (repeat for several)")
     parser.add_argument("--frames", type=int, default=0, help="frames per store, evenly spread (0 = all)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument("--out", default="reports/stage1.json", help="JSON written here")
+    parser.add_argument("--out", default="experiments/reports/stage1.json", help="JSON written here")
     parser.add_argument("--detector", default="checkpoints/detector.pt")
     parser.add_argument("--segmenter", default="checkpoints/segmenter.pt")
     parser.add_argument("--match-k", type=float, default=3.0, help="match radius: metres and Doppler bins")
@@ -775,7 +775,7 @@ def main(argv=None) -> None:
     parser.add_argument("--low-threshold", type=float, default=0.15, help="pedestrian threshold of the what-if")
     parser.add_argument("--peaks", type=int, default=256, help="heatmap peaks decoded for the diagnosis")
     parser.add_argument("--pictures", type=int, default=3, help="pictures of pedestrian misses")
-    parser.add_argument("--pictures-dir", default="reports")
+    parser.add_argument("--pictures-dir", default="experiments/reports")
     parser.add_argument("--no-progress", dest="progress", action="store_false")
     args = parser.parse_args(argv)
 
@@ -803,7 +803,7 @@ def main(argv=None) -> None:
     print_tables(results, class_names, drawn)
     out = {
         "what": "issue 34 point 1: where true objects are lost between the detector and region growing",
-        "command": " ".join([".venv/bin/python -m benchmarks.stage1_diagnosis", *(argv or sys.argv[1:])]),
+        "command": " ".join([".venv/bin/python -m experiments.studies.stage1_diagnosis", *(argv or sys.argv[1:])]),
         "args": vars(args), "classes": class_names, "score_threshold": net.score_threshold,
         "region_growing": asdict(net.region_config),
         "doppler_refinement": None if net.doppler_refinement is None else asdict(net.doppler_refinement),

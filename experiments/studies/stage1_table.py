@@ -1,7 +1,7 @@
 """The stage-1 issue's table from ``radarseg evaluate`` runs: one row per (pair, store), the issue's goals checked.
 
-    .venv/bin/python -m benchmarks.stage1_table "shipped/25270=runs/lc/eval-shipped-25270" ... \
-        [--out reports/stage1_candidates.json]
+    .venv/bin/python -m experiments.studies.stage1_table "shipped/25270=runs/lc/eval-shipped-25270" ... \
+        [--out experiments/reports/stage1_candidates.json]
 
 Each argument is ``LABEL=RUN`` where ``RUN`` is an ``evaluate --out`` directory (its ``metrics.json``). Rows print
 as a Markdown table; the JSON holds the rows and, per row, which goal of issue 34 it meets.

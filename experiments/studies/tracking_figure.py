@@ -1,10 +1,10 @@
-"""The picture of reports/tracking.md: tracks over one sequence drawn on its last frame's RA view (max log power
+"""The picture of experiments/reports/tracking.md: tracks over one sequence drawn on its last frame's RA view (max log power
 over Doppler, in Cartesian metres). Left: the tracker over the shipped pair's objects; right: over the true centres.
 Each track is a polyline of its objects' positions with its id and a velocity arrow (its last estimate, 1 s long);
 the simulator's true tracks (labelled centres) are dashed white with their true velocity in a thin arrow.
 
-    .venv/bin/python -m benchmarks.tracking_figure --store /tmp/trk.zarr [--sequence N] \
-        [--out reports/tracking_tracks.png]
+    .venv/bin/python -m experiments.studies.tracking_figure --store /tmp/trk.zarr [--sequence N] \
+        [--out experiments/reports/tracking_tracks.png]
 
 Without ``--sequence`` it draws the sequence with the most true tracks.
 """
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _sequence_frames(store: str, sequence: int | None):
@@ -82,7 +82,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--store", required=True)
     parser.add_argument("--sequence", type=int)
-    parser.add_argument("--out", default=str(REPO / "reports" / "tracking_tracks.png"))
+    parser.add_argument("--out", default=str(REPO / "experiments" / "reports" / "tracking_tracks.png"))
     args = parser.parse_args()
     torch.set_num_threads(1)
     import matplotlib.pyplot as plt
