@@ -1,4 +1,4 @@
-"""int8 on the edge: the shipped pair and its slimmed twin, float and int8 ONNX graphs, against the default engine.
+"""int8 on the edge: the shipped pair and the slimmed pair, float and int8 ONNX graphs, against the default engine.
 
     nice -n 5 .venv/bin/python benchmarks/edge.py --store /tmp/edge.zarr --calibration /tmp/edge-calib.zarr
 
@@ -38,7 +38,7 @@ from pipelines.datasets.store import frames_of_split, open_store
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIRS = {"shipped": ("checkpoints/detector.pt", "checkpoints/segmenter.pt"),
-         "p40": ("checkpoints/detector-p40.pt", "checkpoints/segmenter-p40.pt")}
+         "p40": ("checkpoints/detector-slimmed.pt", "checkpoints/segmenter-slimmed.pt")}
 ENGINES = ("onnx", "onnx-int8", "torch")
 
 

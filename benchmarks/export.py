@@ -48,7 +48,7 @@ from radar.simulate import simulate_sequence
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = {"small": (ROOT / "checkpoints" / "detector.pt", ROOT / "checkpoints" / "segmenter.pt")}
 SHIPPED_PAIRS = {"shipped": SHIPPED["small"],
-                 "p40": (ROOT / "checkpoints" / "detector-p40.pt", ROOT / "checkpoints" / "segmenter-p40.pt")}
+                 "p40": (ROOT / "checkpoints" / "detector-slimmed.pt", ROOT / "checkpoints" / "segmenter-slimmed.pt")}
 CPU_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_vnni", "amx_tile")
 
 

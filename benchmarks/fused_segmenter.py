@@ -1,5 +1,5 @@
 """The segmenter's fused inference form against the eager model, side by side in one process (one thread): the
-shipped ``small`` pair (and its slimmed twin), simulated frames, both forms on every frame alternately (so the
+shipped ``small`` pair (and the slimmed pair), simulated frames, both forms on every frame alternately (so the
 machine's load hits both alike), after warm-up frames.
 
 Per form: median milliseconds per frame of each EraseNet stage and end to end, and the segment stage's share; the
@@ -29,7 +29,7 @@ from radar.simulate import simulate_sequence
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "fused_segmenter.json"
 PAIRS = {"shipped": ("checkpoints/detector.pt", "checkpoints/segmenter.pt"),
-         "slimmed": ("checkpoints/detector-p40.pt", "checkpoints/segmenter-p40.pt")}
+         "slimmed": ("checkpoints/detector-slimmed.pt", "checkpoints/segmenter-slimmed.pt")}
 WARM_UP = 2
 
 

@@ -32,10 +32,10 @@ ANONYMOUS_TENANT = "anonymous"
 # The shipped checkpoints of the `small` preset (committed under checkpoints/ by the training issue).
 DEFAULT_DETECTOR = "checkpoints/detector.pt"
 DEFAULT_SEGMENTER = "checkpoints/segmenter.pt"
-# Their slimmed twin (pruned at ratio 0.4 and fine-tuned; reports in the README's "Network slimming"), served beside
+# The slimmed pair (pruned at ratio 0.4 and fine-tuned; docs/guides/slimming.md, docs/results.md), served beside
 # them by default as ?model=small-p40.
-TWIN_DETECTOR = "checkpoints/detector-p40.pt"
-TWIN_SEGMENTER = "checkpoints/segmenter-p40.pt"
+SLIMMED_DETECTOR = "checkpoints/detector-slimmed.pt"
+SLIMMED_SEGMENTER = "checkpoints/segmenter-slimmed.pt"
 
 
 def resolve_path(path: str | Path) -> Path:
@@ -69,7 +69,7 @@ class Settings(BaseSettings):
     port: Annotated[int, Field(ge=1, le=65535)] = 8000
     models: Annotated[list[ModelSpec], Field(min_length=1)] = [
         ModelSpec(name="small", detector=Path(DEFAULT_DETECTOR), segmenter=Path(DEFAULT_SEGMENTER)),
-        ModelSpec(name="small-p40", detector=Path(TWIN_DETECTOR), segmenter=Path(TWIN_SEGMENTER)),
+        ModelSpec(name="small-p40", detector=Path(SLIMMED_DETECTOR), segmenter=Path(SLIMMED_SEGMENTER)),
     ]
     default_model: str | None = None  # None: the first of `models`
     replicas: Annotated[int, Field(ge=1, le=16)] = 1  # model instances per model (each runs one request at a time)
@@ -105,6 +105,8 @@ class Settings(BaseSettings):
     max_connections: Annotated[int | None, Field(ge=2, le=65536)] = None
     keep_alive_s: Annotated[float, Field(ge=0.5, le=600)] = 5.0  # an idle connection between requests (uvicorn's)
     max_json_depth: Annotated[int, Field(ge=2, le=64)] = 16  # nesting of a JSON header (X-Cube-Schema)
+    # a JSON request body (POST /v1/streams): read only after the key is checked, held in the upload gate, 413 beyond
+    max_json_body_bytes: Annotated[int, Field(ge=256, le=2**20)] = 16384
 
     api_keys: dict[SecretStr, str] = {}  # key -> tenant; none configured = one anonymous tenant
     admin_tenants: list[str] = []  # tenants whose keys may read every tenant's usage

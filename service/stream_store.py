@@ -34,6 +34,8 @@ class Refusal(StrEnum):
     busy = "busy"  # another frame of the stream holds its claim
     stale = "stale"  # seq not after the stream's last frame
     too_many = "too_many"  # the tenant's cap on open streams
+    closed = "closed"  # deleted (DELETE) while a frame held it: the frame's result is not kept
+    lost = "lost"  # the frame's claim ran out and another frame took the stream: nothing written
 
 
 @dataclass(frozen=True)
@@ -109,7 +111,10 @@ class StreamStore:
                 key = int.from_bytes(hashlib.sha256(f"{self.table.name}/{tenant}".encode()).digest()[:8], "big",
                                      signed=True)
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": key})
-            conn.execute(delete(self.table).where(c.tenant == tenant, c.updated_at < self._live_since(now)))
+            # expired streams go, but never one a frame still holds (its claim is live): that frame commits
+            unclaimed = c.claimed_until.is_(None) | (c.claimed_until < now)
+            conn.execute(delete(self.table).where(c.tenant == tenant, c.updated_at < self._live_since(now),
+                                                  unclaimed))
             live = conn.execute(select(func.count()).where(c.tenant == tenant)).scalar_one()
             if live >= self.max_per_tenant:
                 return Refusal.too_many
@@ -161,9 +166,10 @@ class StreamStore:
         stream = self.check(tenant, stream_id, seq, now=now)
         return stream if isinstance(stream, Refusal) else Refusal.busy
 
-    def commit(self, claim: Claim, state: dict[str, Any], *, now: dt.datetime | None = None) -> bool:
-        """Write the tracker state after frame ``claim.seq`` and give the claim back; False when the claim was
-        lost (it expired and another frame took the stream): nothing is written then."""
+    def commit(self, claim: Claim, state: dict[str, Any], *, now: dt.datetime | None = None) -> Refusal | None:
+        """Write the tracker state after frame ``claim.seq`` and give the claim back (None); Refusal.closed when
+        the stream was deleted meanwhile, Refusal.lost when the claim was lost (it ran out and another frame took
+        the stream): nothing is written then."""
         now = now or utc_now()
         c = self.table.c
         with self.ledger.engine.begin() as conn:
@@ -173,7 +179,29 @@ class StreamStore:
                         claim_token=None, claimed_until=None)
                 .returning(c.id)
             ).first()
-        return done is not None
+            if done is not None:
+                return None
+            exists = conn.execute(select(c.id).where(c.id == claim.stream.id)).first()
+        return Refusal.lost if exists is not None else Refusal.closed
+
+    def extend(self, claim: Claim, *, now: dt.datetime | None = None) -> bool:
+        """Push the claim's deadline ``claim_s`` past ``now`` while its frame still runs; False when it is lost."""
+        now = now or utc_now()
+        c = self.table.c
+        with self.ledger.engine.begin() as conn:
+            done = conn.execute(update(self.table).where(c.id == claim.stream.id, c.claim_token == claim.token)
+                                .values(claimed_until=now + dt.timedelta(seconds=self.claim_s)).returning(c.id))
+            return done.first() is not None
+
+    def next_free_in(self, tenant: str, *, now: dt.datetime | None = None) -> float:
+        """Seconds until the tenant's first live stream expires (a slot frees then, or on a DELETE before)."""
+        now = now or utc_now()
+        c = self.table.c
+        with self.ledger.engine.connect() as conn:
+            oldest = conn.execute(select(func.min(c.updated_at)).where(c.tenant == tenant)).scalar_one()
+        if oldest is None:
+            return 0.0
+        return max(0.0, (_aware(oldest) + dt.timedelta(seconds=self.idle_s) - now).total_seconds())
 
     def release(self, claim: Claim) -> None:
         """Give the claim back without writing (the frame failed or was refused)."""

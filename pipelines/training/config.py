@@ -149,7 +149,7 @@ class TrainConfig:
         if self.device not in ("auto", "cpu", "cuda") and not self.device.startswith("cuda:"):
             raise ValueError(f"device must be auto, cpu, cuda or cuda:N, got {self.device!r}")
         if self.stage == "baseline" and not self.model:
-            raise ValueError("a baseline run names its model (unet, tmvanet, smvanet, or a _tiny twin)")
+            raise ValueError("a baseline run names its model (unet, tmvanet, smvanet, or a _tiny variant)")
         self._check_view()
 
     def _check_view(self) -> None:

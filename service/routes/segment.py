@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 import uuid
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -173,8 +174,7 @@ async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, t
                  ) -> SegmentationResult:
     """Inference in the slot taken by :func:`_take_slot` (the model releases it when inference ends)."""
     try:
-        return await served.run(cube, is_log_power=input_kind is InputKind.log_power,
-                                adc_compensation=tdm_compensation if input_kind is InputKind.adc else None,
+        return await served.run(cube, kind=input_kind, tdm_compensation=tdm_compensation,
                                 views=views, history=history)
     except NotReady as exc:
         raise ApiError(503, str(exc), error="not_ready",
@@ -278,9 +278,11 @@ async def read_body(request: Request, state: ServiceState, caller: Principal,
 
 async def run_billed(state: ServiceState, caller: Principal, admitted: Admitted, cube: np.ndarray, decode_s: float,
                      input_kind: InputKind, tdm_compensation: bool, encoding: MaskEncoding,
-                     history: list[np.ndarray | None] | None = None) -> Billed:
+                     history: list[np.ndarray | None] | None = None,
+                     keep: Callable[[SegmentationResult], Awaitable[None]] | None = None) -> Billed:
     """Take a model slot and a lease on the tenant's quota, run, bill (the lease given back on any other way out).
-    ``history``: a stream frame's earlier frames, for a detector that reads them."""
+    ``history``: a stream frame's earlier frames, for a detector that reads them. ``keep``: called with the result
+    before it is billed (a stream frame writes its tracks there); when it raises, nothing is billed."""
     served, name, metrics = admitted.served, admitted.name, state.metrics
     _take_slot(served, state)  # a saturated model answers 503 before the quota is touched (no ledger round trips)
     # reserved (the slot given back if refused); the lease is given back unless settled
@@ -289,6 +291,8 @@ async def run_billed(state: ServiceState, caller: Principal, admitted: Admitted,
         result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in admitted.chosen,
                               history=history)
         del cube
+        if keep is not None:
+            await keep(result)
         views = None if result.views is None else input_views(*result.views, served.net.profile, encoding)
         report = result.compute.plus_seconds("decode", decode_s, first=True)  # the request's cost, decoding included
         compute = _compute(report)

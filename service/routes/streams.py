@@ -13,14 +13,17 @@ is a 409 with Retry-After while the first holds the stream.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import time
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Header, Path, Query, Request, Response
+from fastapi import APIRouter, Header, Path, Query, Request, Response
 
 from radar.tracking import Measurements, Track, Tracker, TrackerConfig, TrackerStep, TrackStatus
 from service.deps import Caller, ServiceState, State
 from service.errors import ApiError
+from service.json_body import json_request_body, read_json
 from service.ledger import utc_now
 from service.routes.errors_doc import error_responses
 from service.routes.segment import REQUEST_BODY, admit, read_body, respond, run_billed
@@ -40,7 +43,8 @@ router = APIRouter(tags=["streams"])
 StreamId = Annotated[str, Path(pattern=r"^[0-9a-f]{32}$", description="the id POST /v1/streams answered")]
 
 
-def _refused(refusal: Refusal, state: ServiceState, stream_id: str, seq: int | None = None) -> ApiError:
+def _refused(refusal: Refusal, state: ServiceState, stream_id: str, seq: int | None = None,
+             frees_in_s: float = 0.0) -> ApiError:
     retry = {"Retry-After": str(state.settings.retry_after_s)}
     return {
         Refusal.missing: lambda: ApiError(404, f"no stream {stream_id!r} for this tenant (never opened, or closed)"),
@@ -53,7 +57,15 @@ def _refused(refusal: Refusal, state: ServiceState, stream_id: str, seq: int | N
                                              "order with increasing ?seq=", error="stream_order"),
         Refusal.too_many: lambda: ApiError(429, f"the tenant holds {state.settings.max_streams_per_tenant} open "
                                                 "streams (max_streams_per_tenant): close one (DELETE) or let one "
-                                                "expire", error="too_many_streams", headers=retry),
+                                                f"expire (the first expires in {frees_in_s:.0f} s)",
+                                           error="too_many_streams",
+                                           headers={"Retry-After": str(max(1, int(frees_in_s) + 1))}),
+        Refusal.closed: lambda: ApiError(404, f"stream {stream_id!r} was closed (DELETE) while frame seq={seq} ran; "
+                                              "the frame was not billed and its tracks were not kept",
+                                         error="stream_closed"),
+        Refusal.lost: lambda: ApiError(409, f"frame seq={seq} of stream {stream_id!r} lost its hold on the stream "
+                                            "to another frame; it was not billed and its tracks were not kept",
+                                       error="stream_claim_lost"),
     }[refusal]()
 
 
@@ -81,16 +93,21 @@ def _info(stream: StreamRow, state: ServiceState, kept: list[Track] | None = Non
 
 
 @router.post("/v1/streams", status_code=201, response_model=StreamInfo, summary="Open a stream of frames",
-             responses=error_responses(401, 422, 429, 503))
-async def create_stream(state: State, caller: Caller,
-                        body: Annotated[StreamCreate | None, Body()] = None) -> StreamInfo:
+             responses=error_responses(401, 413, 415, 422, 429, 503),
+             openapi_extra=json_request_body(StreamCreate, "optional: the served model of the stream"))
+async def create_stream(request: Request, state: State, caller: Caller) -> StreamInfo:
     """A new stream on ``model`` (the default model if omitted); its frames are tracked together. At most
-    ``max_streams_per_tenant`` live streams per tenant (429 beyond)."""
+    ``max_streams_per_tenant`` live streams per tenant (429 beyond, Retry-After until the first expires). The JSON
+    body is read only once the key is checked, and is at most ``max_json_body_bytes`` (413 beyond)."""
+    body = await read_json(request, state, caller.tenant, StreamCreate)
     try:
         served = state.pool.get(None if body is None else body.model)
     except KeyError as exc:
         raise ApiError(422, exc.args[0], error="unknown_model") from None
     stream = await state.billing.read(state.streams.create, caller.tenant, served.spec.name)
+    if stream is Refusal.too_many:
+        raise _refused(stream, state, "", frees_in_s=await state.billing.read(state.streams.next_free_in,
+                                                                              caller.tenant))
     if isinstance(stream, Refusal):
         raise _refused(stream, state, "")
     return _info(stream, state)
@@ -150,24 +167,25 @@ async def stream_frame(
     claim = await state.billing.read(store.claim, caller.tenant, stream_id, seq)
     if isinstance(claim, Refusal):
         raise _refused(claim, state, stream_id, seq)
-    committed = False
     n_history = admitted.served.net.history_frames
     history = state.stream_history.earlier((caller.tenant, stream_id), seq, n_history) if n_history else None
-    try:
-        billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding,
-                                  history)
+    kept: dict[str, Any] = {}
+
+    async def keep(result: Any) -> None:
+        """The tracks after this frame, written under the claim before the frame is billed: a stream closed or
+        taken meanwhile refuses the frame unbilled."""
         start = time.perf_counter()
-        tracker, step = _track(claim, billed.result.objects, state)
-        track_s = time.perf_counter() - start
-        tracker_state = tracker.to_state()
-        committed = await state.billing.read(store.commit, claim, tracker_state)
-    finally:
-        if not committed:
-            await _release(state, claim)
-    if not committed:
-        raise ApiError(409, f"stream {stream_id!r} was taken by another frame while this one ran (its hold of "
-                            f"{state.settings.stream_claim_s:g} s ran out); the frame was billed, its tracks not kept",
-                       error="stream_busy")
+        tracker, step = _track(claim, result.objects, state)
+        kept.update(tracker=tracker, step=step, track_s=time.perf_counter() - start, state=tracker.to_state())
+        refused = await state.billing.read(store.commit, claim, kept["state"])
+        if refused is not None:
+            raise _refused(refused, state, stream_id, seq)
+        kept["committed"] = True
+
+    async with _holding(state, claim, kept):
+        billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding,
+                                  history, keep=keep)
+    tracker, step, track_s, tracker_state = kept["tracker"], kept["step"], kept["track_s"], kept["state"]
     if n_history:  # what the stream's next frame reads
         state.stream_history.keep((caller.tenant, stream_id), seq, billed.result.log_power, n_history)
     state.metrics.stage_seconds.labels(admitted.name, "track").observe(track_s)
@@ -192,4 +210,29 @@ async def _release(state: ServiceState, claim: Claim) -> None:
         await state.billing.read(state.streams.release, claim)
     except ApiError:
         pass
+
+
+async def _renew(state: ServiceState, claim: Claim) -> None:
+    """Keep the claim live while its frame runs (a frame waiting for a model slot or running long never loses its
+    stream to the next one); stops when the claim is lost or the ledger fails."""
+    every = state.settings.stream_claim_s / 3
+    while True:
+        await asyncio.sleep(every)
+        try:
+            if not await state.billing.read(state.streams.extend, claim):
+                return
+        except ApiError:
+            return
+
+
+@contextlib.asynccontextmanager
+async def _holding(state: ServiceState, claim: Claim, kept: dict[str, Any]) -> Any:
+    """Renew ``claim`` while the block runs; give the stream back after unless the frame committed."""
+    renewing = asyncio.create_task(_renew(state, claim), name="radarseg-stream-claim")
+    try:
+        yield
+    finally:
+        renewing.cancel()
+        if not kept.get("committed"):
+            await _release(state, claim)
 

@@ -155,22 +155,22 @@ def test_missing_checkpoints_mean_not_ready_but_alive(make_settings, client_for,
 def test_default_settings_point_at_the_shipped_checkpoints():
     from service.settings import REPO_ROOT, Settings, resolve_path
 
-    spec, twin = Settings().models
+    spec, slimmed = Settings().models
     assert not spec.detector.is_absolute() and not spec.segmenter.is_absolute()
     assert str(spec.detector).startswith("checkpoints/")
     assert resolve_path(spec.detector).parent == REPO_ROOT / "checkpoints"
-    assert Settings().default_model_name == "small"  # the slimmed twin is served beside it, not instead of it
-    assert twin.name == "small-p40" and all(resolve_path(p).is_file() for p in (twin.detector, twin.segmenter))
+    assert Settings().default_model_name == "small"  # the slimmed pair is served beside it, not instead of it
+    assert slimmed.name == "small-p40" and all(resolve_path(p).is_file() for p in (slimmed.detector, slimmed.segmenter))
 
 
-def test_the_slimmed_twin_is_smaller_and_serves_the_same_preset():
+def test_the_slimmed_pair_is_smaller_and_serves_the_same_preset():
     from models.checkpoint import load_checkpoint
     from models.compute import count_params
     from service.settings import Settings, resolve_path
 
-    spec, twin = Settings().models
+    spec, slimmed = Settings().models
     main = [load_checkpoint(resolve_path(p)) for p in (spec.detector, spec.segmenter)]
-    slim = [load_checkpoint(resolve_path(p)) for p in (twin.detector, twin.segmenter)]
+    slim = [load_checkpoint(resolve_path(p)) for p in (slimmed.detector, slimmed.segmenter)]
     assert [c.preset for c in slim] == [c.preset for c in main] and slim[0].class_names == main[0].class_names
     params = [sum(count_params(c.build()) for c in pair) for pair in (main, slim)]
     assert params[1] <= 0.65 * params[0]  # at least 35 % fewer parameters

@@ -134,8 +134,8 @@ def _claim_story(store: StreamStore) -> dict[str, object]:
 
 
 CLAIM_STORY = {"first": "Claim", "while_first_runs": Refusal.busy, "other_tenant": Refusal.missing,
-               "first_written": True, "older_frame": Refusal.stale, "gap": 2, "last_seq_after_failure": 0,
-               "dead_frame_written": False, "taken_frame_written": True, "frames": 2}
+               "first_written": None, "older_frame": Refusal.stale, "gap": 2, "last_seq_after_failure": 0,
+               "dead_frame_written": Refusal.lost, "taken_frame_written": None, "frames": 2}
 
 
 def test_store_sqlite(tmp_path):

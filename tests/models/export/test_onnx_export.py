@@ -130,7 +130,7 @@ def exported(request, export):
 
 @pytest.fixture(scope="module")
 def shipped(export):
-    """(detector, segmenter, export dir) of the shipped pair only (for checks the pruned twin adds nothing to)."""
+    """(detector, segmenter, export dir) of the shipped pair only (for checks the slimmed pair adds nothing to)."""
     return export(PAIRS[0].values[0])
 
 

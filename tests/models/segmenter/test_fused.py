@@ -16,7 +16,7 @@ from radar.region_growing import RegionGrowingConfig, grow_regions
 from radar.roi import roi_points
 from radar.simulate import simulate_sequence
 
-REPO_CHECKPOINTS = ("checkpoints/segmenter.pt", "checkpoints/segmenter-p40.pt")
+REPO_CHECKPOINTS = ("checkpoints/segmenter.pt", "checkpoints/segmenter-slimmed.pt")
 
 
 @pytest.fixture(scope="module")

@@ -233,7 +233,7 @@ def _empty_val_store(small_store, tmp_path):
 
 def test_another_model_drops_the_profiles_builder_arguments_and_bad_ones_are_named(small_store, tmp_path):
     cfg = TrainConfig(stage="segmenter", store="s.zarr", out="o", model="minkunet_tiny")
-    assert cfg.hyper().model_config == {}  # the quick profile's {"ratio": 0.25} is MinkUNet's, not the tiny twin's
+    assert cfg.hyper().model_config == {}  # the quick profile's {"ratio": 0.25} is MinkUNet's, not the tiny variant's
     assert TrainConfig(stage="segmenter", store="s.zarr", out="o").hyper().model_config == {"ratio": 0.25}
     bad = TrainConfig(stage="detector", store=str(small_store), out=str(tmp_path / "bad"),
                       model="centre_detector_tiny", model_config={"depth": 3}, max_steps=1, progress=False)
