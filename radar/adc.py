@@ -22,6 +22,7 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
+from radar.adc_checks import check_adc
 from radar.profiles import RadarProfile
 
 LAYOUTS = ("sck", "ti")
@@ -152,5 +153,6 @@ def process_adc(adc: np.ndarray, profile: RadarProfile, *, layout: str = "sck",
         raise ValueError(f"ADC samples must be complex (I/Q), got dtype {adc.dtype}")
     if not np.isfinite(adc).all():
         raise ValueError("ADC samples contain NaN or Inf")
+    check_adc(adc, channel_axis=1 if layout == "ti" else 2)  # undecoded words refused, DC and clipping warned
     sck = ti_to_sck(adc, profile) if layout == "ti" else adc
     return adc_to_rad(profile, sck.astype(np.complex64, copy=False), tdm_compensation=tdm_compensation)

@@ -25,6 +25,8 @@ from enum import StrEnum
 
 import numpy as np
 
+from radar.adc_checks import adc_findings
+
 
 class InputKind(StrEnum):
     """What a cube holds."""
@@ -96,8 +98,12 @@ def _median(values: np.ndarray) -> float:
 
 def check_values(cube: np.ndarray, kind: InputKind, *, flag: str = "--input {}") -> None:
     """InputKindError when the values of ``cube`` are impossible for ``kind`` (see the module docstring);
-    complex and ADC cubes take any finite value."""
-    if kind is InputKind.log_power:
+    complex cubes take any finite value, ADC samples what radar.adc_checks does not refuse (undecoded words)."""
+    if kind is InputKind.adc:
+        refused = [f for f in adc_findings(cube, channel_axis=2) if f.refuse]  # (samples, chirps, virtual elements)
+        if refused:
+            raise InputKindError(f"{refused[0].message} ({flag.format('adc')} takes decoded signed samples)")
+    elif kind is InputKind.log_power:
         low, high, median = float(cube.min()), float(cube.max()), _median(cube)
         if low < MIN_LOG_POWER_DB:
             raise InputKindError(

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from radar.adc import adc_shape, process_adc
+from radar.adc_checks import AdcCheckError
 from radar.frame import ObjectRecord, RadarFrame
 from radar.io.errors import DataError
 from radar.io.npy import check_array, load_npy
@@ -214,7 +215,10 @@ class Recording:
         if self.content == "adc":
             adc = load_npy(seq_dir / "adc" / f"{name}.npy", shape=adc_shape(self.profile),
                            dtypes=(np.complexfloating,), what="ADC samples (samples, chirps, virtual elements)")
-            cube = process_adc(adc, self.profile, tdm_compensation=bool(self.meta.get("tdm_compensation", False)))
+            try:  # undecoded words refused naming the file (radar.adc_checks)
+                cube = process_adc(adc, self.profile, tdm_compensation=bool(self.meta.get("tdm_compensation", False)))
+            except AdcCheckError as exc:
+                raise DataError(seq_dir / "adc" / f"{name}.npy", str(exc)) from None
         else:
             cube = load_npy(seq_dir / "cubes" / f"{name}.npy", shape=self.profile.shape,
                             dtypes=(np.complexfloating, np.floating), what="RAD cube")
