@@ -72,9 +72,18 @@ def record(frames: Iterable[PredictionFrame], info: RecordingInfo, rec: rr.Recor
     return n
 
 
+def _stream() -> rr.RecordingStream:
+    """A recording stream on the frames' own timelines only (no wall-clock log time: the same frames write the same
+    recording)."""
+    rec = rr.RecordingStream(APPLICATION_ID, send_properties=False)
+    rec.set_log_time_enabled(False)
+    rec.set_log_tick_enabled(False)
+    return rec
+
+
 def write_rrd(frames: Iterable[PredictionFrame], info: RecordingInfo, out: str | Path) -> int:
     """Write the frames as an ``.rrd`` file at ``out``; returns the number of frames."""
-    rec = rr.RecordingStream(APPLICATION_ID, send_properties=False)
+    rec = _stream()
     rec.save(str(out))
     try:
         return record(frames, info, rec)
@@ -85,7 +94,7 @@ def write_rrd(frames: Iterable[PredictionFrame], info: RecordingInfo, out: str |
 
 def rrd_bytes(frames: Iterable[PredictionFrame], info: RecordingInfo) -> bytes:
     """The frames as the bytes of an ``.rrd`` file (a download)."""
-    rec = rr.RecordingStream(APPLICATION_ID, send_properties=False)
+    rec = _stream()
     stream = rec.binary_stream()
     record(frames, info, rec)
     rec.flush()
