@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 export RAY_AUTH_MODE ?= disabled
 export RAY_USAGE_STATS_ENABLED ?= 0
 
-.PHONY: venv clean-venv test test-fast demo lint bench clean
+.PHONY: venv clean-venv test test-fast test-deploy demo lint bench clean
 
 # torch is pinned in pyproject.toml; which build of it is installed is chosen here:
 #   TORCH_VARIANT=cpu  (default) the CPU build, about 200 MB, from PyTorch's CPU index (its "+cpu" wheel outranks
@@ -46,6 +46,12 @@ test: venv
 # The day-to-day lane: everything but the slow and Ray tests (CI runs the full `make test`).
 test-fast: venv
 	$(PYTEST) -m "not slow and not ray"
+
+# The compose stack on a real Docker engine (tests/deploy/test_compose_stack.py): offline base images, the image,
+# two Ray workers and two API replicas with PostgreSQL, driven and torn down (deploy/README.md). Skipped without
+# an engine; RADARSEG_REQUIRE_DOCKER=1 makes a missing engine a failure (CI).
+test-deploy: venv
+	RADARSEG_DEPLOY_LANE=1 $(BIN)/python -m pytest -q -x -n 0 --durations=0 tests/deploy/test_compose_stack.py
 
 demo: venv
 	$(BIN)/radarseg demo --out out/demo
