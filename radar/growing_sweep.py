@@ -6,7 +6,9 @@ splits an object into separate blobs. For each combination of a grid of disc rad
 (intensity ratio 0: on every built-in radar the floor binds, and the paper's ratio of 0.5 cut recall to 0.6-0.8)
 this grows regions from the true centres of simulated frames and measures recall (object voxels inside the ROI,
 over all frames) and the mean ROI size. The chosen settings are the most compact ROI that reaches the target
-recall; where nothing does, the highest recall. ``radarseg radar tune-growing PROFILE`` prints the table to add
+recall; where nothing does, the highest recall. The grid of disc radii is stated for a 50 m road radar and shrinks
+with a radar that sees less (:func:`search_distances`: 0.5-2.5 m for a radar of 6.25 m, as many range bins as 4-20 m
+are on the 50 m ones). ``radarseg radar tune-growing PROFILE`` prints the table to add
 to the profile file (``[region_growing]``), and ``--write`` puts it there (:func:`write_settings`).
 """
 
@@ -23,6 +25,7 @@ import numpy as np
 
 from radar.profiles import RadarProfile, get_profile
 from radar.profiles.files import load_profile_file
+from radar.profiles.scene_settings import radar_scale
 from radar.region_growing import RegionGrowingConfig, grow_regions, noise_level_db
 from radar.simulate import simulate_sequence
 from radar.transforms import log_power
@@ -31,6 +34,13 @@ DISTANCES_M = (4.0, 6.0, 8.0, 12.0, 16.0, 20.0)
 FLOORS_DB = (4.0, 5.0, 6.0)
 BRIDGES = (0, 1, 2)
 TARGET_RECALL = 0.95
+
+
+def search_distances(profile: RadarProfile) -> tuple[float, ...]:
+    """The disc radii searched for ``profile``: :data:`DISTANCES_M` (set for the 50 m radars) times
+    :func:`radar.profiles.scene_settings.radar_scale`; unchanged for every built-in preset."""
+    scale = radar_scale(profile)
+    return tuple(round(d * scale, 4) for d in DISTANCES_M)
 
 
 @dataclass(frozen=True)
@@ -77,15 +87,17 @@ def _frames(profile: RadarProfile, sequences: int, frames: int, seed: int) -> li
 
 
 def sweep_growing(profile: str | RadarProfile, *, sequences: int = 6, frames: int = 2, seed: int = 0,
-                  target_recall: float = TARGET_RECALL, distances_m: Sequence[float] = DISTANCES_M,
+                  target_recall: float = TARGET_RECALL, distances_m: Sequence[float] | None = None,
                   floors_db: Sequence[float] = FLOORS_DB, bridges: Sequence[int] = BRIDGES,
                   progress: Callable[[int, int], None] | None = None) -> SweepResult:
-    """Sweep the grid on ``sequences x frames`` simulated frames of ``profile`` (see the module docstring)."""
+    """Sweep the grid on ``sequences x frames`` simulated frames of ``profile`` (see the module docstring); the
+    disc radii default to the radar's :func:`search_distances`."""
     if sequences < 1 or frames < 1:
         raise ValueError(f"sequences and frames must be >= 1, got {sequences} and {frames}")
     if not 0.0 < target_recall <= 1.0:
         raise ValueError(f"target recall must be in (0, 1], got {target_recall}")
     profile = get_profile(profile)
+    distances_m = search_distances(profile) if distances_m is None else distances_m
     data = _frames(profile, sequences, frames, seed)
     if not data:
         raise ValueError(f"no simulated frame of {profile.name!r} holds a labelled object; simulate more frames")

@@ -8,7 +8,10 @@ that passes the rule; each ground truth is matched once, so a second prediction 
 order they were added in: a stable sort) and AP is the area under the precision-recall curve with
 COCO's interpolation: precision made monotone (the maximum precision at any recall >= r), sampled at
 the 101 recall points 0, 0.01, ..., 1 (0 where that recall is never reached), averaged.
-The paper reports AP at k = 1, 3 and 5 and their mean, mAP.
+The paper reports AP at k = 1, 3 and 5 and their mean, mAP. A radar that sees less than the 50 m road radars
+those metres were set for gets them scaled (:func:`distance_thresholds_m`: 0.125, 0.375 and 0.625 m on a radar
+of 6.25 m), while the Doppler test stays at k bins; the keys keep the paper's names (``AP@1`` is the first level)
+and :meth:`DetectionEvaluator.thresholds_note` states the metres.
 
 Segmentation: one confusion matrix per view accumulated over every test frame (rows: truth, columns:
 prediction); IoU per class ``TP / (TP + FP + FN)``; mIoU the plain mean over all classes, background
@@ -23,14 +26,24 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from radar.profiles import RadarProfile
+from radar.profiles.scene_settings import radar_scale
+
 DISTANCE_THRESHOLDS_M = (1.0, 3.0, 5.0)
 COCO_RECALL_POINTS = np.linspace(0.0, 1.0, 101)
 
 
+def distance_thresholds_m(profile: RadarProfile) -> tuple[float, ...]:
+    """The paper's 1/3/5 m scaled to ``profile`` (:func:`radar.profiles.scene_settings.radar_scale`): unchanged
+    for every built-in preset, 0.125/0.375/0.625 m for a radar of 6.25 m."""
+    scale = radar_scale(profile)
+    return tuple(k * scale for k in DISTANCE_THRESHOLDS_M)
+
+
 # --------------------------------------------------------------------------- detection
 def match_frame(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.ndarray, truth_xy: np.ndarray,
-                truth_doppler: np.ndarray, k: float) -> np.ndarray:
-    """True positives of one frame's predictions at threshold ``k``.
+                truth_doppler: np.ndarray, k: float, doppler_k: float | None = None) -> np.ndarray:
+    """True positives of one frame's predictions at threshold ``k`` (``doppler_k`` bins for Doppler, default ``k``).
 
     Args:
         pred_xy: (N, 2) predicted centres, Cartesian (x, y) in metres.
@@ -52,19 +65,20 @@ def match_frame(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.nd
                          f"score {len(pred_score)}")
     if len(truth_xy) != len(truth_doppler):
         raise ValueError(f"ground truth disagrees in length: xy {len(truth_xy)}, doppler {len(truth_doppler)}")
-    return _greedy_match(pred_xy, pred_doppler, pred_score, truth_xy, truth_doppler, k)[0]
+    return _greedy_match(pred_xy, pred_doppler, pred_score, truth_xy, truth_doppler, k, doppler_k)[0]
 
 
 def matched_truths(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.ndarray, truth_xy: np.ndarray,
-                   truth_doppler: np.ndarray, k: float) -> np.ndarray:
+                   truth_doppler: np.ndarray, k: float, doppler_k: float | None = None) -> np.ndarray:
     """(M,) bool: which ground truths :func:`match_frame`'s predictions matched (the same one-to-one rule)."""
     return _greedy_match(*(np.asarray(a, np.float64) for a in (pred_xy, pred_doppler, pred_score)),
                          np.asarray(truth_xy, np.float64).reshape(-1, 2),
-                         np.asarray(truth_doppler, np.float64).reshape(-1), k)[1]
+                         np.asarray(truth_doppler, np.float64).reshape(-1), k, doppler_k)[1]
 
 
 def _greedy_match(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.ndarray, truth_xy: np.ndarray,
-                  truth_doppler: np.ndarray, k: float) -> tuple[np.ndarray, np.ndarray]:
+                  truth_doppler: np.ndarray, k: float,
+                  doppler_k: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Predictions by descending score each take the nearest untaken eligible truth: (N,) matched predictions,
     (M,) matched truths."""
     pred_xy = pred_xy.reshape(-1, 2)
@@ -72,7 +86,8 @@ def _greedy_match(pred_xy: np.ndarray, pred_doppler: np.ndarray, pred_score: np.
     if len(pred_xy) == 0 or len(truth_xy) == 0:
         return tp, taken
     distance = np.linalg.norm(pred_xy[:, None, :] - truth_xy[None, :, :], axis=2)  # (N, M) metres
-    eligible = (distance <= k) & (np.abs(pred_doppler.reshape(-1)[:, None] - truth_doppler[None, :]) < k)
+    doppler_k = k if doppler_k is None else doppler_k
+    eligible = (distance <= k) & (np.abs(pred_doppler.reshape(-1)[:, None] - truth_doppler[None, :]) < doppler_k)
     for i in np.argsort(-pred_score.reshape(-1), kind="stable"):
         candidates = np.flatnonzero(eligible[i] & ~taken)
         if len(candidates):
@@ -120,9 +135,14 @@ def average_precision(scores: np.ndarray, tp: np.ndarray, n_truth: int) -> Preci
 
 @dataclass
 class DetectionEvaluator:
-    """Accumulates frames, then gives AP per distance threshold and mAP (their mean)."""
+    """Accumulates frames, then gives AP per distance threshold and mAP (their mean).
+
+    ``levels`` (default: the thresholds) are the Doppler thresholds in bins and name the keys; a radar's scaled
+    evaluator comes from :meth:`for_profile`.
+    """
 
     thresholds: Sequence[float] = DISTANCE_THRESHOLDS_M
+    levels: Sequence[float] | None = None
     _scores: list[np.ndarray] = field(default_factory=list)
     _tp: dict[float, list[np.ndarray]] = field(default_factory=dict)
     n_truth: int = 0
@@ -132,11 +152,26 @@ class DetectionEvaluator:
             truth_doppler: np.ndarray) -> None:
         """One frame (shapes as in :func:`match_frame`)."""
         self._scores.append(np.asarray(pred_score, np.float64).reshape(-1))
-        for k in self.thresholds:
+        for k, level in zip(self.thresholds, self._levels, strict=True):
             self._tp.setdefault(k, []).append(
-                match_frame(pred_xy, pred_doppler, pred_score, truth_xy, truth_doppler, k))
+                match_frame(pred_xy, pred_doppler, pred_score, truth_xy, truth_doppler, k, level))
         self.n_truth += len(np.asarray(truth_doppler).reshape(-1))
         self.n_frames += 1
+
+    @classmethod
+    def for_profile(cls, profile: RadarProfile) -> DetectionEvaluator:
+        """The paper's levels at ``profile``'s scale (:func:`distance_thresholds_m`)."""
+        return cls(thresholds=distance_thresholds_m(profile), levels=DISTANCE_THRESHOLDS_M)
+
+    @property
+    def _levels(self) -> tuple[float, ...]:
+        return tuple(self.thresholds if self.levels is None else self.levels)
+
+    def thresholds_note(self) -> str:
+        """What the AP keys mean, e.g. ``AP@1/3/5: within 0.125/0.375/0.625 m and 1/3/5 Doppler bins``."""
+        levels = "/".join(f"{v:g}" for v in self._levels)
+        metres = "/".join(f"{v:.3g}" for v in self.thresholds)
+        return f"AP@{levels}: within {metres} m and {levels} Doppler bins"
 
     def curves(self) -> dict[float, PrecisionRecall]:
         scores = np.concatenate(self._scores) if self._scores else np.zeros(0)
@@ -146,7 +181,7 @@ class DetectionEvaluator:
     def summary(self) -> dict[str, float]:
         """``{"AP@1": ..., "AP@3": ..., "AP@5": ..., "mAP": ...}`` (thresholds in metres/bins)."""
         curves = self.curves()
-        out = {f"AP@{k:g}": curve.ap for k, curve in curves.items()}
+        out = {f"AP@{level:g}": curve.ap for level, curve in zip(self._levels, curves.values(), strict=True)}
         out["mAP"] = float(np.mean([c.ap for c in curves.values()])) if curves else float("nan")
         return out
 

@@ -14,6 +14,8 @@ A file holds these tables (units in the key names; see radar/profiles/presets/*.
                   for a new radar with ``radarseg radar tune-growing PROFILE``)
     [tracking]    any of TRACKING_KEYS (optional: radar.tracking.TrackerConfig's noise levels, gates and track
                   life; the frame period and the unambiguous velocity always come from the radar)
+    [scene]       range_m, classes, speed_mps, min_separation_m, walls, wall_range_m, furniture   (optional:
+                  indoor scenes at the radar's scale for the simulator; radar/profiles/scene_settings.py)
 
 Derived: range bin = c / (2 B) / range_pad with B = slope * samples / sample_rate; velocity bin =
 lambda / (2 chirps chirp_cycle) / doppler_pad; cube = (samples * range_pad, angle_bins, chirps *
@@ -32,6 +34,8 @@ from typing import Any
 
 from radar.errors import UserError
 from radar.profiles.profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
+from radar.profiles.scene_settings import scene_from_table
+from radar.ti import profile_tables as hardware
 
 WINDOWS = ("hann", "rect")
 EXPECT_TOLERANCE = 0.005  # relative
@@ -43,7 +47,7 @@ class ProfileError(UserError):
 
 _SCHEMA: dict[str, set[str]] = {
     "": {"name", "class_names", "frame_rate_hz", "chirp", "array", "processing", "simulation", "expect",
-         "region_growing", "tracking"},
+         "region_growing", "tracking", "scene"},
     "chirp": {"carrier_hz", "sweep_bandwidth_hz", "slope_hz_per_s", "sample_rate_hz", "samples_per_chirp",
               "chirps_per_frame", "chirp_cycle_s"},
     "array": {"n_tx", "n_rx", "tdm_order"},
@@ -58,6 +62,11 @@ TRACKING_COUNTS = ("confirm_hits", "max_misses", "tentative_max_misses")
 TRACKING_KEYS = TRACKING_FLOATS + TRACKING_COUNTS
 """What a profile's ``[tracking]`` table may set (fields of ``radar.tracking.TrackerConfig``; ranges checked there)."""
 _SCHEMA["tracking"] = set(TRACKING_KEYS)
+# A real radar's hardware (radar/ti/profile_tables.py): TI's chirp timing, antenna positions, calibration, capture.
+_SCHEMA[""] |= {"calibration", "capture"}
+_SCHEMA["chirp"] |= set(hardware.CHIRP_KEYS)
+_SCHEMA["array"] |= set(hardware.ARRAY_KEYS)
+_SCHEMA["calibration"], _SCHEMA["capture"] = set(hardware.CALIBRATION_KEYS), set(hardware.CAPTURE_KEYS)
 
 
 def _table(data: dict, key: str, source: str, required: bool = True) -> dict:
@@ -166,6 +175,31 @@ def _tracking_options(table: dict, source: str) -> tuple[tuple[str, float | int]
     return tuple(sorted(options.items()))
 
 
+def _scene_options(data: dict, class_names: tuple[str, ...], max_range_m: float, source: str):
+    """The ``[scene]`` table as :class:`~radar.profiles.scene_settings.SceneSettings`, or None when absent."""
+    if "scene" not in data:
+        return None
+    if not isinstance(data["scene"], dict):
+        raise ProfileError(f"{source}: [scene] must be a table")
+    try:
+        return scene_from_table(data["scene"], class_names, max_range_m)
+    except ValueError as exc:
+        raise ProfileError(f"{source}: {exc}") from None
+
+
+def _hardware(data: dict, chirp: dict, array: dict, n_virtual: int, adc_time: float, cycle: float | None,
+              source: str) -> tuple:
+    """(chirp cycle, ChirpParameters timing kwargs, antenna positions, calibration, capture) of a real radar's
+    hardware keys (radar/ti/profile_tables.py)."""
+    try:
+        cycle, timing = hardware.chirp_timing(chirp, int(array["n_tx"]), adc_time, cycle)
+        return (cycle, timing, hardware.antenna_positions(array, n_virtual),
+                hardware.calibration(_table(data, "calibration", source, False), n_virtual),
+                hardware.capture(_table(data, "capture", source, False)))
+    except ValueError as exc:
+        raise ProfileError(f"{source}: {exc}") from None
+
+
 def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> RadarProfile:
     """Validate a profile description and build the :class:`RadarProfile` it derives."""
     if not isinstance(data, dict):
@@ -189,7 +223,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
     fs = _number(chirp, "sample_rate_hz", source)
     samples = _number(chirp, "samples_per_chirp", source, integer=True)
     chirps = _number(chirp, "chirps_per_frame", source, integer=True)
-    cycle = _number(chirp, "chirp_cycle_s", source)
+    cycle = _number(chirp, "chirp_cycle_s", source) if "chirp_cycle_s" in chirp else None
     adc_time = samples / fs
     bandwidth = _swept_bandwidth(chirp, adc_time, source)
 
@@ -198,6 +232,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
     tdm_order = tuple(array.get("tdm_order", range(n_tx)))
     if sorted(tdm_order) != list(range(n_tx)):
         raise ProfileError(f"{source}: tdm_order {list(tdm_order)} must be a permutation of 0..{n_tx - 1}")
+    cycle, timing, positions, calibration, capture = _hardware(data, chirp, array, n_tx * n_rx, adc_time, cycle, source)
     if cycle < n_tx * adc_time:
         raise ProfileError(
             f"{source}: a chirp cycle of {cycle * 1e6:.3g} us cannot fire {n_tx} TX chirps of "
@@ -222,6 +257,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
                     f"{cycle * 1e6:.4g} us, pads {range_pad}/{doppler_pad}")
 
     sim_kwargs = _simulation_options(simulation, source)
+    scene = _scene_options(data, tuple(class_names), derived["max_range_m"], source)
     frame_rate = float(_number(data, "frame_rate_hz", source)) if "frame_rate_hz" in data else 10.0
     try:
         return RadarProfile(
@@ -230,8 +266,9 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
             class_names=tuple(class_names), range_pad=range_pad, doppler_pad=doppler_pad, carrier_hz=float(carrier),
             frame_rate_hz=frame_rate, window=window, region_growing=growing, tracking=tracking,
             chirp=ChirpParameters(float(carrier), float(bandwidth), float(fs), samples, chirps, float(cycle),
-                                  tdm_order, window),
-            **sim_kwargs,
+                                  tdm_order, window, **timing),
+            antenna_positions=positions, calibration=calibration, capture=capture,
+            **sim_kwargs, **({"extra": {"scene": scene}} if scene is not None else {}),
         )
     except ValueError as exc:
         raise ProfileError(f"{source}: {exc}") from None
@@ -279,7 +316,13 @@ def describe(profile: RadarProfile) -> list[tuple[str, str]]:
                                               "(radarseg radar tune-growing derives them)"))
     tracking = ", ".join(f"{k} {v}" for k, v in profile.tracking)
     rows.append(("tracking", tracking or "derived from the radar (radar.tracking.TrackerConfig.for_profile)"))
-    return rows
+    scene = profile.extra.get("scene")
+    if scene is not None:
+        rows.append(("scene", f"objects at {scene.range_m[0]:g}-{scene.range_m[1]:g} m: "
+                              + ", ".join(f"{name} {lo}-{hi}" for name, (lo, hi) in scene.classes)
+                              + f"; walls {scene.walls[0]}-{scene.walls[1]}, "
+                              f"furniture {scene.furniture[0]}-{scene.furniture[1]}"))
+    return rows + hardware.describe_rows(profile)
 
 
 def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
@@ -289,12 +332,14 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
         raise ProfileError(f"profile {profile.name!r} has no chirp description (it was not loaded from a file)")
     c = profile.chirp
     lo, hi = profile.objects_per_frame
+    hardware_tables = hardware.hardware_tables(profile)
     return {
         "name": profile.name, "class_names": list(profile.class_names), "frame_rate_hz": profile.frame_rate_hz,
         "chirp": {"carrier_hz": c.carrier_hz, "sweep_bandwidth_hz": c.sweep_bandwidth_hz,
                   "sample_rate_hz": c.sample_rate_hz, "samples_per_chirp": c.samples_per_chirp,
-                  "chirps_per_frame": c.chirps_per_frame, "chirp_cycle_s": c.chirp_cycle_s},
-        "array": {"n_tx": profile.n_tx, "n_rx": profile.n_rx, "tdm_order": list(c.tdm_order)},
+                  "chirps_per_frame": c.chirps_per_frame, "chirp_cycle_s": c.chirp_cycle_s, **hardware_tables["chirp"]},
+        "array": {"n_tx": profile.n_tx, "n_rx": profile.n_rx, "tdm_order": list(c.tdm_order),
+                  **hardware_tables["array"]},
         "processing": {"range_pad": profile.range_pad, "doppler_pad": profile.doppler_pad,
                        "angle_bins": profile.n_angle, "window": profile.window},
         "simulation": {"noise_floor_db": profile.noise_floor_db, "snr_0dbsm_10m_db": profile.snr_0dbsm_10m_db,
@@ -302,4 +347,6 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
         **({"region_growing": {k: list(v) if isinstance(v, tuple) else v for k, v in profile.region_growing}}
            if profile.region_growing else {}),
         **({"tracking": dict(profile.tracking)} if profile.tracking else {}),
+        **{key: table for key, table in hardware_tables.items() if key not in ("chirp", "array")},
+        **({"scene": profile.extra["scene"].to_table()} if profile.extra.get("scene") is not None else {}),
     }

@@ -15,6 +15,7 @@ from radar.frame import ObjectRecord, RadarFrame
 from radar.instances import instance_stats
 from radar.profiles import RadarProfile, get_profile
 from radar.simulate.fmcw import Scatterers, received_amplitude, synthesize_adc
+from radar.simulate.indoor import IndoorSceneGenerator, indoor_clutter
 from radar.simulate.labels import exact_labels
 from radar.simulate.scene import ObjectState, SceneGenerator, StaticClutter, static_clutter
 from radar.simulate.targets import class_model, object_scatterers
@@ -137,7 +138,8 @@ def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, s
     Objects move along smooth trajectories at the profile's frame rate; the static clutter of the
     scene stays put. Frames are generated lazily (one cube in memory at a time). ``only`` (ascending
     frame indices) yields just those frames, identical to the full run's: the scene is stepped
-    through the others (cheap) and no cube is synthesised for them (for shard-parallel jobs).
+    through the others (cheap) and no cube is synthesised for them (for shard-parallel jobs). A profile with a
+    ``[scene]`` table gets indoor scenes (radar/simulate/indoor.py) instead of road scenes.
     """
     if n_frames < 0:
         raise ValueError(f"n_frames must be >= 0, got {n_frames}")
@@ -147,8 +149,13 @@ def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, s
     profile = get_profile(preset)
     config = config or SimulatorConfig()
     scene_rng = np.random.default_rng([seed, sequence_index, 0])
-    scene = SceneGenerator(profile, scene_rng)
-    clutter = static_clutter(profile, scene_rng)
+    settings = profile.extra.get("scene")  # a [scene] table: rooms at the radar's scale; else road scenes
+    if settings is None:
+        scene = SceneGenerator(profile, scene_rng)
+        clutter = static_clutter(profile, scene_rng)
+    else:
+        scene = IndoorSceneGenerator(profile, settings, scene_rng)
+        clutter = indoor_clutter(profile, settings, scene_rng)
     name = sequence_name(sequence_index)
     index = 0
     for target in wanted:
