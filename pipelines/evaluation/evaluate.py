@@ -275,7 +275,7 @@ def _metrics(cfg: EvaluateConfig, net: EraseNet, checkpoints: tuple[Any, Any], t
         "training": {"detector": _training_info(det_ckpt.extra), "segmenter": _training_info(seg_ckpt.extra)},
         "score_threshold": net.score_threshold, "classes": list(class_names),
         "doppler_refinement": None if net.doppler_refinement is None else asdict(net.doppler_refinement),
-        "detection": {**detection.summary(), "n_truth": detection.n_truth,
+        "detection": {**detection.summary(), **detection.thresholds(), "n_truth": detection.n_truth,
                       "n_predictions": int(len(next(iter(curves.values())).score)) if curves else 0,
                       "ap_score_threshold": AP_SCORE_THRESHOLD},
         "region_growing": {
@@ -348,7 +348,8 @@ def format_summary(metrics: dict[str, Any]) -> str:
     det, rg, seg = metrics["detection"], metrics["region_growing"], metrics["segmentation"]
     return "\n".join([
         f"{metrics['split']}: {metrics['frames']} frames of {metrics['store']}",
-        f"  detection AP@1 {det['AP@1']:.3f}  AP@3 {det['AP@3']:.3f}  AP@5 {det['AP@5']:.3f}  mAP {det['mAP']:.3f}",
+        f"  detection AP@1 {det['AP@1']:.3f}  AP@3 {det['AP@3']:.3f}  AP@5 {det['AP@5']:.3f}  mAP {det['mAP']:.3f}"
+        + (f"  ({det['thresholds']})" if "thresholds" in det else ""),
         f"  region growing recall {rg['predicted_seeds']['recall']:.3f} (predicted seeds), "
         f"{rg['truth_seeds']['recall']:.3f} (true centres); visited {rg['predicted_seeds']['visited_mean']:.0f}",
         f"  mIoU RA {100 * seg['RA']['mIoU']:.2f}  RD {100 * seg['RD']['mIoU']:.2f}",

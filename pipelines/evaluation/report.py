@@ -68,7 +68,8 @@ def _detection(det: dict[str, Any]) -> list[str]:
     lines = ["## Detection", "",
               "A prediction matches a ground-truth centre within k metres (Cartesian) and k Doppler bins; "
               f"greedy by score; COCO-interpolated AP; {det['n_truth']} objects, {det['n_predictions']} "
-              f"detections down to score {det['ap_score_threshold']}.", ""]
+              f"detections down to score {det['ap_score_threshold']}."
+              + (f" Thresholds for this radar: {det['thresholds']}." if "thresholds" in det else ""), ""]
     lines += md_table(["k", "1", "3", "5", "mAP"],
                     [["AP", fmt_num(det["AP@1"]), fmt_num(det["AP@3"]), fmt_num(det["AP@5"]), fmt_num(det["mAP"])]])
     return lines

@@ -24,6 +24,7 @@ from radar.detections import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, matched_truths, mean_iou
 from radar.profiles import RadarProfile
+from radar.profiles.scene_settings import radar_scale
 
 VIEWS = ("ra", "rd")
 
@@ -49,13 +50,15 @@ def centre_targets(samples: Sequence[Mapping[str, Any]], grid_shape: tuple[int, 
 
 # --------------------------------------------------------------------------- detection
 class DetectionScorer:
-    """AP at 1/3/5 m over frames: each frame's decoded centres against its object table."""
+    """AP at 1/3/5 m (scaled to a radar that sees less than 50 m) over frames: each frame's decoded centres against
+    its object table."""
 
-    RECALL_DISTANCE = 3.0  # metres (and Doppler bins) of the per-class recall at the operating point
+    RECALL_DISTANCE = 3.0  # metres (and Doppler bins) of the per-class recall at the operating point, at 50 m scale
 
     def __init__(self, profile: RadarProfile) -> None:
         self.profile = profile
-        self.evaluator = DetectionEvaluator()
+        self.evaluator = DetectionEvaluator.for_profile(profile)
+        self.recall_distance_m = self.RECALL_DISTANCE * radar_scale(profile)
         n = len(profile.class_names) + 1
         self.found, self.truths = np.zeros(n, np.int64), np.zeros(n, np.int64)  # per class id (0: background)
 
@@ -68,7 +71,7 @@ class DetectionScorer:
         self.evaluator.add(pred_xy, centres.doppler_bin, centres.score, truth_xy, truth_doppler)
         seeds = centres.score >= SCORE_THRESHOLD  # the seeds EraseNet grows from
         matched = matched_truths(pred_xy[seeds], centres.doppler_bin[seeds], centres.score[seeds], truth_xy,
-                                 truth_doppler, self.RECALL_DISTANCE)
+                                 truth_doppler, self.recall_distance_m, self.RECALL_DISTANCE)
         classes = table[:, OBJECT_COLUMN["class_id"]].astype(np.int64)
         np.add.at(self.truths, classes, 1)
         np.add.at(self.found, classes[matched], 1)
@@ -81,6 +84,11 @@ class DetectionScorer:
 
     def summary(self) -> dict[str, float]:
         return self.evaluator.summary()
+
+    def thresholds(self) -> dict[str, object]:
+        """The AP thresholds as used: ``distance_thresholds_m`` and a sentence (``thresholds``)."""
+        return {"distance_thresholds_m": list(self.evaluator.thresholds),
+                "thresholds": self.evaluator.thresholds_note()}
 
     def curves(self):  # noqa: ANN201 (radar.metrics.PrecisionRecall per k)
         return self.evaluator.curves()
