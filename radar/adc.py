@@ -53,11 +53,22 @@ def window(profile: RadarProfile, n: int) -> np.ndarray:
     return hann(n) if profile.window == "hann" else np.ones(n)
 
 
+def element_azimuths(profile: RadarProfile) -> np.ndarray:
+    """(K,) azimuth of each virtual element in half wavelengths: the profile's stated positions, else 0 .. K-1."""
+    if profile.antenna_positions:
+        return np.array([azimuth for azimuth, _ in profile.antenna_positions], dtype=np.float64)
+    return np.arange(profile.n_virtual, dtype=np.float64)
+
+
+def _uniform_line(profile: RadarProfile) -> bool:
+    return np.array_equal(element_azimuths(profile), np.arange(profile.n_virtual))
+
+
 @lru_cache(maxsize=16)
 def chain_constants(profile: RadarProfile) -> ChainConstants:
     w_r, w_d, w_a = (window(profile, n) for n in (profile.n_samples, profile.n_chirps, profile.n_virtual))
     a = np.arange(profile.n_angle)[:, None] - profile.n_angle // 2
-    k = np.arange(profile.n_virtual)[None, :]
+    k = element_azimuths(profile)[None, :]  # elements at their azimuth (several may share one: elevated TX)
     angle_dft = (np.exp(-2j * np.pi * a * k / profile.n_angle) * w_a[None, :]).astype(np.complex64)
     noise_gain = float((w_r**2).sum() * (w_d**2).sum() * (w_a**2).sum())
     peak_gain = float((w_r.sum() * w_d.sum() * w_a.sum()) ** 2)
@@ -97,7 +108,7 @@ def adc_to_rad(profile: RadarProfile, adc: np.ndarray, *, tdm_compensation: bool
         f_doppler = (np.arange(profile.n_doppler) - profile.n_doppler // 2) / profile.n_doppler  # cycles/chirp
         x = x * np.exp(-2j * np.pi * f_doppler[:, None] * tdm_slots(profile)[None, :] / profile.n_tx
                        ).astype(np.complex64)[None]
-    if profile.n_virtual <= SMALL_ARRAY:
+    if profile.n_virtual <= SMALL_ARRAY or not _uniform_line(profile):
         # (A, K) @ (R, K, D) -> (R, A, D): window, zero-padding and fftshift are in the DFT matrix.
         return np.matmul(cc.angle_dft, x.transpose(0, 2, 1))
     x = x * cc.window_array[None, None, :].astype(np.float32)
@@ -155,4 +166,6 @@ def process_adc(adc: np.ndarray, profile: RadarProfile, *, layout: str = "sck",
         raise ValueError("ADC samples contain NaN or Inf")
     check_adc(adc, channel_axis=1 if layout == "ti" else 2)  # undecoded words refused, DC and clipping warned
     sck = ti_to_sck(adc, profile) if layout == "ti" else adc
+    if profile.calibration is not None:  # per-channel phase and gain (the profile's [calibration]); range bias is not
+        sck = sck * np.asarray(profile.calibration.coefficients, np.complex64)[None, None, :]  # applied to bins
     return adc_to_rad(profile, sck.astype(np.complex64, copy=False), tdm_compensation=tdm_compensation)

@@ -36,6 +36,12 @@ class ChirpParameters:
     chirp_cycle_s: float  # time between two chirps of the same TX
     tdm_order: tuple[int, ...]
     window: str = "hann"
+    # TI's chirp timing, when the file states it (``radarseg radar from-ti``): seconds, None when not stated.
+    idle_time_s: float | None = None
+    adc_start_time_s: float | None = None
+    ramp_end_time_s: float | None = None
+    tx_start_time_s: float | None = None
+    real_adc: bool = False  # the ADC sampled I only (TI adcCfg format 0): range bins past R/2 mirror the first half
 
     @property
     def slope_hz_per_s(self) -> float:
@@ -44,6 +50,15 @@ class ChirpParameters:
     @property
     def adc_time_s(self) -> float:
         return self.samples_per_chirp / self.sample_rate_hz
+
+
+@dataclass(frozen=True)
+class ChannelCalibration:
+    """Per-virtual-channel correction of a radar (TI's ``compRangeBiasAndRxChanPhase``): ``coefficients[k]`` multiplies
+    virtual element k's samples before the angle FFT; ``range_bias_m`` is carried, not applied to the bins."""
+
+    range_bias_m: float
+    coefficients: tuple[complex, ...]
 
 
 @dataclass(frozen=True)
@@ -83,6 +98,11 @@ class RadarProfile:
     # The tracker's settings for this radar (keys of radar.tracking.TrackerConfig but the two the radar gives: frame
     # period and unambiguous velocity), as stated in the file's [tracking] table. Empty: derived from the radar.
     tracking: tuple[tuple[str, float | int], ...] = ()
+    # (azimuth, elevation) of each virtual element in half wavelengths, as the file's [array] states them; empty: a
+    # uniform line 0 .. K-1 at elevation 0. The angle FFT places each element at its azimuth.
+    antenna_positions: tuple[tuple[float, float], ...] = ()
+    calibration: ChannelCalibration | None = None  # the file's [calibration], applied by radar.adc.process_adc
+    capture: tuple[tuple[str, str | int | bool], ...] = ()  # the file's [capture]: how a capture card stores the ADC
     extra: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -107,6 +127,11 @@ class RadarProfile:
             raise ValueError(f"profile {self.name!r}: objects_per_frame must be (lo, hi) with 0 <= lo <= hi")
         if self.window not in ("hann", "rect"):
             raise ValueError(f"profile {self.name!r}: window must be 'hann' or 'rect', got {self.window!r}")
+        for what, values in (("antenna_positions", self.antenna_positions),
+                             ("calibration", () if self.calibration is None else self.calibration.coefficients)):
+            if values and len(values) != self.n_virtual:
+                raise ValueError(f"profile {self.name!r}: {what} holds {len(values)} entries, expected one per "
+                                 f"virtual element ({self.n_virtual})")
 
     # ----------------------------------------------------------------- derived radar parameters
     @property
@@ -263,4 +288,7 @@ class RadarProfile:
             "chirp_cycle_s": self.chirp_cycle_s,
             "noise_floor_db": self.noise_floor_db,
             "snr_0dbsm_10m_db": self.snr_0dbsm_10m_db,
+            # stated only when not the default, so that the fingerprints of profiles without them stay the same
+            **({"antenna_positions": [list(p) for p in self.antenna_positions]} if self.antenna_positions else {}),
+            **({"real_adc": True} if self.chirp is not None and self.chirp.real_adc else {}),
         }

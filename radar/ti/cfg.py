@@ -1,0 +1,255 @@
+"""TI mmWave SDK CLI configurations (``.cfg``): one command per line, ``%`` starts a comment.
+
+The commands that fix the radar are read (argument orders from the mmWave SDK user guide's CLI section):
+
+- ``channelCfg <rxChannelEn> <txChannelEn> <cascading>``: enable masks (bit i = RX i / TX i);
+- ``adcCfg <numADCBits> <adcOutputFmt>``: 0/1/2 = 12/14/16 bits; 0 real, 1 complex 1x, 2 complex 2x;
+- ``adcbufCfg <subFrameIdx> <adcOutputFmt> <SampleSwap> <ChanInterleave> <ChirpThreshold>`` (xWR14xx's SDK: without
+  subFrameIdx): 0 complex / 1 real; 0 I in LSB, Q in MSB / 1 Q in LSB, I in MSB; 0 interleaved / 1 not;
+- ``profileCfg <profileId> <startFreq GHz> <idleTime us> <adcStartTime us> <rampEndTime us> <txOutPower>
+  <txPhaseShifter> <freqSlopeConst MHz/us> <txStartTime us> <numAdcSamples> <digOutSampleRate ksps>
+  <hpfCornerFreq1> <hpfCornerFreq2> <rxGain>``;
+- ``chirpCfg <startIdx> <endIdx> <profileId> <startFreqVar> <freqSlopeVar> <idleTimeVar> <adcStartTimeVar>
+  <txEnable>``: the chirp table;
+- ``frameCfg <chirpStartIdx> <chirpEndIdx> <numLoops> <numFrames> <framePeriodicity ms> <triggerSelect>
+  <frameTriggerDelay>``: one loop fires chirps start..end, in that order: the TDM order;
+- ``compRangeBiasAndRxChanPhase <rangeBias m> <Re> <Im> ...``: one (re, im) per virtual antenna, in the order the
+  chirps fire (TX-major), then RX.
+
+Refused, naming the command: BPM-MIMO (``bpmCfg`` enabled), advanced frames (``dfeDataOutputMode 3``,
+``advFrameCfg``), sub-frames (``subFrameCfg``), cascading, chirps of more than one profile, a chirp enabling two TX at
+once (or none), a TX firing twice in a loop, per-chirp variations. The rest of the processing chain's commands (CFAR,
+GUI, clutter removal, ...) say nothing about the ADC: ignored and listed; unknown commands too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from radar.errors import UserError
+
+ADC_BITS = {0: 12, 1: 14, 2: 16}
+ADC_FORMATS = {0: "real", 1: "complex 1x", 2: "complex 2x"}
+ARGUMENT_COUNTS = {"channelCfg": (3, 5), "adcCfg": (2, 2), "adcbufCfg": (4, 5), "profileCfg": (14, 14),
+                   "chirpCfg": (8, 8), "frameCfg": (7, 7), "dfeDataOutputMode": (1, 1), "bpmCfg": (2, 4)}
+IGNORED = frozenset({
+    "sensorStop", "sensorStart", "flushCfg", "lowPower", "guiMonitor", "cfarCfg", "multiObjBeamForming",
+    "clutterRemoval", "calibDcRangeSig", "extendedMaxVelocity", "lvdsStreamCfg", "measureRangeBiasAndRxChanPhase",
+    "CQRxSatMonitor", "CQSigImgMonitor", "analogMonitor", "aoaFovCfg", "cfarFovCfg", "calibData", "peakGrouping",
+    "nearFieldCfg", "compressionCfg", "antGeometryCfg", "adcDataDitherCfg", "staticBoundaryBox", "boundaryBox",
+    "gatingParam", "stateParam", "allocationParam", "maxAcceleration", "trackingCfg", "presenceBoundaryBox",
+    "sensorPosition", "bpmCfg", "dfeDataOutputMode", "idlePowerDown", "procChainCfg", "intfMitigCfg"})
+REFUSED = {"advFrameCfg": "advanced frames", "subFrameCfg": "sub-frames"}
+
+
+class TiConfigError(UserError):
+    """A TI configuration that is malformed or describes what a radar profile cannot represent."""
+
+
+@dataclass(frozen=True)
+class TiProfile:
+    """One ``profileCfg``, in TI's units."""
+
+    profile_id: int
+    start_freq_ghz: float
+    idle_time_us: float
+    adc_start_time_us: float
+    ramp_end_time_us: float
+    slope_mhz_per_us: float
+    tx_start_time_us: float
+    samples: int
+    sample_rate_ksps: float
+
+
+@dataclass(frozen=True)
+class TiConfig:
+    """What a ``.cfg`` says about the radar: enabled antennas, ADC, the one chirp profile, the TDM order and frame."""
+
+    rx_channels: tuple[int, ...]  # enabled RX, by number
+    tx_fired: tuple[int, ...]  # TX by number in the order one loop fires them (the TDM order)
+    adc_bits: int
+    adc_format: str  # "real", "complex 1x", "complex 2x"
+    sample_swap: int  # adcbufCfg SampleSwap: 0 I in LSB, Q in MSB; 1 Q in LSB, I in MSB
+    profile: TiProfile
+    loops: int  # chirp loops (cycles) per frame
+    frame_period_ms: float
+    range_bias_m: float | None = None
+    channel_coefficients: tuple[complex, ...] = ()  # as stated, in the SDK's virtual antenna order
+    ignored: tuple[str, ...] = ()  # commands read and ignored (processing chain, monitors, ...)
+    unknown: tuple[str, ...] = ()  # commands this parser does not know
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def real_adc(self) -> bool:
+        return self.adc_format == "real"
+
+
+def _numbers(words: list[str], where: str) -> list[float]:
+    try:
+        values = [float(w) for w in words]
+    except ValueError:
+        raise TiConfigError(f"{where}: expected numbers, got {' '.join(words)!r}") from None
+    if not all(math.isfinite(v) for v in values):
+        raise TiConfigError(f"{where}: numbers must be finite, got {' '.join(words)!r}")
+    return values
+
+
+def _int(value: float, where: str, name: str) -> int:
+    if value != int(value):
+        raise TiConfigError(f"{where}: {name} must be a whole number, got {value:g}")
+    return int(value)
+
+
+def _bits(mask: int) -> tuple[int, ...]:
+    return tuple(i for i in range(mask.bit_length()) if mask >> i & 1)
+
+
+def read_commands(text: str, source: str) -> list[tuple[str, str, list[float]]]:
+    """(where, command, numeric arguments) of every command line; ``%`` comments and blank lines skipped."""
+    commands = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        words = line.split("%", 1)[0].split()
+        if not words:
+            continue
+        where, name = f"{source}:{number}: {words[0]}", words[0]
+        if name in REFUSED:
+            raise TiConfigError(f"{where}: {REFUSED[name]} cannot be represented by one radar profile")
+        if name in ARGUMENT_COUNTS or name == "compRangeBiasAndRxChanPhase":
+            lo, hi = ARGUMENT_COUNTS.get(name, (3, 10_000))
+            if not lo <= len(words) - 1 <= hi:
+                expected = f"{lo}" if lo == hi else f"{lo} to {hi}"
+                raise TiConfigError(f"{where} takes {expected} arguments, got {len(words) - 1}")
+            commands.append((where, name, _numbers(words[1:], where)))
+        else:
+            commands.append((where, name, []))
+    return commands
+
+
+def _profile(where: str, v: list[float]) -> TiProfile:
+    samples = _int(v[9], where, "numAdcSamples")
+    if samples <= 0 or v[10] <= 0 or v[7] == 0 or v[1] <= 0:
+        raise TiConfigError(f"{where}: numAdcSamples, digOutSampleRate, startFreq must be > 0 and freqSlopeConst "
+                            f"not 0")
+    return TiProfile(_int(v[0], where, "profileId"), v[1], v[2], v[3], v[4], v[7], v[8], samples, v[10])
+
+
+def _check_refusals(commands: list[tuple[str, str, list[float]]]) -> None:
+    for where, name, args in commands:
+        if name == "dfeDataOutputMode" and args[0] == 3:
+            raise TiConfigError(f"{where} 3: advanced frames cannot be represented by one radar profile")
+        if name == "bpmCfg" and len(args) >= 2 and args[1] != 0:
+            raise TiConfigError(f"{where}: BPM-MIMO (binary phase modulation across TX) is not supported; only "
+                                f"TDM-MIMO (bpmCfg ... 0)")
+        if name == "channelCfg" and args[2] != 0:
+            raise TiConfigError(f"{where}: cascading ({args[2]:g}) is not supported; a single chip only")
+
+
+def _last(commands: list[tuple[str, str, list[float]]], name: str, source: str) -> tuple[str, list[float]]:
+    found = [(where, args) for where, command, args in commands if command == name]
+    if not found:
+        raise TiConfigError(f"{source}: no {name} command (needed to describe the radar)")
+    return found[-1]
+
+
+def _tdm_order(commands, frame_where: str, frame: list[float], enabled_tx: tuple[int, ...],
+               profiles: dict[int, TiProfile]) -> tuple[tuple[int, ...], TiProfile]:
+    """(TX fired per chirp of one loop, the one profile those chirps use) from the chirp table and frameCfg."""
+    table: dict[int, tuple[str, list[float]]] = {}
+    for where, name, args in commands:
+        if name == "chirpCfg":
+            for index in range(_int(args[0], where, "startIdx"), _int(args[1], where, "endIdx") + 1):
+                table[index] = (where, args)
+    start, end = _int(frame[0], frame_where, "chirpStartIdx"), _int(frame[1], frame_where, "chirpEndIdx")
+    fired, used_profiles = [], set()
+    for index in range(start, end + 1):
+        if index not in table:
+            raise TiConfigError(f"{frame_where}: chirp {index} of the frame has no chirpCfg")
+        where, args = table[index]
+        if any(args[3:7]):
+            raise TiConfigError(f"{where}: per-chirp variations (start frequency, slope, idle, ADC start) are not "
+                                f"represented; they must be 0")
+        tx = _bits(_int(args[7], where, "txEnable"))
+        if len(tx) != 1:
+            raise TiConfigError(f"{where}: chirp {index} enables TX {list(tx)}; TDM-MIMO needs exactly one TX per "
+                                f"chirp")
+        if tx[0] not in enabled_tx:
+            raise TiConfigError(f"{where}: chirp {index} fires TX{tx[0]}, which channelCfg does not enable")
+        if tx[0] in fired:
+            raise TiConfigError(f"{where}: TX{tx[0]} fires twice in one loop (chirps {start}..{end}); a loop must fire "
+                                f"each TX once")
+        fired.append(tx[0])
+        used_profiles.add(_int(args[2], where, "profileId"))
+    if len(used_profiles) != 1:
+        raise TiConfigError(f"{frame_where}: the frame's chirps use profiles {sorted(used_profiles)}; one profile only")
+    profile_id = used_profiles.pop()
+    if profile_id not in profiles:
+        raise TiConfigError(f"{frame_where}: the frame's chirps use profile {profile_id}, which no profileCfg defines")
+    return tuple(fired), profiles[profile_id]
+
+
+def parse_cfg(text: str, source: str = "cfg") -> TiConfig:
+    """A :class:`TiConfig` from the text of a ``.cfg``; :class:`TiConfigError` naming the line when it cannot be one."""
+    commands = read_commands(text, source)
+    _check_refusals(commands)
+    _, channel = _last(commands, "channelCfg", source)
+    adc_where, adc = _last(commands, "adcCfg", source)
+    if int(adc[0]) not in ADC_BITS or int(adc[1]) not in ADC_FORMATS:
+        raise TiConfigError(f"{adc_where}: numADCBits must be 0/1/2 and adcOutputFmt 0/1/2, got {adc[0]:g} {adc[1]:g}")
+    adc_format = ADC_FORMATS[int(adc[1])]
+    sample_swap, notes = 1, []
+    buffers = [(where, args) for where, name, args in commands if name == "adcbufCfg"]
+    if buffers:
+        where, args = buffers[-1]
+        args = args[-4:]  # the xWR14xx SDK's form has no subFrameIdx
+        if (args[0] == 1) != (adc_format == "real"):
+            raise TiConfigError(f"{where}: adcOutputFmt {args[0]:g} ({'real' if args[0] == 1 else 'complex'}) "
+                                f"contradicts adcCfg's {adc_format} ADC")
+        sample_swap = int(args[1])
+    profiles = {}
+    for where, name, args in commands:
+        if name == "profileCfg":
+            profile = _profile(where, args)
+            profiles[profile.profile_id] = profile
+    frame_where, frame = _last(commands, "frameCfg", source)
+    rx, enabled_tx = _bits(int(channel[0])), _bits(int(channel[1]))
+    if not rx or not enabled_tx:
+        raise TiConfigError(f"{source}: channelCfg enables no RX or no TX")
+    fired, profile = _tdm_order(commands, frame_where, frame, enabled_tx, profiles)
+    unused = sorted(set(enabled_tx) - set(fired))
+    if unused:
+        notes.append(f"TX {unused} enabled by channelCfg but fired by no chirp of the frame")
+    bias, coefficients = _calibration(commands)
+    known = {"channelCfg", "adcCfg", "adcbufCfg", "profileCfg", "chirpCfg", "frameCfg", "compRangeBiasAndRxChanPhase"}
+    ignored = sorted({name for _, name, _ in commands if name in IGNORED})
+    unknown = sorted({name for _, name, _ in commands if name not in IGNORED and name not in known})
+    loops = _int(frame[2], frame_where, "numLoops")
+    if loops <= 0 or frame[4] <= 0:
+        raise TiConfigError(f"{frame_where}: numLoops and framePeriodicity must be > 0")
+    return TiConfig(rx, fired, ADC_BITS[int(adc[0])], adc_format, sample_swap, profile, loops, frame[4], bias,
+                    coefficients, tuple(ignored), tuple(unknown), tuple(notes))
+
+
+def _calibration(commands) -> tuple[float | None, tuple[complex, ...]]:
+    found = [(where, args) for where, name, args in commands if name == "compRangeBiasAndRxChanPhase"]
+    if not found:
+        return None, ()
+    where, args = found[-1]
+    if len(args) % 2 != 1:
+        raise TiConfigError(f"{where}: expected a range bias, then (re, im) pairs; got {len(args)} numbers")
+    return args[0], tuple(complex(args[i], args[i + 1]) for i in range(1, len(args), 2))
+
+
+def load_cfg(path: str | Path) -> TiConfig:
+    """:func:`parse_cfg` of a file."""
+    path = Path(path)
+    if not path.is_file():
+        raise TiConfigError(f"{path}: no such file")
+    if path.stat().st_size > 1_000_000:
+        raise TiConfigError(f"{path}: {path.stat().st_size} bytes; a TI .cfg is a few kB of text")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise TiConfigError(f"{path}: not a text file (a TI .cfg holds one CLI command per line)") from None
+    return parse_cfg(text, str(path))
