@@ -1,14 +1,18 @@
-"""Every command of README.md and deploy/README.md runs as written, so the docs cannot drift from the code.
+"""Every documented command runs as written, so the docs cannot drift from the code: the ``bash`` blocks of
+README.md, deploy/README.md and every page of the documentation site (docs/**/*.md).
 
-The commands are read out of the documents' ``bash`` blocks (continuation lines joined, comments dropped) and run
-in order in a fresh working directory laid out like a clone (the repository's code and ``.venv`` linked, the
-shipped checkpoints copied, since the README's own commands overwrite them). Sizes are tiny through the documented
+The commands are read out of the documents' ``bash`` blocks (continuation lines joined, comments dropped) and each
+document's commands run in order in its own fresh working directory laid out like a clone (the repository's code
+and ``.venv`` linked, the shipped checkpoints copied, since some commands overwrite them), so every page stands on
+its own: a page that needs what another page makes says so and runs the (smoke-sized) commands itself.
+Sizes are tiny through the documented
 smoke mode (``RADARSEG_SMOKE=1``: every job caps its sequences, frames, epochs, steps and frames scored) and the
 service's documented ``RADARSEG_WARMUP=false``; the command lines themselves are never edited. ``radarseg`` and
 ``python -m pipelines.*`` commands run in this process (one torch import for all); the others as processes.
 
-Only the commands matched by :data:`SKIPS` are not run, each with its reason; a rule that matches no command fails
-the check, as does a command that is neither run nor skipped.
+Only the commands matched by :data:`SKIPS` are not run, each with its reason, which the run prints; a rule that
+matches no command fails the check, as does a command that is neither run nor skipped. Blocks of other languages
+(```text, ```console, ```toml) are examples and output, never run.
 """
 
 from __future__ import annotations
@@ -28,7 +32,8 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-DOCUMENTS = ("README.md", "deploy/README.md")
+DOCUMENTS = ("README.md", "deploy/README.md",
+             *sorted(str(p.relative_to(REPO)) for p in (REPO / "docs").rglob("*.md") if "hooks" not in p.parts))
 
 # (pattern on the command line, reason): the only commands not run.
 SKIPS: tuple[tuple[str, str], ...] = (
@@ -45,13 +50,14 @@ SKIPS: tuple[tuple[str, str], ...] = (
     (r"^ray job submit --address http://127.0.0.1:8265", "needs the Ray head above (tests/deploy/test_topology.py)"),
     (r"serve run deploy/serve.yaml", "a persistent local Ray Serve on port 8000: the same "
      "config is deployed in tests/deploy/test_topology.py"),
+    (r"^\.venv/bin/mkdocs build", "the documentation site: tests/test_docs_site.py builds it with --strict"),
     (r"my_radar\.toml|data/mine|runs/mine|model=myradar", "the own-radar path: run as written, and checked step by "
-     "step, by tests/test_readme_own_radar.py"),
+     "step, by tests/test_own_radar_guide.py"),
 )
 SMOKE_ENV = {"RADARSEG_SMOKE": "1", "RADARSEG_WARMUP": "false", "RAY_AUTH_MODE": "disabled",
              "RAY_USAGE_STATS_ENABLED": "0"}
 LINKED = (".venv", "process", "radar", "models", "pipelines", "service", "deploy", "benchmarks", "docs", "Makefile",
-          "pyproject.toml", "README.md", ".gitignore")
+          "pyproject.toml", "README.md", ".gitignore", ".rayignore", "mkdocs.yml")
 
 
 @dataclass(frozen=True)
@@ -69,10 +75,10 @@ class Command:
         return f"{self.document}:{self.line}: {self.text}"
 
 
-def documented_commands() -> list[Command]:
+def documented_commands(documents: tuple[str, ...] = DOCUMENTS) -> list[Command]:
     """The commands of the documents' ``bash`` blocks, in order."""
     commands = []
-    for document in DOCUMENTS:
+    for document in documents:
         in_block, pending, start, block = False, "", 0, 0
         for number, line in enumerate((REPO / document).read_text().splitlines(), 1):
             if line.startswith("```"):
@@ -207,24 +213,30 @@ def _run_module(name: str, argv: list[str]) -> int:
     return run_module(name, argv)
 
 
-@pytest.fixture(scope="module")
-def clone(tmp_path_factory) -> Path:
-    """A directory laid out like a fresh clone after `make venv`: code and .venv linked, checkpoints copied."""
-    root = tmp_path_factory.mktemp("clone")
+def make_clone(root: Path) -> Path:
+    """``root`` laid out like a fresh clone after `make venv`: code and .venv linked, checkpoints copied."""
+    root.mkdir(parents=True, exist_ok=True)
     for name in LINKED:
-        (root / name).symlink_to(REPO / name)
+        if (REPO / name).exists():
+            (root / name).symlink_to(REPO / name)
     shutil.copytree(REPO / "checkpoints", root / "checkpoints")
     return root
 
 
+DOCUMENTS_WITH_COMMANDS = tuple(d for d in DOCUMENTS if documented_commands((d,)))
+
+
 @pytest.mark.slow
 @pytest.mark.ray
-def test_every_readme_command_runs_as_written(clone):
-    runner = Runner(clone)
+@pytest.mark.parametrize("document", DOCUMENTS_WITH_COMMANDS)
+def test_every_documented_command_runs_as_written(document, tmp_path):
+    runner = Runner(make_clone(tmp_path / "clone"))
     failures, ran, started = [], 0, time.perf_counter()
     try:
-        for command in documented_commands():
-            if skip_reason(command) is not None:
+        for command in documented_commands((document,)):
+            reason = skip_reason(command)
+            if reason is not None:
+                print(f"[ skipped] {command}\n           because: {reason}", file=sys.stderr)
                 continue
             began = time.perf_counter()
             problem = runner.run(command)
@@ -234,7 +246,7 @@ def test_every_readme_command_runs_as_written(clone):
                 failures.append(f"{command}\n    {problem}")
     finally:
         runner.stop()
-    print(f"{ran} documented commands run in {time.perf_counter() - started:.0f} s", file=sys.stderr)
+    print(f"{document}: {ran} documented commands run in {time.perf_counter() - started:.0f} s", file=sys.stderr)
     assert not failures, "documented commands that fail:\n" + "\n".join(failures)
 
 

@@ -1,8 +1,8 @@
-"""README's "Bring your own radar" path runs as written, from a profile file to a served model and its ONNX graphs,
-and the radar travels under its own name: in the store, both checkpoints, the ONNX manifest and the service.
+"""The own-radar guide (docs/guides/own-radar.md) runs as written, from a profile file to a served model and its
+ONNX graphs, and the radar travels under its own name: in the store, both checkpoints, the ONNX manifest and the service.
 
-The section's commands run in order, in smoke mode, in a directory laid out like a clone (the runner of
-tests/test_readme_commands.py, which leaves this section to this test); then what each step left is checked.
+The page's first block runs in order, in smoke mode, in a directory laid out like a clone (the runner of
+tests/test_documented_commands.py, which leaves this path to this test); then what each step left is checked.
 """
 
 from __future__ import annotations
@@ -13,19 +13,16 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_readme_commands import REPO, Runner, documented_commands
+from tests.test_documented_commands import REPO, Runner, documented_commands
 
-SECTION = "## Bring your own radar"
+GUIDE = "docs/guides/own-radar.md"
 RADAR = "myradar"  # the name in docs/profiles/my_radar.toml
 
 
 def own_radar_commands() -> list:
-    """The commands of the README section :data:`SECTION`, in order."""
-    lines = (REPO / "README.md").read_text().splitlines()
-    start = lines.index(SECTION) + 1
-    end = next(i for i in range(start, len(lines)) if lines[i].startswith("## ")) + 1
-    commands = [c for c in documented_commands() if c.document == "README.md" and start <= c.line <= end]
-    return [c for c in commands if c.block == commands[0].block]  # the path is the section's first block
+    """The commands of the guide :data:`GUIDE`'s first ``bash`` block (the path), in order."""
+    commands = documented_commands((GUIDE,))
+    return [c for c in commands if c.block == commands[0].block]
 
 
 def test_the_section_takes_a_profile_file_through_train_evaluate_export_and_serve():
