@@ -37,6 +37,15 @@ JOBS: dict[str, tuple[str, str]] = {
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.datasets.record import simulate_recording
 
+    if args.format == "dca1000":  # each sequence a DCA1000 capture (radar/ti/recorded_capture.py)
+        from radar.ti.commands import simulate_capture_recording
+
+        if not args.adc:
+            raise UserError("--format dca1000 writes ADC samples: add --adc")
+        out = simulate_capture_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
+                                         seed=args.seed, out=args.out)
+        print(f"recording written to {out} (ADC as DCA1000 captures, seq_*/adc_data.bin)")
+        return 0
     out = simulate_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
                              seed=args.seed, out=args.out, adc=args.adc)
     print(f"recording written to {out}")
@@ -310,6 +319,10 @@ def _cmd_process_adc(args: argparse.Namespace) -> int:
     from radar.io.npy import load_npy
     from radar.profiles import get_profile
 
+    if args.adc.endswith(".bin"):  # a TI capture file
+        from radar.ti.commands import process_capture
+
+        return process_capture(args)
     profile = get_profile(args.profile)
     adc = load_npy(args.adc, dtypes=(np.complexfloating,), what=f"ADC samples ({args.layout} layout)")
     expected = adc_shape(profile, args.layout)
@@ -346,6 +359,8 @@ def _add_data_commands(sub: Any) -> None:
     sim.add_argument("--seed", type=int, default=0, help="seed of the scenes and the noise")
     sim.add_argument("--out", required=True, help="output directory (must not hold a recording yet)")
     sim.add_argument("--adc", action="store_true", help="store raw ADC samples instead of RAD cubes")
+    sim.add_argument("--format", choices=("npy", "dca1000"), default="npy",
+                     help="--adc: a .npy per frame, or a DCA1000 capture (adc_data.bin) per sequence")
     sim.set_defaults(func=_cmd_simulate)
 
     for name, (_, help_text) in JOBS.items():  # parsed by the job's own parser (see main)
@@ -446,9 +461,13 @@ def _add_frame_commands(sub: Any) -> None:
     tune.add_argument("--write", action="store_true", help="write the chosen settings into the profile file")
     tune.add_argument("--json", action="store_true", help="print the sweep as JSON")
     tune.set_defaults(func=_cmd_radar_tune_growing)
+    from radar.ti.commands import add_from_ti_parser
+
+    add_from_ti_parser(radar_sub)
 
     adc = sub.add_parser("process-adc", help="raw complex ADC samples of one frame -> RAD cube (.npy)")
-    adc.add_argument("adc", help=".npy of complex ADC samples")
+    adc.add_argument("adc", help=".npy of complex ADC samples, or a capture (.bin: DCA1000 adc_data.bin, mmWave "
+                                 "Studio PREFIX_Raw_0.bin) read with the profile's [capture] settings")
     adc.add_argument("--profile", required=True, help="carrada, nxp, small, or a .toml/.json profile file")
     adc.add_argument("--layout", choices=["sck", "ti"], default="sck",
                      help="sck: (sample, chirp, virtual element); ti: TX-interleaved (chirp, rx, sample)")
@@ -459,6 +478,9 @@ def _add_frame_commands(sub: Any) -> None:
     adc.add_argument("--no-tdm-compensation", dest="coupling", action="store_const", const="none",
                      help="the same as --coupling none")
     adc.add_argument("--out", required=True, help="output .npy (complex64 (R, A, D))")
+    from radar.ti.commands import add_capture_options
+
+    add_capture_options(adc)
     adc.set_defaults(func=_cmd_process_adc)
 
 

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from radar.adc import adc_shape, process_adc
+from radar.adc import adc_shape, process_adc, ti_to_sck
 from radar.adc_checks import AdcCheckError
 from radar.frame import ObjectRecord, RadarFrame
 from radar.io.errors import DataError
@@ -36,6 +36,7 @@ from radar.io.npy import check_array, load_npy
 from radar.profiles import RadarProfile, UnknownPresetError, resolve_profile
 from radar.profiles.files import ProfileError, profile_to_dict
 from radar.schema import SchemaMismatch, check_schema, cube_schema
+from radar.ti.recorded_capture import CaptureAppender, RecordedCaptures
 
 FORMAT = "radarseg.recording"
 VERSION = 1
@@ -56,12 +57,14 @@ class RecordingWriter:
     """Writes frames sequence by sequence; ``close()`` (or the context manager) writes recording.json."""
 
     def __init__(self, out_dir: str | Path, profile: RadarProfile, *, source: dict[str, Any] | None = None,
-                 content: str = "cube"):
+                 content: str = "cube", adc_format: str = "npy"):
         """``content``: ``"cube"`` writes RAD cubes; ``"adc"`` writes the raw ADC samples instead (frames
         must carry ``extras["adc"]``, as simulated frames do)."""
         if content not in ("cube", "adc"):
             raise ValueError(f"content must be 'cube' or 'adc', got {content!r}")
         self.content = content
+        # adc_format "dca1000": one DCA1000 capture per sequence instead of a .npy per frame (radar/ti/recorded_capture)
+        self.capture = CaptureAppender(profile) if content == "adc" and adc_format == "dca1000" else None
         self.tdm_compensation = False  # ADC recordings: whether the samples carry TDM coupling to remove
         self.tdm_coupling = False
         self.simulator: dict[str, Any] | None = None  # version and options of the simulator that made the frames
@@ -91,8 +94,11 @@ class RecordingWriter:
                 raise ValueError(f"{frame.sequence}/{frame.index}: an ADC recording needs frames that carry their ADC")
             self.tdm_compensation = bool(frame.extras.get("tdm_compensation", False))
             self.tdm_coupling = bool(frame.extras.get("tdm_coupling", False))
-            _atomic_write(seq_dir / "adc" / f"{name}.npy",
-                          lambda fh: np.save(fh, frame.extras["adc"], allow_pickle=False))
+            if self.capture is not None:
+                self.capture.append(seq_dir, frame.extras["adc"], frame.index)
+            else:
+                _atomic_write(seq_dir / "adc" / f"{name}.npy",
+                              lambda fh: np.save(fh, frame.extras["adc"], allow_pickle=False))
         else:
             _atomic_write(seq_dir / "cubes" / f"{name}.npy", lambda fh: np.save(fh, frame.cube, allow_pickle=False))
         if frame.labels is not None:
@@ -123,6 +129,7 @@ class RecordingWriter:
             "classes": list(self.profile.all_class_names),
             "sequences": dict(sorted(self.sequences.items())),
             "source": self.source,
+            **(self.capture.meta() if self.capture is not None else {}),
         }
         payload = json.dumps(meta, indent=2).encode()
         _atomic_write(self.root / "recording.json", lambda fh: fh.write(payload))
@@ -171,6 +178,8 @@ class Recording:
         if self.content not in ("cube", "adc"):
             raise DataError(meta_path, f"content {self.content!r}, expected 'cube' or 'adc'")
         self.meta = meta
+        self._captures = (RecordedCaptures(self.root, self.profile, meta, meta_path)
+                          if self.content == "adc" and meta.get("adc_format") == "dca1000" else None)
         self._sequences: dict[str, int] = sequences
         self._objects: dict[str, list[list[dict]]] = {}
 
@@ -213,8 +222,11 @@ class Recording:
         name = _frame_name(index)
         seq_dir = self.root / sequence
         if self.content == "adc":
-            adc = load_npy(seq_dir / "adc" / f"{name}.npy", shape=adc_shape(self.profile),
-                           dtypes=(np.complexfloating,), what="ADC samples (samples, chirps, virtual elements)")
+            if self._captures is not None:  # the sequence's DCA1000 capture
+                adc = ti_to_sck(self._captures.frame(sequence, index), self.profile)
+            else:
+                adc = load_npy(seq_dir / "adc" / f"{name}.npy", shape=adc_shape(self.profile),
+                               dtypes=(np.complexfloating,), what="ADC samples (samples, chirps, virtual elements)")
             try:  # undecoded words refused naming the file (radar.adc_checks)
                 cube = process_adc(adc, self.profile, tdm_compensation=bool(self.meta.get("tdm_compensation", False)))
             except AdcCheckError as exc:

@@ -74,6 +74,7 @@ class StreamStats:
     frames_with_loss: int = 0
     lost_bytes: int = 0
     skipped_leading_bytes: int = 0  # of a frame begun before the capture started
+    truncated_bytes: int = 0  # received of a last frame the stream cut short (that frame is dropped)
     missing_frames: list[int] = field(default_factory=list)  # indices of frames no packet of which arrived
 
     @property
@@ -89,17 +90,20 @@ class StreamStats:
                 "duplicate_packets": self.duplicate_packets, "reordered_packets": self.reordered_packets,
                 "late_packets": self.late_packets, "malformed_packets": self.malformed_packets,
                 "frames": self.frames, "frames_with_loss": self.frames_with_loss, "lost_bytes": self.lost_bytes,
-                "lost_frames": len(self.missing_frames), "skipped_leading_bytes": self.skipped_leading_bytes}
+                "lost_frames": len(self.missing_frames), "skipped_leading_bytes": self.skipped_leading_bytes,
+                "truncated_bytes": self.truncated_bytes}
 
 
 class FrameAssembler:
     """Frames of ``frame_bytes`` from packets placed by byte count (see the module docstring)."""
 
-    def __init__(self, frame_bytes: int, *, window: int = 4, recent: int = 65_536):
+    def __init__(self, frame_bytes: int, *, window: int = 4, recent: int = 65_536, max_gap_frames: int = 1000):
         if frame_bytes <= 0 or frame_bytes % 2:
             raise ValueError(f"frame_bytes must be a positive even number, got {frame_bytes}")
         self.frame_bytes = frame_bytes
         self.window = max(1, window)
+        self.max_gap_frames = max_gap_frames
+        self._first_index = 0
         self.stats = StreamStats()
         self._open: dict[int, tuple[bytearray, bytearray]] = {}  # index -> (data, filled mask per 2-byte word)
         self._next = None  # the next frame index to leave
@@ -108,7 +112,10 @@ class FrameAssembler:
 
     def _first_packet(self, byte_count: int) -> None:
         index, rest = divmod(byte_count, self.frame_bytes)
+        if index == 0:  # the recording began while we listened (its first packets may come out of order)
+            rest = 0
         self._next = index + (1 if rest else 0)  # a frame begun before the capture started is not one of ours
+        self._first_index = self._next
         self.stats.skipped_leading_bytes = (self.frame_bytes - rest) % self.frame_bytes if rest else 0
 
     def _note_sequence(self, sequence: int) -> bool:
@@ -130,50 +137,57 @@ class FrameAssembler:
     def add(self, sequence: int, byte_count: int, payload: bytes | memoryview) -> list[AssembledFrame]:
         """Place one packet; the frames that can leave now, in order."""
         self.stats.packets += 1
+        if self._next is not None and (byte_count // self.frame_bytes - self._next > self.max_gap_frames):
+            self.stats.malformed_packets += 1  # a byte count far ahead of the stream: not trusted
+            return []
         if not self._note_sequence(sequence):
             return []
         if self._next is None:
             self._first_packet(byte_count)
-        offset, end = byte_count, byte_count + len(payload)
         payload = memoryview(payload)
+        offset, end = byte_count, byte_count + len(payload)
+        late = False
         while offset < end:
             index, start = divmod(offset, self.frame_bytes)
             stop = min(self.frame_bytes, start + end - offset)
             if index < self._next:
-                if index == self._next - 1 or index in self.stats.missing_frames:
-                    self.stats.late_packets += 1
+                late = late or offset >= self._next_start_bytes()
             else:
                 data, filled = self._open.setdefault(index, (bytearray(self.frame_bytes),
                                                              bytearray(self.frame_bytes // 2)))
                 data[start:stop] = payload[offset - byte_count:offset - byte_count + stop - start]
-                filled[start // 2:(stop + 1) // 2] = b"\x01" * ((stop + 1) // 2 - start // 2)
+                filled[start // 2:stop // 2] = b"\x01" * (stop // 2 - start // 2)
             offset += stop - start
+        if late:
+            self.stats.late_packets += 1
         return self._leave(newest=(end - 1) // self.frame_bytes)
 
+    def _next_start_bytes(self) -> int:
+        """Byte offset of the first frame of ours (bytes before it belong to a frame begun before the capture)."""
+        return self._first_index * self.frame_bytes
+
     def _leave(self, newest: int, *, flush: bool = False) -> list[AssembledFrame]:
+        """Frames from the next one on that are whole, or settled: ``window`` frames behind ``newest``, or the
+        stream ended (``flush``). The stream's last frame leaves on flush only if its last word arrived."""
         out = []
-        while self._next is not None and (self._next in self._open or flush or newest - self._next >= self.window):
-            if flush and self._next > newest:
-                break
-            entry = self._open.get(self._next)
-            if entry is None and not flush and newest - self._next < self.window:
-                break
-            if entry is not None:
-                data, filled = entry
-                missing = 2 * (len(filled) - sum(filled)) if not flush or self._next < newest else None
-                if missing and not flush and newest - self._next < self.window:
-                    break  # incomplete and still within the reorder window: wait
-                if missing is None:  # the stream's last frame: whole, or truncated (dropped)
-                    missing = 2 * (len(filled) - sum(filled))
-                    if missing:
-                        self.stats.lost_bytes += missing
-                        self._open.pop(self._next)
-                        self._next += 1
-                        continue
-                self._open.pop(self._next)
-                out.append(self._emit(self._next, data, missing))
+        while self._next is not None and self._next <= newest:
+            index = self._next
+            settled = flush or newest - index >= self.window
+            entry = self._open.get(index)
+            if entry is None:
+                if not settled:
+                    break
+                self.stats.missing_frames.append(index)
             else:
-                self.stats.missing_frames.append(self._next)
+                data, filled = entry
+                missing = 2 * filled.count(0)
+                if missing and not settled:
+                    break
+                self._open.pop(index)
+                if flush and index == newest and not filled[-1]:
+                    self.stats.truncated_bytes += 2 * (len(filled) - filled.count(0))  # cut mid-frame
+                else:
+                    out.append(self._emit(index, data, missing))
             self._next += 1
         return out
 
