@@ -34,7 +34,7 @@ from typing import Any
 
 from radar.errors import UserError
 from radar.profiles.profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
-from radar.profiles.scene_settings import scene_from_table
+from radar.profiles.scene_settings import SCENE_KEYS, scene_from_table
 from radar.ti import profile_tables as hardware
 
 WINDOWS = ("hann", "rect")
@@ -67,6 +67,7 @@ _SCHEMA[""] |= {"calibration", "capture"}
 _SCHEMA["chirp"] |= set(hardware.CHIRP_KEYS)
 _SCHEMA["array"] |= set(hardware.ARRAY_KEYS)
 _SCHEMA["calibration"], _SCHEMA["capture"] = set(hardware.CALIBRATION_KEYS), set(hardware.CAPTURE_KEYS)
+_SCHEMA["scene"] = set(SCENE_KEYS)  # indoor scenes at the radar's scale (checked by scene_settings.scene_from_table)
 
 
 def _table(data: dict, key: str, source: str, required: bool = True) -> dict:
