@@ -10,6 +10,7 @@ from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBea
 
 from service.billing import Billing
 from service.errors import ApiError
+from service.example_cache import ExampleCache
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import ServiceMetrics
@@ -34,6 +35,7 @@ class ServiceState:
     uploads: UploadGate
     streams: StreamStore
     stream_history: StreamHistory
+    examples: ExampleCache
 
     @property
     def ledger_error(self) -> str | None:

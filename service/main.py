@@ -26,11 +26,12 @@ from process.heap import freeze_loaded_heap
 from service.billing import Billing
 from service.deps import ServiceState
 from service.errors import DeclaredBodyLimit, install_error_handlers
+from service.example_cache import ExampleCache
 from service.inference import ModelPool
 from service.ledger import Ledger
 from service.metrics import MetricsMiddleware, ServiceMetrics
 from service.query import reject_unknown_query
-from service.routes import examples, health, metrics, models, segment, streams, usage, viewer
+from service.routes import examples, health, metrics, models, open_inference, segment, streams, usage, viewer
 from service.routes.docs import install_docs
 from service.schemas import ErrorBody
 from service.security_headers import SecurityHeaders
@@ -84,7 +85,8 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     state = ServiceState(settings=settings, pool=ModelPool(settings), ledger=ledger,
                          billing=Billing(ledger, settings, metrics_), metrics=metrics_, auth=Authenticator(settings),
                          uploads=UploadGate(settings), streams=stream_store,
-                         stream_history=StreamHistory(settings.stream_history_bytes))
+                         stream_history=StreamHistory(settings.stream_history_bytes),
+                         examples=ExampleCache(settings.example_cache_bytes, examples.EXAMPLE_FRAMES))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -114,6 +116,7 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     strict = [Depends(reject_unknown_query)]
     app.include_router(segment.router, max_body_size=settings.max_body_bytes, dependencies=strict)
     app.include_router(streams.router, max_body_size=settings.max_body_bytes, dependencies=strict)
+    app.include_router(open_inference.router, max_body_size=settings.max_body_bytes, dependencies=strict)
     for router in (models.router, usage.router, examples.router):
         app.include_router(router, dependencies=strict)
     for router in (viewer.router, health.router, metrics.router):

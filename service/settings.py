@@ -135,6 +135,9 @@ class Settings(BaseSettings):
     # (service/stream_history.py), kept as float16 within this many bytes over every stream (0: never kept)
     stream_history_bytes: Annotated[int, Field(ge=0, le=2**36)] = 256 * 2**20
 
+    # the example sequences of GET /v1/examples (each simulated once per radar, unbilled) kept within this many bytes
+    example_cache_bytes: Annotated[int, Field(ge=0, le=2**34)] = 128 * 2**20
+
     data_dir: Path = Path("data/service")  # relative to the working directory
     ledger_url: str | None = None  # None: SQLite (WAL) file ledger.sqlite3 under data_dir
     ledger_table_prefix: str = "radarseg_"
