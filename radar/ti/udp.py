@@ -105,7 +105,7 @@ class FrameAssembler:
         self.max_gap_frames = max_gap_frames
         self._first_index = 0
         self.stats = StreamStats()
-        self._open: dict[int, tuple[bytearray, bytearray]] = {}  # index -> (data, filled mask per 2-byte word)
+        self._open: dict[int, list] = {}  # index -> [data, filled mask per 2-byte word, bytes received]
         self._next = None  # the next frame index to leave
         self._seen: deque[int] = deque(maxlen=recent)
         self._seen_set: set[int] = set()
@@ -153,9 +153,12 @@ class FrameAssembler:
             if index < self._next:
                 late = late or offset >= self._next_start_bytes()
             else:
-                data, filled = self._open.setdefault(index, (bytearray(self.frame_bytes),
-                                                             bytearray(self.frame_bytes // 2)))
+                entry = self._open.get(index)
+                if entry is None:
+                    entry = self._open[index] = [bytearray(self.frame_bytes), bytearray(self.frame_bytes // 2), 0]
+                data, filled = entry[0], entry[1]
                 data[start:stop] = payload[offset - byte_count:offset - byte_count + stop - start]
+                entry[2] += 2 * filled.count(0, start // 2, stop // 2)  # bytes newly filled
                 filled[start // 2:stop // 2] = b"\x01" * (stop // 2 - start // 2)
             offset += stop - start
         if late:
@@ -179,13 +182,13 @@ class FrameAssembler:
                     break
                 self.stats.missing_frames.append(index)
             else:
-                data, filled = entry
-                missing = 2 * filled.count(0)
+                data, filled, received = entry
+                missing = self.frame_bytes - received
                 if missing and not settled:
                     break
                 self._open.pop(index)
                 if flush and index == newest and not filled[-1]:
-                    self.stats.truncated_bytes += 2 * (len(filled) - filled.count(0))  # cut mid-frame
+                    self.stats.truncated_bytes += received  # cut mid-frame
                 else:
                     out.append(self._emit(index, data, missing))
             self._next += 1
