@@ -43,6 +43,7 @@ from models.detector.inference import fold_batch_norms
 from models.erasenet.model import EraseNet
 from models.registry import create_model
 from models.sparse import compiled
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -75,7 +76,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
     random_weights = net.score_threshold == 0.0
     for engine in ENGINES:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
         with compiled.using_engine(SPARSE_ENGINE[engine]):
-            net.segment(cubes[0], is_log_power=True)
+            net.segment(cubes[0], kind=InputKind.log_power)
     times, macs, macs_paper, executed = {engine: [] for engine in ENGINES}, [], [], []
     stages: dict[str, list[float]] = {}  # the compiled engine's seconds per stage (FrameCompute.seconds)
     r, a, d = net.profile.shape
@@ -87,7 +88,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
             for engine in reversed(ENGINES):  # the compiled engine last: its result's MACs are kept below
                 with compiled.using_engine(SPARSE_ENGINE[engine]):
                     started = time.perf_counter()
-                    result = net.segment(cube, is_log_power=True)
+                    result = net.segment(cube, kind=InputKind.log_power)
                     times[engine].append(time.perf_counter() - started)
             for stage, seconds in result.compute.seconds.items():
                 stages.setdefault(stage, []).append(seconds)

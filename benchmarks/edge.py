@@ -30,11 +30,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from models.checkpoint import load_pair
 from models.erasenet.engines import load_erasenet
 from models.export.export_cache import exported_dir
 from models.export.quantize import METHODS
 from pipelines.datasets.calibration import store_calibration
 from pipelines.datasets.store import frames_of_split, open_store
+from radar.input_kind import InputKind
 
 ROOT = Path(__file__).resolve().parents[1]
 PAIRS = {"shipped": ("checkpoints/detector.pt", "checkpoints/segmenter.pt"),
@@ -81,7 +83,7 @@ def pair_engines(pair: str, cache: Path, calibration_store: str, calibration_fra
                  warm_up: np.ndarray) -> tuple[Path, Path, dict]:
     """A pair's float and int8 exports (made in ``cache`` if absent) and its three engines, each run once on
     ``warm_up``: (float dir, int8 dir, {"onnx", "onnx-int8", "torch": EraseNet})."""
-    detector, segmenter = (str(ROOT / path) for path in PAIRS[pair])
+    detector, segmenter = load_pair(*(ROOT / path for path in PAIRS[pair]))
     float_dir = exported_dir(detector, segmenter, cache)
     profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
     calibration = store_calibration(calibration_store, profile, frames=calibration_frames, methods=methods)
@@ -90,7 +92,7 @@ def pair_engines(pair: str, cache: Path, calibration_store: str, calibration_fra
             "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
             "torch": load_erasenet(detector, segmenter)}
     for net in nets.values():
-        net.segment(warm_up, is_log_power=True)
+        net.segment(warm_up, kind=InputKind.log_power)
     return float_dir, int8_dir, nets
 
 
@@ -104,7 +106,7 @@ def timing(nets: dict, cubes: list[np.ndarray], repeats: int) -> dict[str, objec
             order = list(nets) if (index + repeat) % 2 == 0 else list(nets)[::-1]
             for name in order:
                 started = time.perf_counter()
-                result = nets[name].segment(cube, is_log_power=True)
+                result = nets[name].segment(cube, kind=InputKind.log_power)
                 times[name].append(time.perf_counter() - started)
                 if name == "onnx" and repeat == 0:
                     macs.append(result.compute.segment_macs)

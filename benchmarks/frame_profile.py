@@ -35,6 +35,7 @@ import models.sparse.tensor as sparse_tensor
 from models.erasenet.model import EraseNet
 from models.sparse import compiled
 from process.heap import freeze_loaded_heap
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -95,7 +96,7 @@ def submanifold_maps(model: EraseNet, log_power: np.ndarray) -> dict[int, torch.
 
     compiled.neighbour_conv_fused = keep
     try:
-        model.segment(log_power, is_log_power=True)
+        model.segment(log_power, kind=InputKind.log_power)
     finally:
         compiled.neighbour_conv_fused = original
     return maps
@@ -145,14 +146,14 @@ def main() -> dict:
     clock.wrap(sparse_tensor.KernelMapCache, "build_pyramid", "kernel maps: build_pyramid")
     load_before = os.getloadavg()
     for cube in cubes[:2]:
-        model.segment(cube, is_log_power=True)
+        model.segment(cube, kind=InputKind.log_power)
     freeze_loaded_heap()  # as the service and the batch jobs do: no full garbage collection over torch and the model
     clock.parts.clear()
     clock.layers.clear()
     clock.counting = 0.0
     stages: collections.Counter[str] = collections.Counter()
     for cube in cubes[2:]:
-        for stage, seconds in model.segment(cube, is_log_power=True).compute.seconds.items():
+        for stage, seconds in model.segment(cube, kind=InputKind.log_power).compute.seconds.items():
             stages[stage] += seconds
     n = args.frames
     per_frame = {stage: 1e3 * seconds / n for stage, seconds in stages.items()}

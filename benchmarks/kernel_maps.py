@@ -24,6 +24,7 @@ from benchmarks.sparse_conv import machine_info
 from models.erasenet.model import EraseNet
 from models.segmenter import fused
 from models.sparse.tensor import KernelMapCache
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,7 +45,7 @@ def frame_rois(frames: int) -> list[torch.Tensor]:
     fused.FusedMinkUNet.__call__ = capture
     try:
         for frame in simulate_sequence("small", frames, seed=5):
-            model.segment(frame.log_power(), is_log_power=True)
+            model.segment(frame.log_power(), kind=InputKind.log_power)
     finally:
         fused.FusedMinkUNet.__call__ = original
     return captured

@@ -34,6 +34,7 @@ from benchmarks.edge import PAIRS, ROOT, add_engine_arguments, cpu_flags, pair_e
 from models.erasenet.compute_report import STEPS
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
+from radar.input_kind import InputKind
 
 ENGINES = ("onnx", "onnx-int8", "torch")
 PRODUCTS = ("MatMul", "QLinearMatMul", "MatMulInteger", "MatMulIntegerToFloat", "Gemm", "QGemm",
@@ -59,7 +60,7 @@ def stage_times(nets: dict, cubes: list[np.ndarray], repeats: int) -> tuple[dict
         for repeat in range(repeats):
             order = list(nets) if (index + repeat) % 2 == 0 else list(nets)[::-1]
             for name in order:
-                runs[name].append(dict(nets[name].segment(cube, is_log_power=True).compute.seconds))
+                runs[name].append(dict(nets[name].segment(cube, kind=InputKind.log_power).compute.seconds))
         for name in nets:
             best[name].append(min(runs[name], key=lambda seconds: sum(seconds.values())))
     nets["onnx"].voxel_logits = original

@@ -156,6 +156,25 @@ def expect_stage(checkpoint: Checkpoint, stage: str, *, option: str | None = Non
         raise CheckpointError(f"{where}: {checkpoint.describe()}, expected a {stage} checkpoint")
 
 
+def load_pair(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint
+              ) -> tuple[Checkpoint, Checkpoint]:
+    """The boundary where a pair given as files becomes two :class:`Checkpoint` (everything below takes those):
+    checked to be a detector and a segmenter (CheckpointError naming a swapped pair, the same file twice, or a
+    checkpoint of another stage). Cheap: nothing is built."""
+    if not isinstance(detector, Checkpoint) and not isinstance(segmenter, Checkpoint):
+        if Path(detector).resolve() == Path(segmenter).resolve():
+            raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
+                                  f"detector checkpoint and a segmenter checkpoint")
+    det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, option="detector")
+    seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, option="segmenter")
+    if det.stage == Stage.SEGMENTER and seg.stage == Stage.DETECTOR:
+        raise CheckpointError(f"detector {det.source or ''} and segmenter {seg.source or ''} are swapped: "
+                              f"{det.describe()} given as detector, {seg.describe()} as segmenter")
+    expect_stage(det, Stage.DETECTOR, option="detector")
+    expect_stage(seg, Stage.SEGMENTER, option="segmenter")
+    return det, seg
+
+
 def export_checkpoint(source: str | Path, target: str | Path, *, float16: bool = True) -> Path:
     """Write a shippable copy of a training checkpoint: weights only (no optimiser state), floating
     tensors in float16 when ``float16`` (half the size; :meth:`Checkpoint.build` loads them back into the

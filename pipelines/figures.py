@@ -13,6 +13,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 
 from radar import transforms  # noqa: E402
 from radar.frame import RadarFrame  # noqa: E402
+from radar.input_kind import InputKind
 from radar.profiles import RadarProfile  # noqa: E402
 
 CLASS_COLOURS = ["#00000000", "#ff4040", "#40c0ff", "#ffd000", "#60ff60"]
@@ -37,7 +38,8 @@ def draw_views(axes, log_power: np.ndarray, profile: RadarProfile, ra_mask: np.n
     written on both views when there is no annotation and no masked pixel, so an empty prediction does not look
     like a bug."""
     p = profile
-    ra, rd = transforms.ra_view(log_power, is_log_power=True), transforms.rd_view(log_power, is_log_power=True)
+    db = InputKind.log_power
+    ra, rd = transforms.ra_view(log_power, kind=db), transforms.rd_view(log_power, kind=db)
     ra_extent = (-1.0, 1.0, 0.0, p.max_range)
     rd_extent = (float(p.velocity_mps(0)), float(p.velocity_mps(p.n_doppler)), 0.0, p.max_range)
     images = (axes[0].imshow(ra, origin="lower", aspect="auto", extent=ra_extent, cmap="viridis"),

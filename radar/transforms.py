@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from radar.input_kind import InputKind
+
 
 def power(cube: np.ndarray) -> np.ndarray:
     """|I|^2 as float32; a real cube is taken as a magnitude."""
@@ -29,27 +31,41 @@ def log_power(cube: np.ndarray) -> np.ndarray:
     return out
 
 
-def ra_view(cube: np.ndarray, *, is_log_power: bool = False) -> np.ndarray:
+def to_log_power(cube: np.ndarray, kind: InputKind = InputKind.complex) -> np.ndarray:
+    """The model input (float32 log power in dB) of a RAD cube that holds ``kind``: log power is taken as it is
+    (no copy when already float32), a complex or magnitude cube goes through :func:`log_power`. ADC samples are
+    not a RAD cube: :mod:`radar.adc` makes one first."""
+    if kind is InputKind.log_power:
+        return cube.astype(np.float32, copy=False)
+    if kind is InputKind.adc:
+        raise ValueError("ADC samples are not a RAD cube: process them with radar.adc first")
+    return log_power(cube)
+
+
+def ra_view(cube: np.ndarray, *, kind: InputKind = InputKind.complex) -> np.ndarray:
     """RA view (R, A): max of log power over Doppler (dB)."""
-    lp = cube if is_log_power else log_power(cube)
-    return lp.max(axis=2)
+    return to_log_power(cube, kind).max(axis=2)
 
 
-def rd_view(cube: np.ndarray, *, is_log_power: bool = False) -> np.ndarray:
+def rd_view(cube: np.ndarray, *, kind: InputKind = InputKind.complex) -> np.ndarray:
     """RD view (R, D): log of the power summed over the virtual array, in dB.
 
     Summing ``|I|^2`` over the ``A`` zero-padded angle bins gives ``A`` times the power summed over
     the array elements (Parseval); dividing by ``A`` makes this CARRADA's RD convention (they undo
     the angle FFT and sum over antennas), so the dB scale is comparable.
     """
-    p = np.power(10.0, cube / 10.0, dtype=np.float32) - 1.0 if is_log_power else power(cube)
+    if kind is InputKind.log_power:
+        p = np.power(10.0, cube / 10.0, dtype=np.float32) - 1.0
+    elif kind is InputKind.adc:
+        raise ValueError("ADC samples are not a RAD cube: process them with radar.adc first")
+    else:
+        p = power(cube)
     return 10.0 * np.log10(p.sum(axis=1) / cube.shape[1] + 1.0)
 
 
-def ad_view(cube: np.ndarray, *, is_log_power: bool = False) -> np.ndarray:
+def ad_view(cube: np.ndarray, *, kind: InputKind = InputKind.complex) -> np.ndarray:
     """AD view (A, D): max of log power over range (dB)."""
-    lp = cube if is_log_power else log_power(cube)
-    return lp.max(axis=0)
+    return to_log_power(cube, kind).max(axis=0)
 
 
 def _project(labels: np.ndarray, axis: int, num_classes: int) -> np.ndarray:

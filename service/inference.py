@@ -32,6 +32,7 @@ from models.checkpoint import CheckpointError
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet, SegmentationResult
 from radar.adc import process_adc
+from radar.input_kind import InputKind
 from service.settings import ModelSpec, Settings, resolve_path
 
 log = logging.getLogger(__name__)
@@ -142,31 +143,31 @@ class ServedModel:
         with self._lock:
             self._held -= 1
 
-    async def run(self, cube: np.ndarray, *, is_log_power: bool, adc_compensation: bool | None = None,
+    async def run(self, cube: np.ndarray, *, kind: InputKind, tdm_compensation: bool = True,
                   views: bool = False, history: list[np.ndarray | None] | None = None) -> SegmentationResult:
         """Segment on an inference thread; the slot (taken by :meth:`acquire`) is released when inference ends,
-        even if the awaiting request was cancelled. ``adc_compensation`` not None: ``cube`` holds raw ADC
-        samples, processed into the RAD cube first (with or without TDM compensation; timed as transform), once:
+        even if the awaiting request was cancelled. ``kind`` says what ``cube`` holds (radar.input_kind); ADC
+        samples are processed into the RAD cube first (with ``tdm_compensation`` or without; timed as transform), once:
         ``views`` has the model return the input's RA/RD views from the same frame, inside its compute.
         ``history`` (a stream's frame, for a detector that reads earlier frames): their log power, the latest
         first; the result then keeps this frame's log power for the next one."""
         if self._executor is None:
             self.release()
             raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
-        future = self._executor.submit(self._segment, cube, is_log_power, adc_compensation, views, history)
+        future = self._executor.submit(self._segment, cube, kind, tdm_compensation, views, history)
         future.add_done_callback(lambda _: self.release())
         return await asyncio.wrap_future(future)
 
-    def _segment(self, cube: np.ndarray, is_log_power: bool, adc_compensation: bool | None,
+    def _segment(self, cube: np.ndarray, kind: InputKind, tdm_compensation: bool,
                  views: bool = False, history: list[np.ndarray | None] | None = None) -> SegmentationResult:
         net = self._free.get()
         try:
             adc_s = 0.0
-            if adc_compensation is not None:
+            if kind is InputKind.adc:
                 start = time.perf_counter()
-                cube = process_adc(cube, net.profile, tdm_compensation=adc_compensation)
+                cube, kind = process_adc(cube, net.profile, tdm_compensation=tdm_compensation), InputKind.complex
                 adc_s = time.perf_counter() - start
-            result = net.segment(cube, is_log_power=is_log_power, views=views, history=history,
+            result = net.segment(cube, kind=kind, views=views, history=history,
                                  keep_log_power=history is not None)
             result.compute = result.compute.plus_seconds("transform", adc_s)
         finally:

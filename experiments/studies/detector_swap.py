@@ -23,6 +23,7 @@ import torch
 
 from benchmarks.sparse_conv import machine_info
 from models.erasenet.model import EraseNet
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[2]
@@ -31,11 +32,11 @@ RESULTS = REPO / "experiments" / "reports" / "detector_swap.json"
 
 def time_pairs(old: EraseNet, new: EraseNet, frames: list, rounds: int) -> dict[str, list[float]]:
     """Seconds per frame of each way of running, interleaved per frame."""
-    ways = {"old": lambda i: old.segment(frames[i], is_log_power=True),
-            "new, single cube": lambda i: new.segment(frames[i], is_log_power=True)}
+    ways = {"old": lambda i: old.segment(frames[i], kind=InputKind.log_power),
+            "new, single cube": lambda i: new.segment(frames[i], kind=InputKind.log_power)}
     if new.history_frames:
         ways["new, earlier frames as history"] = lambda i: new.segment(
-            frames[i], is_log_power=True, history=frames[max(0, i - new.history_frames):i][::-1])
+            frames[i], kind=InputKind.log_power, history=frames[max(0, i - new.history_frames):i][::-1])
     times: dict[str, list[float]] = {name: [] for name in ways}
     for name in ways:  # warm-up: traced graphs (the history one at its first use), first kernel maps
         ways[name](1)

@@ -67,6 +67,7 @@ from pipelines.evaluation.evaluate import AP_SCORE_THRESHOLD
 from pipelines.evaluation.scoring import DetectionScorer
 from process.heap import freeze_loaded_heap
 from radar.detections import Centres
+from radar.input_kind import InputKind
 from radar.metrics import match_frame
 from radar.region_growing import grow_regions
 
@@ -426,7 +427,7 @@ def tally_operating(tally: StoreTally, net, frame: Frame, log_power, slot: int, 
                     picture_pool: list):
     """The operating point, through the product's own path: checks it against the diagnosis' decode and growth,
     adds a row per object. Returns its regions and status."""
-    result = net.segment(log_power, is_log_power=True, history=frame.history)
+    result = net.segment(log_power, kind=InputKind.log_power, history=frame.history)
     seeds, regions = result.centres, result.regions
     mine = frame.seeds_at(net.score_threshold)
     checked = tally.checked
@@ -481,7 +482,7 @@ def tally_lower_threshold(tally: StoreTally, net, frame: Frame, log_power, args,
     thr = net.score_threshold
     wide = frame.seeds_at(args.low_threshold)
     # segment every seed >= low
-    wide_result = net.segment(log_power, is_log_power=True, centres=wide, history=frame.history)
+    wide_result = net.segment(log_power, kind=InputKind.log_power, centres=wide, history=frame.history)
     extra = np.flatnonzero(wide.score < thr)
     # oracle: an extra seed stays when the true object it matches (the match rule, k) is a pedestrian
     wide_xy = np.stack(net.profile.xy(wide.range_bin, wide.angle_bin), axis=1).reshape(-1, 2)
@@ -660,7 +661,7 @@ def pictures(net, args, class_names, picture_pool, results, cells_xy) -> list[st
         history = earlier_frames(root["input"], earlier_slots(root, net.history_frames)[slot]) \
             if net.history_frames else None
         frame = Frame(net, log_power, root["instances"][slot], table, args, cells_xy, history)
-        result = net.segment(log_power, is_log_power=True, history=history)
+        result = net.segment(log_power, kind=InputKind.log_power, history=history)
         row = next(r for r in results[store]["objects_table"] if r["slot"] == slot and r["object"] == j)
         title = (f"{Path(store).name} frame {slot}: pedestrian at {row['range_m']:.1f} m, {row['n_voxels']} voxels, "
                  f"Doppler {table[j, col['doppler_bin']]:.1f}\ncause {cause}; heat {row['heat']:.2f}, "

@@ -18,6 +18,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from radar.input_kind import InputKind
+
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -58,7 +60,7 @@ def _draw(ax, profile, log_power, paths, velocity, truth, title):
     from radar import transforms
 
     x, y = profile.ra_cartesian
-    ra = transforms.ra_view(log_power, is_log_power=True)
+    ra = transforms.ra_view(log_power, kind=InputKind.log_power)
     ax.pcolormesh(x, y, ra, cmap="viridis", shading="nearest", rasterized=True)
     for points in truth.values():
         p = np.array([q[:2] for q in points])
@@ -94,7 +96,7 @@ def main() -> None:
     profile, sequence, name, frames = _sequence_frames(args.store, args.sequence)
     net = EraseNet.from_checkpoints(REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt")
     config = TrackerConfig.for_profile(profile)
-    predicted = [Measurements.from_objects(net.segment(lp, is_log_power=True).objects) for _, lp, _ in frames]
+    predicted = [Measurements.from_objects(net.segment(lp, kind=InputKind.log_power).objects) for _, lp, _ in frames]
     truth_in = [t.measurements() for _, _, t in frames]
     truth = defaultdict(list)
     for _, _, t in frames:

@@ -31,6 +31,7 @@ from radar import transforms
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
+from radar.input_kind import SCHEMA_CONTENT, InputKind, resolve_kind
 from radar.profiles import RadarProfile, get_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
@@ -194,11 +195,12 @@ class EraseNet:
         return self._detector_counter.report((1, n_doppler, n_range, n_angle)).macs
 
     @torch.no_grad()
-    def segment(self, cube: np.ndarray, *, is_log_power: bool = False, centres: Centres | None = None,
+    def segment(self, cube: np.ndarray, *, kind: InputKind = InputKind.complex, centres: Centres | None = None,
                 schema: dict[str, Any] | None = None, views: bool = False,
                 history: Sequence[np.ndarray | None] | None = None, keep_log_power: bool = False
                 ) -> SegmentationResult:
-        """Segment one frame: a complex (or magnitude) RAD cube, or its log power (R, A, D) in dB.
+        """Segment one frame: a RAD cube (R, A, D) holding ``kind`` (complex, its magnitude, or its log power in dB;
+        radar.input_kind), whose dtype must fit that kind.
 
         ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
         evaluating stage 2 from ground-truth seeds, or a non-learned detector such as CFAR.
@@ -210,16 +212,16 @@ class EraseNet:
         ``keep_log_power``: return the frame's log power too (``SegmentationResult.log_power``).
         """
         if schema is not None:
-            content = "log_power_db" if is_log_power else ("complex" if np.iscomplexobj(cube) else "magnitude")
-            check_schema(self.schema(content), schema)
+            check_schema(self.schema(SCHEMA_CONTENT[kind]), schema)
         if centres is None and self._run_detector is None:
             raise ValueError("this EraseNet has no detector: give the seeds as centres=")
+        kind = resolve_kind(cube.dtype, kind, flag="kind={}")
         if cube.shape != self.profile.shape:
             raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "
                              f"got {cube.shape}")
         seconds: dict[str, float] = {}
         with _stage(seconds, "transform"):
-            log_power = cube.astype(np.float32, copy=False) if is_log_power else transforms.log_power(cube)
+            log_power = transforms.to_log_power(cube, kind)
             x = self._detector_input(log_power)
         with _stage(seconds, "detect"):
             if centres is None:
@@ -239,8 +241,8 @@ class EraseNet:
             ra_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 2, num_classes)
             rd_mask = transforms.project_voxels(regions.voxels, voxel_classes, shape, 1, num_classes)
             objects = self._objects(regions, voxel_classes, centres)
-            input_views = ((transforms.ra_view(log_power, is_log_power=True),
-                            transforms.rd_view(log_power, is_log_power=True)) if views else None)
+            input_views = ((transforms.ra_view(log_power, kind=InputKind.log_power),
+                            transforms.rd_view(log_power, kind=InputKind.log_power)) if views else None)
         compute = FrameCompute(
             detect_macs=detect_macs, segment_macs=segment_macs, segment_executed_macs=segment_executed,
             detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],

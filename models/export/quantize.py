@@ -59,6 +59,7 @@ import numpy as np
 from models.checkpoint import Checkpoint
 from models.export.compact import int8_weights, short_names
 from models.export.onnx_engine import INT8_WEIGHTS
+from radar.input_kind import InputKind
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +151,7 @@ def float_pipeline_feeds(float_dir: Path, detector: Checkpoint, segmenter: Check
     net.voxel_logits = capture  # type: ignore[method-assign]
     labels = []
     for cube in cubes:
-        result = net.segment(cube, is_log_power=True)
+        result = net.segment(cube, kind=InputKind.log_power)
         labels.append(result.labels)
     return [{"log_power": np.ascontiguousarray(c, dtype=np.float32)} for c in cubes], captured, labels
 
@@ -379,7 +380,7 @@ def _agreement_by_method(out: Path, det: Checkpoint, seg: Checkpoint, cubes: Seq
         trial = out / f".{method}"
         (trial / "manifest.json").write_text(json.dumps({**float_manifest, "precision": "int8"}))
         net = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=trial, threads=1, int8=True, **(pipeline or {}))
-        int8_labels = [net.segment(cube, is_log_power=True).labels for cube in cubes]
+        int8_labels = [net.segment(cube, kind=InputKind.log_power).labels for cube in cubes]
         agreement[method] = roi_label_agreement(float_labels, int8_labels)
         log.info("%s: ROI label agreement with float %.5f", method, agreement[method])
     return agreement

@@ -36,6 +36,7 @@ from pipelines.datasets.spread import spread
 from pipelines.datasets.store import frames_of_split, open_store
 from radar import transforms
 from radar.errors import UserError
+from radar.input_kind import InputKind
 
 VIEWS = ("rd", "ra", "ad")
 MASK_VIEWS = ("rd", "ra")
@@ -47,9 +48,9 @@ def frame_views(log_power: np.ndarray) -> dict[str, np.ndarray]:
     log_power = np.asarray(log_power, np.float32)
     if log_power.ndim != 3:
         raise ValueError(f"expected a log-power cube (R, A, D), got shape {log_power.shape}")
-    return {"rd": transforms.rd_view(log_power, is_log_power=True).astype(np.float32),
-            "ra": transforms.ra_view(log_power, is_log_power=True),
-            "ad": transforms.ad_view(log_power, is_log_power=True)}
+    return {"rd": transforms.rd_view(log_power, kind=InputKind.log_power).astype(np.float32),
+            "ra": transforms.ra_view(log_power, kind=InputKind.log_power),
+            "ad": transforms.ad_view(log_power, kind=InputKind.log_power)}
 
 
 def frame_windows(sequence_id: np.ndarray, frame_index: np.ndarray, targets: np.ndarray, available: np.ndarray,

@@ -70,6 +70,7 @@ from pipelines.jobs import run_module
 from pipelines.progress import progress
 from radar.cfar import cfar_centres
 from radar.errors import UserError
+from radar.input_kind import InputKind
 from radar.metrics import consistency, consistency_counts
 
 log = logging.getLogger(__name__)
@@ -221,7 +222,7 @@ class EraseNetPredictor:
         started = time.perf_counter()
         centres = cfar_centres(log_power, self.net.profile) if self.spec.kind is Entry.CFAR else None
         history = None if self._earlier is None else earlier_frames(self._inputs, self._earlier[slot])
-        result = self.net.segment(log_power, is_log_power=True, centres=centres, history=history)
+        result = self.net.segment(log_power, kind=InputKind.log_power, centres=centres, history=history)
         seconds = time.perf_counter() - started
         macs = float(result.compute.macs_total)
         return Prediction(result.ra_mask, result.rd_mask, seconds, macs, macs + self.paper_extra)

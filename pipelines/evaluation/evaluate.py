@@ -58,6 +58,7 @@ from process.heap import freeze_loaded_heap
 from radar.detections import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT
 from radar.errors import UserError
+from radar.input_kind import InputKind
 from radar.region_growing import RegionGrowingConfig, grow_regions
 from radar.tracking import TrackerConfig
 
@@ -213,7 +214,7 @@ def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: d
     tallies.detection.add(scored, table)
 
     # the whole chain at the operating threshold
-    result = net.segment(log_power, is_log_power=True, history=history)
+    result = net.segment(log_power, kind=InputKind.log_power, history=history)
     tallies.confusion.add_masks(truth, result.ra_mask, result.rd_mask)
     tallies.predicted_seeds.add(result.regions, instances)
     for name, value in result.compute.macs_by_stage().items():
@@ -224,7 +225,7 @@ def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: d
     truth_centres = Centres.from_bins(table[:, CENTRE_COLUMNS])
     tallies.truth_seeds.add(grow_regions(log_power, truth_centres, profile, net.region_config), instances)
     if cfg.oracle:
-        oracle = net.segment(log_power, is_log_power=True, centres=truth_centres)
+        oracle = net.segment(log_power, kind=InputKind.log_power, centres=truth_centres)
         tallies.oracle_confusion.add_masks(truth, oracle.ra_mask, oracle.rd_mask)
     if in_sweep:
         for (seeds, distance), counter in tallies.sweep.items():

@@ -7,9 +7,8 @@ from typing import Any
 
 import numpy as np
 
+from models.checkpoint import load_pair
 from models.erasenet.engines import load_erasenet
-from models.erasenet.model import EraseNet
-from radar import transforms
 from radar.detections import SCORE_THRESHOLD
 from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
 from radar.io.errors import DataError
@@ -27,7 +26,7 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
     before the run whose compute is reported, so its seconds are a steady frame's, not the process's first
     (which pays one-off costs: the first call of every kernel, allocator growth)."""
     declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
-    det, seg = EraseNet.load_pair(detector, segmenter)  # checked before anything is built or read
+    det, seg = load_pair(detector, segmenter)  # checked before anything is built or read
     profile = det.profile
     if declared is InputKind.adc:
         from radar.adc import adc_shape
@@ -41,21 +40,19 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
         check_values(cube, kind)
     except ValueError as exc:
         raise DataError(cube_path, str(exc)) from None
-    pair = (det, seg) if engine == "torch" else (detector, segmenter)  # the ONNX export is keyed by the files
-    net = load_erasenet(*pair, engine=engine, score_threshold=score_threshold)
+    net = load_erasenet(det, seg, engine=engine, score_threshold=score_threshold)
+    rad_kind = kind  # what the RAD cube the model reads holds
     if kind is InputKind.adc:
         from radar.adc import process_adc
 
-        cube = process_adc(cube, net.profile)
-    is_log_power = kind is InputKind.log_power
+        cube, rad_kind = process_adc(cube, net.profile), InputKind.complex
     if warm_up:
-        net.segment(cube, is_log_power=is_log_power)
-    result = net.segment(cube, is_log_power=is_log_power)
+        net.segment(cube, kind=rad_kind)
+    result = net.segment(cube, kind=rad_kind, keep_log_power=png is not None)
     if png is not None:
         from pipelines.figures import plot_prediction
 
-        log_power = cube.astype(np.float32) if is_log_power else transforms.log_power(cube)
-        plot_prediction(log_power, net.profile, result.ra_mask, result.rd_mask, result.objects, png,
+        plot_prediction(result.log_power, net.profile, result.ra_mask, result.rd_mask, result.objects, png,
                         title=f"ERASE-Net on {Path(cube_path).name}")
     return {"objects": [o.to_dict() for o in result.objects], "compute": result.compute.to_dict(),
             "png": None if png is None else str(png), "input": kind.value, "timed_after_warm_up": warm_up}

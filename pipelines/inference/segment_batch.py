@@ -64,6 +64,7 @@ from process.heap import freeze_loaded_heap
 from radar import transforms
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
+from radar.input_kind import InputKind
 from radar.io.errors import DataError
 from radar.io.recording import Recording
 from radar.profiles import describe_for_storage
@@ -286,7 +287,7 @@ class ShardSegmenter:
                                  max_objects=max_objects)
         # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
         # not count against the first shard.
-        self.net.segment(np.zeros(self.net.profile.shape, np.float32), is_log_power=True)
+        self.net.segment(np.zeros(self.net.profile.shape, np.float32), kind=InputKind.log_power)
         freeze_loaded_heap()  # no full garbage collection over torch and the model every few frames
         self.model_loads = 1
         self.load_seconds = time.perf_counter() - started
@@ -302,13 +303,13 @@ class ShardSegmenter:
         (and stores in the marker) the shard's summary."""
         self.calls += 1
         layout = job.layout
-        is_log_power = job.source.kind == "store"  # a store holds log power; a recording, complex cubes
+        kind = InputKind.log_power if job.source.kind == "store" else InputKind.complex  # a recording: complex cubes
         seconds = []
 
         def segment(frame: tuple[np.ndarray, list[np.ndarray | None] | None]) -> dict[str, np.ndarray]:
             cube, history = frame  # a cube of the wrong shape raises ValueError
             tick = time.perf_counter()
-            result = self.net.segment(cube, is_log_power=is_log_power, history=history)
+            result = self.net.segment(cube, kind=kind, history=history)
             seconds.append(time.perf_counter() - tick)
             return encode_prediction(result, layout)
 

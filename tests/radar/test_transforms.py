@@ -1,6 +1,7 @@
 import numpy as np
 
 from radar import transforms
+from radar.input_kind import InputKind
 
 
 def test_log_power_of_complex_and_magnitude():
@@ -16,7 +17,7 @@ def test_views_reduce_the_right_axes():
     np.testing.assert_allclose(transforms.ra_view(cube), lp.max(axis=2), rtol=1e-6)
     power = np.abs(cube) ** 2
     np.testing.assert_allclose(transforms.rd_view(cube), 10 * np.log10(power.sum(axis=1) / 6 + 1), rtol=1e-5)
-    np.testing.assert_allclose(transforms.rd_view(lp, is_log_power=True), transforms.rd_view(cube), rtol=1e-4)
+    np.testing.assert_allclose(transforms.rd_view(lp, kind=InputKind.log_power), transforms.rd_view(cube), rtol=1e-4)
     assert transforms.ad_view(cube).shape == (6, 5)
 
 

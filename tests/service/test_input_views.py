@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from radar import transforms
+from radar.input_kind import InputKind
 from radar.profiles import get_profile
 from service.encoding import decode_array
 from tests.service.conftest import NPY, npy_bytes
@@ -18,8 +19,8 @@ def _db(view: dict) -> np.ndarray:
 def test_views_are_the_inputs_ra_and_rd_views_within_one_quantisation_step(make_settings, client_for, frame):
     client = client_for(make_settings())
     log_power = transforms.log_power(frame.cube)
-    expected = {"ra": transforms.ra_view(log_power, is_log_power=True),
-                "rd": transforms.rd_view(log_power, is_log_power=True)}
+    expected = {"ra": transforms.ra_view(log_power, kind=InputKind.log_power),
+                "rd": transforms.rd_view(log_power, kind=InputKind.log_power)}
     for body, query in ((npy_bytes(frame.cube), ""), (npy_bytes(log_power), "&input=log_power")):
         for encoding in ("zlib", "rle"):
             r = client.post(f"/v1/segment?outputs=views&encoding={encoding}{query}", content=body, headers=NPY)

@@ -8,6 +8,7 @@ from models.erasenet.model import EraseNet
 from models.registry import create_model
 from radar import transforms
 from radar.doppler import DOPPLER_REFINEMENT, refine_doppler
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 
 
@@ -24,8 +25,8 @@ def _net(**kwargs):
 
 def test_detections_carry_the_doppler_refined_from_the_cube(frame):
     log_power = transforms.log_power(frame.cube)
-    raw = _net(doppler_refinement=None).segment(log_power, is_log_power=True).centres
-    refined = _net().segment(log_power, is_log_power=True).centres
+    raw = _net(doppler_refinement=None).segment(log_power, kind=InputKind.log_power).centres
+    refined = _net().segment(log_power, kind=InputKind.log_power).centres
     assert _net().doppler_refinement == DOPPLER_REFINEMENT
     assert len(raw) == len(refined) == 6
     np.testing.assert_array_equal(refined.range_bin, raw.range_bin)
@@ -37,6 +38,6 @@ def test_detections_carry_the_doppler_refined_from_the_cube(frame):
 
 def test_given_centres_are_not_refined(frame):
     log_power = transforms.log_power(frame.cube)
-    seeds = _net(doppler_refinement=None).segment(log_power, is_log_power=True).centres
-    result = _net().segment(log_power, is_log_power=True, centres=seeds)  # e.g. true centres: used as given
+    seeds = _net(doppler_refinement=None).segment(log_power, kind=InputKind.log_power).centres
+    result = _net().segment(log_power, kind=InputKind.log_power, centres=seeds)  # e.g. true centres: used as given
     np.testing.assert_array_equal(result.centres.doppler_bin, seeds.doppler_bin)

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from models.erasenet.model import EraseNet
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 from tests.conftest import save_tiny_checkpoints
 
@@ -37,7 +38,7 @@ def test_absent_history_is_the_single_cube_and_a_present_one_is_read(history_pai
     np.testing.assert_allclose(_outputs(net, cube, [])["heatmap_logits"], alone["heatmap_logits"],
                                rtol=1e-5, atol=1e-6)
     assert np.abs(_outputs(net, cube, [previous])["heatmap_logits"] - alone["heatmap_logits"]).max() > 0
-    result = net.segment(cube, is_log_power=True, history=[previous])
+    result = net.segment(cube, kind=InputKind.log_power, history=[previous])
     assert result.labels.shape == net.profile.shape and result.compute.detections == len(result.centres)
     assert len(net.detect(cube, score_threshold=0.0, history=[previous])) > 0
 
@@ -56,10 +57,10 @@ def test_history_is_checked(history_pair, tiny_checkpoints, frames):
     net = EraseNet.from_checkpoints(*history_pair)
     previous, cube = frames
     with pytest.raises(ValueError, match="2 earlier frames given, the detector reads 1"):
-        net.segment(cube, is_log_power=True, history=[previous, previous])
+        net.segment(cube, kind=InputKind.log_power, history=[previous, previous])
     with pytest.raises(ValueError, match="earlier frame must have the cube's shape"):
-        net.segment(cube, is_log_power=True, history=[previous[:, :, :8]])
+        net.segment(cube, kind=InputKind.log_power, history=[previous[:, :, :8]])
     single = EraseNet.from_checkpoints(*tiny_checkpoints)
     assert single.history_frames == 0
     with pytest.raises(ValueError, match="reads one frame"):
-        single.segment(cube, is_log_power=True, history=[previous])
+        single.segment(cube, kind=InputKind.log_power, history=[previous])

@@ -7,6 +7,7 @@ from models.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save
 from models.erasenet.model import EraseNet
 from models.registry import create_model
 from radar import transforms
+from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 
 
@@ -47,7 +48,7 @@ def test_end_to_end_output_is_well_formed_and_consistent(frame, segmenter):
 def test_log_power_input_gives_the_same_answer(frame):
     net = _net(score_threshold=0.0, max_objects=3)
     a = net.segment(frame.cube)
-    b = net.segment(transforms.log_power(frame.cube), is_log_power=True)
+    b = net.segment(transforms.log_power(frame.cube), kind=InputKind.log_power)
     assert np.array_equal(a.labels, b.labels)
 
 

@@ -18,6 +18,7 @@ from pipelines.datasets.views import (
     view_class_counts,
 )
 from radar import transforms
+from radar.input_kind import InputKind
 
 
 def test_windows_stay_in_their_sequence_and_look_back_only():
@@ -61,7 +62,7 @@ def test_views_samples_and_scaling(seq_store):
     window = dataset.windows[1]
     assert sample["frame"] == window[-1] and sample["frame_index"] == 5
     for t, slot in enumerate(window):  # oldest first, each frame's own views, scaled by the train min/max
-        expected = transforms.ra_view(root["input"][int(slot)].astype(np.float32), is_log_power=True)
+        expected = transforms.ra_view(root["input"][int(slot)].astype(np.float32), kind=InputKind.log_power)
         np.testing.assert_allclose(sample["ra"][t].numpy(), stats.normalise("ra", expected), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(sample["ra_mask"].numpy(), root["ra_mask"][int(window[-1])])
     train_views = [frame_views(root["input"][int(s)]) for s in dataset.windows.ravel()]

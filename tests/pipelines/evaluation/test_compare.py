@@ -16,6 +16,7 @@ from pipelines.evaluation.compare import CompareConfig, ModelSpec, compare, pars
 from pipelines.evaluation.scoring import score_baseline
 from pipelines.jobs import parse_config
 from radar import transforms
+from radar.input_kind import InputKind
 from radar.metrics import consistency, consistency_counts
 from tests.pipelines.conftest import build_store_inline, save_tiny_checkpoints
 
@@ -170,7 +171,7 @@ def test_an_erasenet_that_reads_history_gets_its_earlier_frames_and_sets_the_win
     slots = np.flatnonzero(root["split"][:] == 2)[1:]
     ra = np.zeros((4, 4), np.int64)
     for slot in slots:
-        result = net.segment(root["input"][slot].astype(np.float32), is_log_power=True,
+        result = net.segment(root["input"][slot].astype(np.float32), kind=InputKind.log_power,
                              history=[root["input"][slot - 1].astype(np.float32)])
         ra += np.bincount(4 * root["ra_mask"][slot].astype(np.int64).ravel() + result.ra_mask.ravel(),
                           minlength=16).reshape(4, 4)

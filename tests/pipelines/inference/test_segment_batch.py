@@ -20,6 +20,7 @@ from pipelines.inference.predictions_store import (
 )
 from pipelines.inference.segment_batch import SegmentBatchConfig, format_result, main, plan_job
 from pipelines.jobs import run_module
+from radar.input_kind import InputKind
 from tests.pipelines.conftest import save_tiny_checkpoints
 
 
@@ -54,7 +55,7 @@ def test_job_in_process_writes_what_erasenet_predicts(small_store, tiny_checkpoi
     assert root["source_slot"][:].tolist() == train_slots.tolist()
     net = EraseNet.from_checkpoints(cfg.detector, cfg.segmenter, score_threshold=0.0, max_objects=2)
     for k, slot in enumerate(train_slots):
-        expected = net.segment(source["input"][slot].astype(np.float32), is_log_power=True)
+        expected = net.segment(source["input"][slot].astype(np.float32), kind=InputKind.log_power)
         np.testing.assert_array_equal(root["labels"][k], expected.labels)
         np.testing.assert_array_equal(root["ra_mask"][k], expected.ra_mask)
         np.testing.assert_array_equal(root["rd_mask"][k], expected.rd_mask)
@@ -175,7 +176,7 @@ def test_a_detector_that_reads_history_gets_each_frames_earlier_one_from_stores_
     source, root = open_store(small_store), open_predictions(cfg.out)
     for k, slot in enumerate(root["source_slot"][:]):
         history = [None if slot == 0 else source["input"][slot - 1].astype(np.float32)]
-        expected = net.segment(source["input"][slot].astype(np.float32), is_log_power=True, history=history)
+        expected = net.segment(source["input"][slot].astype(np.float32), kind=InputKind.log_power, history=history)
         np.testing.assert_array_equal(root["labels"][k], expected.labels)
     # a recording: complex cubes; the earlier frame is read as log power
     cfg = _config(f"recording:{small_recording}", pair, tmp_path / "rec-pred.zarr", limit=3)

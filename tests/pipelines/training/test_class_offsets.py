@@ -16,6 +16,7 @@ from pipelines.datasets.store import CENTRE_COLUMNS, open_store
 from pipelines.training.class_offsets import CLASSIFIER_BIAS, FrameLogits, choose_offsets, objective, score
 from radar import transforms
 from radar.detections import Centres
+from radar.input_kind import InputKind
 
 REPO = Path(__file__).resolve().parents[3]
 SHAPE = (16, 8, 4)  # (R, A, D) of the planted frames
@@ -98,7 +99,7 @@ def test_the_cli_writes_the_offsets_into_the_classifier_bias(small_store, tmp_pa
     cube = root["input"][0].astype(np.float32)
     centres = Centres.from_bins(root["objects"][0][: int(root["n_objects"][0])][:, CENTRE_COLUMNS].astype(np.float64))
     plain, shifted = load_erasenet(detector, segmenter), load_erasenet(detector, target)
-    result = shifted.segment(cube, is_log_power=True, centres=centres)
+    result = shifted.segment(cube, kind=InputKind.log_power, centres=centres)
     assert len(result.regions) > 100 and (result.labels == 1).any()
     logits, inverse, _, _ = plain.point_logits(result.regions, cube)
     expected = (logits + offsets).argmax(1).numpy()[inverse]
