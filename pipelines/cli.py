@@ -346,6 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     _add_data_commands(sub)
     _add_frame_commands(sub)
+    from radar.ti.capture_command import add_capture_parser
+
+    add_capture_parser(sub)
     _add_model_commands(sub)
     return with_defaults_shown(parser)
 
