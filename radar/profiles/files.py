@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from radar.errors import UserError
+from radar.profiles.limits import check_tables, read_checked
 from radar.profiles.profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
 from radar.profiles.scene_settings import SCENE_KEYS, scene_from_table
 from radar.ti import profile_tables as hardware
@@ -214,6 +215,7 @@ def profile_from_dict(data: dict[str, Any], *, source: str = "profile") -> Radar
     class_names = data.get("class_names")
     if not (isinstance(class_names, list) and class_names and all(isinstance(c, str) and c for c in class_names)):
         raise ProfileError(f"{source}: class_names must be a non-empty list of names (background is implicit)")
+    check_tables(data, source)  # radar.profiles.limits: bounds and finite numbers before anything is derived
     chirp, array = _table(data, "chirp", source), _table(data, "array", source)
     processing, simulation = _table(data, "processing", source), _table(data, "simulation", source, False)
     expect = _table(data, "expect", source, False)
@@ -282,9 +284,9 @@ def load_profile_file(path: str | Path) -> RadarProfile:
         raise ProfileError(f"{path}: no such profile file")
     try:
         if path.suffix == ".json":
-            data = json.loads(path.read_text())
+            data = json.loads(read_checked(path, str(path)))
         elif path.suffix == ".toml":
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(read_checked(path, str(path)))
         else:
             raise ProfileError(f"{path}: profile files are .toml or .json")
     except (tomllib.TOMLDecodeError, json.JSONDecodeError, UnicodeDecodeError) as exc:

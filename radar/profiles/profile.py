@@ -21,6 +21,8 @@ from functools import cached_property
 
 import numpy as np
 
+from radar.profiles.limits import check_profile
+
 SPEED_OF_LIGHT = 299_792_458.0  # m/s
 
 
@@ -132,6 +134,7 @@ class RadarProfile:
             if values and len(values) != self.n_virtual:
                 raise ValueError(f"profile {self.name!r}: {what} holds {len(values)} entries, expected one per "
                                  f"virtual element ({self.n_virtual})")
+        check_profile(self)  # radar.profiles.limits: sizes, finite numbers, the tracker's configuration
 
     # ----------------------------------------------------------------- derived radar parameters
     @property
