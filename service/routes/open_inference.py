@@ -1,0 +1,207 @@
+"""The Open Inference Protocol (KServe V2, as Triton, KServe and MLServer speak it) beside the service's own API.
+
+``GET /v2`` (server metadata), ``GET /v2/health/live``, ``GET /v2/health/ready``, ``GET /v2/models/{name}``
+(metadata: one input per input kind, with its shape and datatypes), ``GET /v2/models/{name}/ready`` and
+``POST /v2/models/{name}/infer``. A request sends exactly one input, named after its input kind:
+
+    complex    FP32/FP64 [R, A, D, 2]   the complex RAD cube, real and imaginary parts on a trailing axis of 2
+    magnitude  FP16/FP32/FP64 [R, A, D] its linear magnitude
+    log_power  FP16/FP32/FP64 [R, A, D] its log power in dB
+    adc        FP32/FP64 [S, C, V, 2]   raw ADC samples (samples, chirps, virtual elements), real and imaginary
+
+and gets the outputs ``labels`` (UINT8 [R, A, D]), ``ra_mask`` (UINT8 [R, A]), ``rd_mask`` (UINT8 [R, D]),
+``objects`` (FP32 [K, 8], columns in its parameters) and ``compute`` (BYTES [1]: the request's compute block, id and
+the tenant's usage as JSON), all of them unless ``outputs`` names some. Tensors travel as JSON or with the binary
+tensor data extension. An inference goes the way of ``POST /v1/segment`` (the same checks of the cube, model slot,
+quota lease and billing: :func:`service.routes.segment.run_billed`). Errors raised here answer the protocol's
+``{"error": "message"}`` with their 4xx/503 status.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import fields
+from typing import Any
+
+import numpy as np
+from fastapi import APIRouter, Path, Request, Response
+from fastapi.responses import JSONResponse
+from starlette.requests import ClientDisconnect
+
+from models.erasenet.model import SegmentedObject
+from radar.adc import adc_shape
+from service.deps import Caller, ServiceState, State
+from service.errors import ApiError
+from service.inference import ServedModel
+from service.open_inference import (
+    HEADER_LENGTH,
+    InferRequest,
+    ProtocolError,
+    RequestedOutput,
+    encode_response,
+    parse_request,
+)
+from service.routes.segment import Admitted, run_billed
+from service.schemas import InputKind, MaskEncoding
+from service.tenants import Principal
+from service.upload import ExpectedCube, check_values, paced
+
+router = APIRouter(tags=["open inference protocol"])
+
+OUTPUTS = ("labels", "ra_mask", "rd_mask", "objects", "compute")
+OBJECT_COLUMNS = tuple(f.name for f in fields(SegmentedObject) if f.name != "class_name")
+_DATATYPES = {InputKind.complex: ("FP32", "FP64"), InputKind.adc: ("FP32", "FP64"),
+              InputKind.magnitude: ("FP16", "FP32", "FP64"), InputKind.log_power: ("FP16", "FP32", "FP64")}
+_COMPLEX = {np.dtype("<f4"): np.complex64, np.dtype("<f8"): np.complex128}
+ModelName = Path(max_length=64, description="a served model's name (GET /v1/models)")
+
+
+def protocol_error(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    """The protocol's error body."""
+    return JSONResponse({"error": message}, status_code=status, headers=headers)
+
+
+def _input_shapes(served: ServedModel) -> dict[str, tuple[tuple[int, ...], tuple[str, ...]]]:
+    """Input name (the input kind) -> (shape, accepted datatypes)."""
+    profile = served.net.profile
+    shapes = {InputKind.complex: (*profile.shape, 2), InputKind.magnitude: profile.shape,
+              InputKind.log_power: profile.shape, InputKind.adc: (*adc_shape(profile), 2)}
+    return {kind.value: (tuple(shapes[kind]), _DATATYPES[kind]) for kind in InputKind}
+
+
+def _served(state: ServiceState, name: str, *, ready: bool = True) -> ServedModel:
+    try:
+        served = state.pool.get(name)
+    except KeyError as exc:
+        raise ApiError(404, exc.args[0]) from None
+    if ready and not served.ready:
+        raise ApiError(503, f"model {name!r} is not ready ({served.stage}): {served.error}",
+                       headers={"Retry-After": str(state.settings.retry_after_s)})
+    return served
+
+
+@router.get("/v2", summary="Server metadata (Open Inference Protocol)")
+def server_metadata(state: State) -> dict[str, Any]:
+    return {"name": "radarseg", "version": "0.1.0", "extensions": ["binary_tensor_data"]}
+
+
+@router.get("/v2/health/live", summary="Liveness (Open Inference Protocol)")
+def live() -> dict[str, bool]:
+    return {"live": True}
+
+
+@router.get("/v2/health/ready", summary="Readiness (Open Inference Protocol)")
+def ready(state: State) -> JSONResponse:
+    """200 when every model is loaded and the usage ledger is reachable, else 503."""
+    is_ready = state.pool.ready and state.ledger_error is None
+    return JSONResponse({"ready": is_ready}, status_code=200 if is_ready else 503)
+
+
+@router.get("/v2/models/{name}/ready", summary="A model's readiness (Open Inference Protocol)")
+def model_ready(state: State, name: str = ModelName) -> JSONResponse:
+    try:
+        served = _served(state, name, ready=False)
+    except ApiError as exc:
+        return protocol_error(exc.status, exc.message)
+    return JSONResponse({"name": name, "ready": served.ready}, status_code=200 if served.ready else 503)
+
+
+@router.get("/v2/models/{name}", summary="A model's metadata (Open Inference Protocol)")
+def model_metadata(state: State, name: str = ModelName) -> JSONResponse:
+    """Its inputs (one per input kind; send one) and outputs, with shapes and datatypes."""
+    try:
+        served = _served(state, name)
+    except ApiError as exc:
+        return protocol_error(exc.status, exc.message, exc.headers)
+    profile = served.net.profile
+    R, A, D = profile.shape
+    inputs = [{"name": kind, "datatype": datatypes[0], "shape": list(shape),
+               "parameters": {"datatypes": ",".join(datatypes)}}
+              for kind, (shape, datatypes) in _input_shapes(served).items()]
+    outputs = [{"name": "labels", "datatype": "UINT8", "shape": [R, A, D]},
+               {"name": "ra_mask", "datatype": "UINT8", "shape": [R, A]},
+               {"name": "rd_mask", "datatype": "UINT8", "shape": [R, D]},
+               {"name": "objects", "datatype": "FP32", "shape": [-1, len(OBJECT_COLUMNS)],
+                "parameters": {"columns": ",".join(OBJECT_COLUMNS)}},
+               {"name": "compute", "datatype": "BYTES", "shape": [1]}]
+    return JSONResponse({"name": name, "versions": ["1"], "platform": f"radarseg-erasenet-{served.spec.engine}",
+                         "inputs": inputs, "outputs": outputs,
+                         "parameters": {"preset": profile.name, "class_names": ",".join(served.net.class_names)}})
+
+
+async def _read_body(request: Request, state: ServiceState, tenant: str) -> bytes:
+    """The whole body, within the upload gate's bounds and the body pace (408 for a stalled upload)."""
+    declared = request.headers.get("content-length")
+    length = int(declared) if declared is not None and declared.isascii() and declared.isdigit() else None
+    chunks = bytearray()
+    with state.uploads.admit(tenant, length) as ticket:
+        try:
+            async for chunk in paced(request.stream(), state.settings):
+                chunks += chunk
+                if length is None and len(chunks) > ticket.bytes:
+                    ticket.charge(len(chunks))
+        except ClientDisconnect:
+            raise ApiError(400, "client disconnected before sending the whole body") from None
+    return bytes(chunks)
+
+
+def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndarray]:
+    """The one input as the cube /v1/segment would have read (complex from its trailing axis of 2), its values
+    checked as /v1/segment checks them."""
+    if len(parsed.inputs) != 1:
+        raise ProtocolError(400, f"send exactly one input (one of {[k.value for k in InputKind]}), got "
+                                 f"{sorted(parsed.inputs)}")
+    ((name, array),) = parsed.inputs.items()
+    kind = InputKind(name)
+    if kind in (InputKind.complex, InputKind.adc):
+        array = np.ascontiguousarray(array).view(_COMPLEX[array.dtype])[..., 0]
+    expected = ExpectedCube(served.spec.name, array.shape, kind)
+    check_values(array, expected)
+    return kind, array
+
+
+def _tensors(billed: Any, name: str) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+    result = billed.result
+    objects = np.array([[getattr(o, c) for c in OBJECT_COLUMNS] for o in result.objects], np.float32)
+    compute = json.dumps({"request_id": billed.request_id, "model": name, "compute": billed.compute.model_dump(),
+                          "usage": billed.usage.model_dump()})
+    tensors = {"labels": result.labels, "ra_mask": result.ra_mask, "rd_mask": result.rd_mask,
+               "objects": objects.reshape(-1, len(OBJECT_COLUMNS)), "compute": np.array([compute.encode()], object)}
+    return tensors, {"objects": {"columns": ",".join(OBJECT_COLUMNS)}}
+
+
+@router.post("/v2/models/{name}/infer", summary="Segment one cube (Open Inference Protocol)")
+async def infer(request: Request, state: State, caller: Caller, name: str = ModelName) -> Response:
+    """Billed and limited as ``POST /v1/segment``: the model ready and the ledger up, the tenant's quota checked
+    before the body is read, the upload gate, the cube's values, a model slot (503 when saturated)."""
+    try:
+        return await _infer(request, state, caller, name)
+    except ApiError as exc:
+        return protocol_error(exc.status, exc.message, exc.headers)
+    except ProtocolError as exc:
+        return protocol_error(exc.status, str(exc))
+
+
+async def _infer(request: Request, state: ServiceState, caller: Principal, name: str) -> Response:
+    served = _served(state, name)
+    if state.ledger_error is not None:
+        raise ApiError(503, f"usage ledger unavailable ({state.ledger_error}); the request was not billed",
+                       headers={"Retry-After": str(state.settings.retry_after_s)})
+    await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
+    started = time.perf_counter()
+    body = await _read_body(request, state, caller.tenant)
+    parsed = parse_request(body, request.headers.get(HEADER_LENGTH), _input_shapes(served), OUTPUTS)
+    del body
+    kind, cube = _cube(parsed, served)
+    decode_s = time.perf_counter() - started
+    admitted = Admitted({"objects", "masks"}, served, ExpectedCube(served.spec.name, cube.shape, kind), None)
+    billed = await run_billed(state, caller, admitted, cube, decode_s, kind, True, MaskEncoding.rle)
+    tensors, parameters = _tensors(billed, name)
+    chosen = parsed.outputs or tuple(RequestedOutput(output, parsed.binary_output) for output in OUTPUTS)
+    payload, header_length = encode_response(name, parsed.id, tensors, parameters, chosen)
+    headers = {"X-Request-ID": billed.request_id, "X-Compute-MACs": str(billed.compute.macs.total)}
+    if header_length is not None:
+        headers[HEADER_LENGTH] = str(header_length)
+        return Response(payload, media_type="application/octet-stream", headers=headers)
+    return Response(payload, media_type="application/json", headers=headers)
