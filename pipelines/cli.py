@@ -170,27 +170,28 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 
 
 def _cmd_export_onnx(args: argparse.Namespace) -> int:
+    from models.checkpoint import load_pair
     from models.export.onnx_export import export_onnx
 
+    detector, segmenter = load_pair(args.detector, args.segmenter)
     if args.int8:
-        from models.checkpoint import load_checkpoint
         from models.export.export_cache import Int8Calibration
         from models.export.quantize import export_int8
         from pipelines.datasets.calibration import store_calibration
 
-        profile = load_checkpoint(args.detector).profile
+        profile = detector.profile
         methods = tuple(args.calibration_methods)
         calibration = (Int8Calibration.simulated(profile, frames=args.calibration_frames, methods=methods)
                        if args.calibration is None else
                        store_calibration(args.calibration, profile, frames=args.calibration_frames, methods=methods))
-        manifest = export_int8(args.detector, args.segmenter, args.out, cubes=calibration.cubes,
+        manifest = export_int8(detector, segmenter, args.out, cubes=calibration.cubes,
                                calibration=calibration.description, methods=calibration.methods)
         quant = manifest["quantization"]
         agreement = ", ".join(f"{m} {a:.5f}" for m, a in quant["label_agreement_by_method"].items())
         print(f"int8 (QDQ), calibrated on {len(calibration.cubes)} {quant['calibration']['source']} frames; "
               f"ROI label agreement with float: {agreement}; kept {quant['method']}")
     else:
-        manifest = export_onnx(args.detector, args.segmenter, args.out)
+        manifest = export_onnx(detector, segmenter, args.out)
     for stage in ("detector", "segmenter"):
         graph = manifest[stage]
         inputs = ", ".join(f"{name} {tuple(v['shape'])}" for name, v in graph["inputs"].items())
@@ -468,6 +469,11 @@ def _add_frame_commands(sub: Any) -> None:
 
     add_from_ti_parser(radar_sub)
 
+    _add_process_adc_command(sub)
+
+
+def _add_process_adc_command(sub: Any) -> None:
+    """process-adc: one frame of ADC samples (.npy, or a TI capture .bin) into a RAD cube."""
     adc = sub.add_parser("process-adc", help="raw complex ADC samples of one frame -> RAD cube (.npy)")
     adc.add_argument("adc", help=".npy of complex ADC samples, or a capture (.bin: DCA1000 adc_data.bin, mmWave "
                                  "Studio PREFIX_Raw_0.bin) read with the profile's [capture] settings")
