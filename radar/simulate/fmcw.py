@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.fft
 
-from radar.adc import adc_to_rad, chain_constants, tdm_slots
+from radar.adc import adc_to_rad, chain_constants, element_azimuths, tdm_slots
 from radar.profiles import RadarProfile, get_profile
 
 
@@ -83,8 +83,9 @@ def _phasor_frequencies(profile: RadarProfile, scat: Scatterers) -> tuple[np.nda
 
 
 def _element_phasors(profile: RadarProfile, f_doppler, sin_theta, tdm_coupling: bool) -> np.ndarray:
-    """(P, K) phasors over the virtual array; a TX firing later in the cycle sees extra Doppler phase."""
-    k = np.arange(profile.n_virtual)
+    """(P, K) phasors over the virtual array (each element at its azimuth: the profile's stated positions, else
+    0 .. K-1 half wavelengths); a TX firing later in the cycle sees extra Doppler phase."""
+    k = element_azimuths(profile)
     e = np.exp(1j * np.pi * sin_theta[:, None] * k[None, :])
     if tdm_coupling:
         e = e * np.exp(2j * np.pi * f_doppler[:, None] * tdm_slots(profile)[None, :] / profile.n_tx)
