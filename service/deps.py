@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated
 
 from fastapi import Depends, Request, Security
@@ -16,6 +16,7 @@ from service.ledger import Ledger
 from service.metrics import ServiceMetrics
 from service.settings import Settings
 from service.stream_history import StreamHistory
+from service.stream_recording import StreamRecordings
 from service.stream_store import StreamStore
 from service.tenants import Authenticator, Principal
 from service.upload import UploadGate
@@ -36,6 +37,7 @@ class ServiceState:
     streams: StreamStore
     stream_history: StreamHistory
     examples: ExampleCache
+    stream_recordings: StreamRecordings = field(default_factory=StreamRecordings)  # the frames this replica ran
 
     @property
     def ledger_error(self) -> str | None:

@@ -121,6 +121,7 @@ def store_frames(recording: StoreRecording, *, log_power: bool = True) -> Iterat
     tracks = root["tracks"] if "tracks" in root else None
     objects, n_objects = root["objects"][:], root["n_objects"][:]
     sequence_id, frame_index = root["sequence_id"][:], root["frame_index"][:]
+    labels, ra_mask, rd_mask = root["labels"], root["ra_mask"], root["rd_mask"]  # looked up once (not per frame)
     for slot, tick in zip(recording.slots, recording.ticks, strict=True):
         sequence, index = sequences[int(sequence_id[slot])], int(frame_index[slot])
         cube_db = None
@@ -131,8 +132,7 @@ def store_frames(recording: StoreRecording, *, log_power: bool = True) -> Iterat
                 log.warning("frame %s/%d: source frame unreadable (%s): recorded without log power", sequence, index,
                             exc)
         yield build_frame(recording.profile, tick=tick, sequence=sequence, frame_index=index,
-                          labels=root["labels"][slot], ra_labels=root["ra_mask"][slot],
-                          rd_labels=root["rd_mask"][slot],
+                          labels=labels[slot], ra_labels=ra_mask[slot], rd_labels=rd_mask[slot],
                           objects=_objects(objects[slot], int(n_objects[slot]),
                                            None if tracks is None else tracks[slot]),
                           log_power=cube_db)

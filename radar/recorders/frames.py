@@ -76,8 +76,10 @@ class RecordingInfo:
     @classmethod
     def for_profile(cls, profile: RadarProfile, class_names: tuple[str, ...] | None = None,
                     metadata: dict[str, str] | None = None) -> RecordingInfo:
-        names = ("background", *class_names) if class_names is not None else profile.all_class_names
-        return cls(tuple(names), profile.name, profile.frame_period_s, profile.max_range, profile.max_velocity,
+        """``class_names``: every class's name by class id, background (0) first, as a model's checkpoint names them
+        (default: the profile's)."""
+        names = tuple(class_names) if class_names is not None else profile.all_class_names
+        return cls(names, profile.name, profile.frame_period_s, profile.max_range, profile.max_velocity,
                    metadata=dict(metadata or {}))
 
     def class_name(self, class_id: int) -> str:

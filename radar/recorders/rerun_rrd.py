@@ -46,10 +46,10 @@ def _log_frame(rec: rr.RecordingStream, frame: PredictionFrame, info: RecordingI
     centres = np.array([(o.x, o.y, 0.0) for o in objects], np.float32).reshape(-1, 3)
     half_sizes = np.array([(o.size_x / 2, o.size_y / 2, 0.5) for o in objects], np.float32).reshape(-1, 3)
     class_ids = np.array([o.class_id for o in objects], np.uint16)
+    fields = [rr.AnyValues(score=np.array([o.score for o in objects], np.float32),
+                           track_id=np.array([o.track_id for o in objects], np.uint32))] if objects else []
     rec.log("radar/objects", rr.Boxes3D(centers=centres, half_sizes=half_sizes, class_ids=class_ids,
-                                        labels=[object_label(o, info) for o in objects]),
-            rr.AnyValues(score=np.array([o.score for o in objects], np.float32),
-                         track_id=np.array([o.track_id for o in objects], np.uint32)))
+                                        labels=[object_label(o, info) for o in objects]), *fields)
     vectors = np.array([(*velocity_vector(o), 0.0) for o in objects], np.float32).reshape(-1, 3)
     rec.log("radar/velocities", rr.Arrows3D(origins=centres, vectors=vectors, class_ids=class_ids))
     rec.log("radar/ra_labels", rr.SegmentationImage(frame.ra_labels[::-1]))

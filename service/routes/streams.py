@@ -19,6 +19,7 @@ import time
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Header, Path, Query, Request, Response
+from starlette.concurrency import run_in_threadpool
 
 from radar.tracking import Measurements, Track, Tracker, TrackerConfig, TrackerStep, TrackStatus
 from service.deps import Caller, ServiceState, State
@@ -36,6 +37,7 @@ from service.schemas import (
     TrackedObjectOut,
     TrackOut,
 )
+from service.stream_recording import RecordingFormat, record_frame, recording_bytes
 from service.stream_store import Claim, Refusal, StreamRow
 
 router = APIRouter(tags=["streams"])
@@ -128,7 +130,29 @@ async def delete_stream(stream_id: StreamId, state: State, caller: Caller) -> Re
     if not await state.billing.read(state.streams.delete, caller.tenant, stream_id):
         raise _refused(Refusal.missing, state, stream_id)
     state.stream_history.forget((caller.tenant, stream_id))
+    state.stream_recordings.forget((caller.tenant, stream_id))
     return Response(status_code=204)
+
+
+@router.get("/v1/streams/{stream_id}/recording", summary="A stream's recording (MCAP, ROS 2 MCAP or Rerun .rrd)",
+            responses={**error_responses(401, 404, 503), 200: {"content": {"application/x-mcap": {},
+                                                                            "application/x-rerun-rrd": {}}}})
+async def stream_recording(stream_id: StreamId, state: State, caller: Caller,
+                           form: Annotated[RecordingFormat, Query(alias="format", description="mcap (Foxglove's "
+                                           "schemas), ros2 (ROS 2 messages in MCAP) or rrd (Rerun)")]
+                           = RecordingFormat.mcap) -> Response:
+    """The frames of the stream this replica segmented, as a recording: points, objects with track ids and
+    velocity arrows, RA / RD label maps, each frame at ``seq`` frame periods (service/stream_recording.py)."""
+    stream = await state.billing.read(state.streams.get, caller.tenant, stream_id)
+    if isinstance(stream, Refusal):
+        raise _refused(stream, state, stream_id)
+    kept = state.stream_recordings.frames((caller.tenant, stream_id))
+    if kept is None:
+        raise ApiError(404, f"no frame of stream {stream_id!r} was segmented by this replica (or its recording was "
+                            "evicted for memory)", error="no_recording")
+    payload = await run_in_threadpool(recording_bytes, *kept, form)
+    return Response(payload, media_type=form.media_type, headers={
+        "Content-Disposition": f'attachment; filename="stream-{stream_id}{form.suffix}"'})
 
 
 def _track(claim: Claim, result_objects: list[Any], state: ServiceState) -> tuple[Tracker, TrackerStep]:
@@ -189,6 +213,8 @@ async def stream_frame(
     if n_history:  # what the stream's next frame reads
         state.stream_history.keep((caller.tenant, stream_id), seq, billed.result.log_power, n_history)
     state.metrics.stage_seconds.labels(admitted.name, "track").observe(track_s)
+    record_frame(state.stream_recordings, (caller.tenant, stream_id), admitted.served.net, seq, billed.result,
+                 step.object_tracks)
     row = StreamRow(claim.stream.id, claim.stream.tenant, claim.stream.model, claim.stream.created_at,
                     utc_now(), seq, claim.stream.frames + 1, tracker_state)
     net = admitted.served.net

@@ -43,4 +43,4 @@ def expected_frames(path) -> tuple[list[ExpectedFrame], list[str]]:
                                         profile.velocity_mps(d), labels[r, a, d], root["objects"][slot, :n], tracks,
                                         root["ra_mask"][slot], root["rd_mask"][slot]))
         start += int(root["frame_index"][slots].max()) + 2
-    return frames, ["background", *root.attrs["class_names"]]
+    return frames, list(root.attrs["class_names"])

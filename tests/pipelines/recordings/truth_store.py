@@ -47,7 +47,8 @@ def write_truth_predictions(out: str | Path, *, sequences: int, frames: int, see
                for name, (shape, dtype, fill) in layout.arrays().items()}
     for slot, (s, name, index) in enumerate(refs):
         frame = recording.read_frame(name, index)
-        objects = frame.objects[: layout.max_objects]
+        # an object the radar did not see (no labelled voxel) has no centre: it is no prediction
+        objects = [obj for obj in frame.objects if obj.n_voxels > 0][: layout.max_objects]
         buffers["labels"][slot] = frame.labels
         buffers["ra_mask"][slot] = frame.labels.max(axis=2)
         buffers["rd_mask"][slot] = frame.labels.max(axis=1)
@@ -59,7 +60,7 @@ def write_truth_predictions(out: str | Path, *, sequences: int, frames: int, see
     write_shard_arrays(path, layout, 0, buffers)
     tracking = write_tracks(path, profile)
     finish_store(path, {"preset": profile.name, "radar_file": layout.radar_file,
-                        "class_names": list(profile.class_names), "sequences": names,
+                        "class_names": list(profile.all_class_names), "sequences": names,
                         "object_fields": list(PREDICTION_OBJECT_FIELDS), "compute_fields": list(COMPUTE_FIELDS),
                         "source": {"kind": "recording", "path": str(out / "recording"), "preset": profile.name},
                         "tracking": tracking})
