@@ -33,6 +33,7 @@ from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet, SegmentationResult
 from radar.adc import process_adc
 from radar.input_kind import InputKind
+from service.radar_check import radar_refusal
 from service.settings import ModelSpec, Settings, resolve_path
 
 log = logging.getLogger(__name__)
@@ -211,6 +212,10 @@ class ModelPool:
         try:
             self._executor = inference_executor(self.settings.replicas, threads, "inference")
             for model in self.models.values():
+                if refused := radar_refusal(model.spec, self.settings):  # before any network is built
+                    model.error, model.stage = refused, "failed"
+                    log.error("model %s not loaded: %s", model.spec.name, refused)
+                    continue
                 model.load(self.settings.replicas, self.settings.warmup, threads, executor=self._executor)
         finally:
             self.loading = False

@@ -6,6 +6,7 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from service.deps import State
+from service.public_text import without_directories
 from service.schemas import Health, Readiness
 
 router = APIRouter(tags=["health"])
@@ -23,7 +24,9 @@ def readyz(state: State) -> JSONResponse:
     ``loading`` while the models load, with each one's stage in ``progress``)."""
     ready = state.pool.ready and state.ledger_error is None
     status = "ready" if ready else "loading" if state.pool.loading else "not_ready"
-    body = Readiness(ready=ready, status=status, progress=state.pool.progress(), models=state.pool.errors(),
+    body = Readiness(ready=ready, status=status, progress=state.pool.progress(),
+                     models={name: None if why is None else without_directories(why)
+                             for name, why in state.pool.errors().items()},
                      ledger=state.ledger_error)
     headers = {} if body.ready else {"Retry-After": str(state.settings.retry_after_s)}
     return JSONResponse(body.model_dump(), status_code=200 if body.ready else 503, headers=headers)
