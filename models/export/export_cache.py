@@ -7,6 +7,7 @@ the int8 one (:mod:`models.export.quantize`, which runs the float engine to cali
 from __future__ import annotations
 
 import hashlib
+import hmac
 import json
 import logging
 import os
@@ -32,6 +33,64 @@ from radar.profiles import RadarProfile
 log = logging.getLogger(__name__)
 
 CACHE_ENV = "RADARSEG_ONNX_CACHE"
+KEY_FILE_ENV = "RADARSEG_ONNX_CACHE_KEY_FILE"  # this machine's secret that seals its exports (default below)
+
+
+def cache_secret() -> bytes:
+    """This user's secret for sealing exports: ``$RADARSEG_ONNX_CACHE_KEY_FILE``, else
+    ``~/.config/radarseg/onnx-cache.key`` (32 random bytes, made on first use, readable by the user only). It lives
+    outside the cache, so whoever can write to a shared cache can neither predict an export's folder nor seal a
+    graph of their own."""
+    path = Path(os.environ.get(KEY_FILE_ENV) or Path.home() / ".config" / "radarseg" / "onnx-cache.key").expanduser()
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        except FileExistsError:  # another process made it first
+            return path.read_bytes()
+        with os.fdopen(fd, "wb") as out:
+            out.write(os.urandom(32))
+    return path.read_bytes()
+
+
+def _file_digests(directory: Path) -> dict[str, str]:
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(directory.iterdir())
+            if p.is_file() and p.name != "manifest.json"}
+
+
+def _seal_mac(key: str, files: dict[str, str], secret: bytes) -> str:
+    return hmac.new(secret, json.dumps({"key": key, "files": files}, sort_keys=True).encode(), "sha256").hexdigest()
+
+
+def seal(directory: Path, key: str, secret: bytes) -> None:
+    """Write into the export's manifest the sha256 of each of its files, what built it (``key``: the checkpoints'
+    digests, format and recipe) and a MAC of both under this machine's secret."""
+    manifest = json.loads((directory / "manifest.json").read_text())
+    files = _file_digests(directory)
+    manifest["seal"] = {"key": key, "files": files, "mac": _seal_mac(key, files, secret)}
+    tmp = directory / ".manifest.json.tmp"
+    tmp.write_text(json.dumps(manifest, indent=2))
+    os.replace(tmp, directory / "manifest.json")
+
+
+def seal_problem(directory: Path, key: str, secret: bytes) -> str | None:
+    """Why the cached export in ``directory`` cannot be used (None when it can): no seal, sealed for other
+    checkpoints or another machine, or a file whose content is not the one sealed."""
+    try:
+        stated = json.loads((directory / "manifest.json").read_text()).get("seal")
+    except (OSError, ValueError) as exc:
+        return f"unreadable manifest ({type(exc).__name__})"
+    if not isinstance(stated, dict) or not isinstance(stated.get("files"), dict):
+        return "no content hashes in its manifest"
+    if stated.get("key") != key:
+        return "built from other checkpoints or another recipe"
+    if not hmac.compare_digest(str(stated.get("mac")), _seal_mac(key, stated["files"], secret)):
+        return "not sealed by this machine's cache key"
+    actual = _file_digests(directory)
+    if changed := sorted(name for name in set(actual) | set(stated["files"])
+                         if actual.get(name) != stated["files"].get(name)):
+        return f"content differs from its manifest's hashes: {', '.join(changed)}"
+    return None
 
 
 def cache_root() -> Path:
@@ -44,8 +103,10 @@ def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Chec
                  root: Path | None = None, *, int8: Int8Calibration | None = None) -> Path:
     """The export of this checkpoint pair, made now if the cache does not hold it yet.
 
-    The directory is named by the sha256 of both checkpoints and the export format version, and for an int8
-    export (``int8`` given) also by the quantisation recipe's version and the sha256 of the calibration frames;
+    The directory is named by a MAC, under this machine's :func:`cache_secret`, of the sha256 of both checkpoints
+    and the export format version, and for an int8 export (``int8`` given) also of the quantisation recipe's version
+    and the sha256 of the calibration frames; its manifest seals the content of every file (:func:`seal`), checked
+    at each load: an export whose files changed, or that this machine did not seal, is exported again;
     a new export is written to a temporary directory and renamed into place, so concurrent processes (Ray
     actors) never read half a directory: the first rename wins and the others use its files.
     """
@@ -55,10 +116,18 @@ def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Chec
     if int8 is not None:
         name += (f"/int8/{QUANT_VERSION}/{calibration_digest(int8.cubes)}/{','.join(int8.methods)}/"
                  f"{json.dumps(int8.pipeline)}")
-    key = hashlib.sha256(name.encode()).hexdigest()[:24]
-    target = root / key
+    secret = cache_secret()
+    target = root / hmac.new(secret, name.encode(), "sha256").hexdigest()[:24]
     if (target / "manifest.json").is_file():
-        return target
+        if (problem := seal_problem(target, name, secret)) is None:
+            return target
+        log.warning("cached ONNX export %s not used (%s): exporting it again", target, problem)
+        rejected = root / f".rejected-{target.name}-{os.getpid()}"
+        try:
+            os.rename(target, rejected)
+        except OSError:
+            pass
+        shutil.rmtree(rejected, ignore_errors=True)
     float_dir = None if int8 is None else exported_dir(detector, segmenter, root)
     root.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".export-", dir=root))
@@ -69,6 +138,7 @@ def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Chec
         else:
             export_int8(detector, segmenter, staging, cubes=int8.cubes, calibration=int8.description,
                         methods=int8.methods, float_dir=float_dir, pipeline=dict(int8.pipeline))
+        seal(staging, name, secret)
         try:
             os.rename(staging, target)
         except OSError:  # another process renamed its export first
