@@ -63,10 +63,10 @@ def test_the_fingerprint_sees_the_last_change():
     assert drift > 20 * TOLERANCE_DB
 
 
-def test_every_version_is_explained_and_the_readme_states_the_current_one():
+def test_every_version_is_explained_and_the_docs_state_the_current_one():
     assert sorted(SIMULATOR_HISTORY) == list(range(1, SIMULATOR_VERSION + 1))
-    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
-    assert f"simulator version {SIMULATOR_VERSION}" in readme.lower()
+    page = (Path(__file__).resolve().parents[2] / "docs" / "reference" / "data.md").read_text()
+    assert f"simulator version {SIMULATOR_VERSION}" in page.lower()
 
 
 def test_a_frame_carries_the_simulators_version_and_options():
