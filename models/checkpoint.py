@@ -89,9 +89,28 @@ class Checkpoint:
         config = dict(self.config)
         if config.get("preset") not in (None, *BUILTIN_PRESETS):  # a radar described by a file: its profile
             config["preset"] = self.profile
+        self.check_size(config)
         model = create_model(self.model_name, **config)
         model.load_state_dict(self.state_dict)
         return model.to(device).eval()
+
+    def check_size(self, config: dict[str, Any]) -> None:
+        """CheckpointError when ``config`` builds a network larger than the weights the checkpoint holds (a width
+        of 10**9 would allocate gigabytes before ``load_state_dict`` refused it): counted on torch's meta device,
+        which allocates nothing. A builder that cannot run on the meta device is left to the real build."""
+        held = sum(tensor.numel() for tensor in self.state_dict.values())
+        try:
+            with torch.device("meta"):
+                probe = create_model(self.model_name, **config)
+        except (TypeError, ValueError, KeyError) as exc:
+            raise CheckpointError(f"{self.source or 'checkpoint'}: its config {config} does not build "
+                                  f"{self.model_name}: {type(exc).__name__}: {exc}") from None
+        except Exception:  # noqa: BLE001 (an operation the meta device lacks: the real build decides)
+            return
+        built = sum(t.numel() for t in probe.parameters()) + sum(t.numel() for t in probe.buffers())
+        if built > 2 * held + 1024:
+            raise CheckpointError(f"{self.source or 'checkpoint'}: its config builds a {self.model_name} of {built} "
+                                  f"weights but the file holds {held}: refused before allocating it")
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -113,3 +113,19 @@ def test_a_checkpoint_whose_radar_is_too_large_is_refused_at_load(tiny_checkpoin
     finally:
         tracemalloc.stop()
     assert peak < 64 * 2**20, f"{peak / 2**20:.0f} MiB allocated before refusing"
+
+
+def test_a_checkpoint_whose_config_builds_a_larger_network_than_its_weights_is_refused(tiny_checkpoints):
+    from models.checkpoint import CheckpointError, load_checkpoint
+
+    checkpoint = load_checkpoint(tiny_checkpoints[0])
+    checkpoint.build()  # as saved: builds
+    checkpoint.config["doppler_channels"] = 10**6
+    tracemalloc.start()
+    try:
+        with pytest.raises(CheckpointError, match="refused before allocating it"):
+            checkpoint.build()
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 16 * 2**20, f"{peak / 2**20:.0f} MiB allocated before refusing"
