@@ -1,0 +1,122 @@
+"""The Open Inference Protocol's infer against POST /v1/segment on the same cubes, at concurrency 1: a real
+``python -m service.server`` (uvicorn) on loopback with the shipped ``small`` pair and its default SQLite ledger; one
+client, requests alternating between the routes frame by frame (side by side, so the machine's load hits both alike).
+
+``/v1/segment`` gets the .npy complex cube and answers its default outputs (objects, RLE masks); the V2 route gets the
+same cube through ``tritonclient.http`` as FP32 [R, A, D, 2] with the binary tensor data extension and answers the
+same content (objects, RA/RD masks, compute) as binary tensors. Goal: V2's median client time within 1.05x of
+/v1/segment's. A few requests with JSON tensors (the cube's log power as a JSON list) show what the binary extension
+saves. Figures go to benchmarks/results/open_inference.json with the CPU, its flags and the load average; nothing is
+asserted.
+
+    .venv/bin/python -m benchmarks.open_inference [--frames 40] [--json-requests 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from benchmarks.recording_export import machine
+from pipelines.demo.serve_process import free_port, stop_process, wait_ready
+from radar.simulate import simulate_sequence
+from radar.transforms import log_power
+from service.server import server_command
+
+RESULTS = Path(__file__).resolve().parent / "results" / "open_inference.json"
+MODEL = "small"  # the first model the default settings serve (the shipped pair)
+V2_OUTPUTS = ("ra_mask", "rd_mask", "objects", "compute")
+
+
+def _npy(cube: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.save(buffer, cube)
+    return buffer.getvalue()
+
+
+def _v2(client, cube: np.ndarray, *, binary: bool, kind: str = "complex"):
+    import tritonclient.http as triton
+
+    tensor = np.stack([cube.real, cube.imag], -1).astype(np.float32) if kind == "complex" else cube
+    infer_input = triton.InferInput(kind, list(tensor.shape), "FP32")
+    infer_input.set_data_from_numpy(tensor, binary_data=binary)
+    outputs = [triton.InferRequestedOutput(name, binary_data=binary) for name in V2_OUTPUTS]
+    return client.infer(MODEL, [infer_input], outputs=outputs)
+
+
+def _time_routes(url: str, http: httpx.Client, client, cubes: list[np.ndarray]) -> dict[str, list[float]]:
+    times: dict[str, list[float]] = {"segment": [], "v2_binary": []}
+    for k, cube in enumerate(cubes):
+        body = _npy(cube)
+        for route in (("segment", "v2_binary") if k % 2 == 0 else ("v2_binary", "segment")):
+            start = time.perf_counter()
+            if route == "segment":
+                response = http.post(f"{url}/v1/segment", content=body, headers={"content-type": "application/x-npy"})
+                if response.status_code != 200:
+                    raise RuntimeError(f"/v1/segment: {response.status_code} {response.text[:300]}")
+            else:
+                _v2(client, cube, binary=True)
+            if k:  # the first frame of each route warms up
+                times[route].append(time.perf_counter() - start)
+    return times
+
+
+def run(frames: int, json_requests: int, seed: int) -> dict:
+    import tritonclient.http as triton
+
+    data_dir = Path(tempfile.mkdtemp(prefix="radarseg-v2-bench-"))
+    port = free_port()
+    log = data_dir / "server.log"
+    env = {**os.environ, "RADARSEG_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    with log.open("w") as out:
+        proc = subprocess.Popen(server_command(port, "warning"), stdout=out, stderr=subprocess.STDOUT, env=env)
+    url = f"http://127.0.0.1:{port}"
+    cubes = [frame.cube for frame in simulate_sequence("small", frames + 1, seed=seed)]
+    try:
+        wait_ready(url, proc, log, timeout_s=400, poll_s=0.3)
+        before = machine()
+        with httpx.Client(timeout=120) as http, triton.InferenceServerClient(f"127.0.0.1:{port}",
+                                                                            network_timeout=300) as client:
+            times = _time_routes(url, http, client, cubes)
+            json_times = []
+            for cube in cubes[:json_requests]:
+                start = time.perf_counter()
+                _v2(client, log_power(cube).astype(np.float32), binary=False, kind="log_power")
+                json_times.append(time.perf_counter() - start)
+    finally:
+        stop_process(proc)
+    median = {route: float(np.median(v)) for route, v in times.items()}
+    return {
+        "frames_per_route": len(times["segment"]), "seed": seed, "preset": "small", "concurrency": 1,
+        "median_s": median, "p90_s": {route: float(np.percentile(v, 90)) for route, v in times.items()},
+        "v2_over_segment_median": median["v2_binary"] / median["segment"], "goal_ratio": 1.05,
+        "v2_json_log_power_median_s": float(np.median(json_times)) if json_times else None,
+        "machine_before": before, "machine_after": machine(),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--json-requests", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=25411)
+    args = parser.parse_args(argv)
+    result = run(args.frames, args.json_requests, args.seed)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(json.dumps(result, indent=2))
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
