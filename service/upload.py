@@ -25,6 +25,7 @@ from radar.input_kind import ACCEPTED_DTYPES, InputKindError, resolve_kind
 from radar.input_kind import check_values as check_kind_values
 from radar.io.errors import DataError
 from radar.io.npy import MAGIC, MAX_HEADER_LEN, NpyHeader, parse_npy_header
+from service.adc_upload import AdcFrameInput
 from service.errors import ApiError
 from service.schemas import InputKind
 from service.settings import Settings
@@ -32,13 +33,17 @@ from service.settings import Settings
 
 @dataclass(frozen=True)
 class ExpectedCube:
-    """What a model accepts: its cube shape and the input kind the client announced."""
+    """What a model accepts: its cube shape and the input kind the client announced; for ``?input=adc``, ``adc``:
+    the ADC frame's layouts and sample types (service.adc_upload)."""
 
     model: str
     shape: tuple[int, int, int]
     kind: InputKind
+    adc: AdcFrameInput | None = None
 
     def describe(self) -> str:
+        if self.adc is not None:
+            return self.adc.describe()
         names = "/".join(np.dtype(d).name for d in ACCEPTED_DTYPES[self.kind])
         return f"a {self.shape} {names} .npy cube"
 
@@ -179,7 +184,11 @@ def _header_length(head: bytes | bytearray) -> int | None:
 
 def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int | None) -> None:
     """Refuse a header whose dtype, shape or byte count is not what the model takes (before allocation)."""
-    if header.dtype.newbyteorder("=") not in [np.dtype(d) for d in ACCEPTED_DTYPES[expected.kind]]:
+    if expected.adc is not None:
+        if expected.adc.layout_of(header) is None:
+            raise ApiError(422, f"ADC frame has shape {header.shape} and dtype {header.dtype.name}, model "
+                                f"{expected.model!r} expects {expected.describe()}", error="invalid_cube")
+    elif header.dtype.newbyteorder("=") not in [np.dtype(d) for d in ACCEPTED_DTYPES[expected.kind]]:
         try:  # radar.input_kind's rule: a real-valued cube says what it holds
             resolve_kind(header.dtype, expected.kind, flag="?input={}")
             hint = ""
@@ -187,7 +196,7 @@ def check_header(header: NpyHeader, expected: ExpectedCube, content_length: int 
             hint = f" ({exc})"
         raise ApiError(422, f"cube has dtype {header.dtype.name}, model {expected.model!r} expects "
                             f"{expected.describe()}{hint}", error="invalid_cube")
-    if header.shape != expected.shape:
+    elif header.shape != expected.shape:
         axes = "(samples, chirps, virtual elements)" if expected.kind is InputKind.adc else "(range, angle, Doppler)"
         raise ApiError(422, f"cube has shape {header.shape}, model {expected.model!r} expects {expected.shape} "
                             f"{axes}", error="invalid_cube")
@@ -279,6 +288,8 @@ async def read_cube(chunks: AsyncIterator[bytes], expected: ExpectedCube, *, con
         raise ApiError(400, f"body ends after {filled} of the {data.size} data bytes its .npy header announces",
                        error="malformed_npy")
     cube = data.view(header.dtype).reshape(header.shape, order="F" if header.fortran_order else "C")
+    if expected.adc is not None:  # the model takes complex samples in the "sck" layout
+        cube = expected.adc.to_sck(cube, expected.adc.layout_of(header))
     check_values(cube, expected)
     if not cube.dtype.isnative:
         cube = cube.astype(cube.dtype.newbyteorder("="))

@@ -6,7 +6,7 @@ import time
 import uuid
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import numpy as np
 from fastapi import APIRouter, Header, Query, Request, Response
@@ -19,6 +19,8 @@ from models.erasenet.model import SegmentationResult
 from radar.adc import adc_shape
 from radar.input_kind import SCHEMA_CONTENT
 from radar.schema import SchemaMismatch, check_schema
+from service.adc_upload import AdcFrameInput
+from service.capture_upload import read_capture_body
 from service.deps import Caller, ServiceState, State
 from service.encoding import encode_array
 from service.errors import ApiError
@@ -208,6 +210,15 @@ async def segment(
     cube_schema: Annotated[str | None, Header(alias="X-Cube-Schema", max_length=8192,
                                               description="the cube's radar.schema description (JSON); a "
                                                           "mismatch with the model's is a 422 naming it")] = None,
+    layout: Annotated[Literal["sck", "ti"] | None, Query(
+        description="?input=adc: the frame's layout, sck (samples, chirps, virtual elements) or ti (chirps, rx, "
+                    "samples); by its shape if omitted")] = None,
+    body_format: Annotated[Literal["npy", "dca1000"], Query(
+        alias="format", description="the body: npy (a .npy array), or with ?input=adc dca1000 (a DCA1000 capture's "
+                                    "bytes, adc_data.bin, read with the model's radar profile)")] = "npy",
+    frame: Annotated[int, Query(ge=0, le=2**31, description="?format=dca1000: the capture's frame to segment, "
+                                                            "from 0 (the answer's X-Capture-Frames says how many "
+                                                            "it holds)")] = 0,
 ) -> Response:
     """Objects, RA/RD masks and optionally the labelled RAD voxels of one cube, with the request's MACs per
     stage, parameters, latency per stage, ROI voxels and visited points (also in ``X-Compute-*`` and
@@ -217,14 +228,24 @@ async def segment(
     cannot cover the request (429), before the body is read. The body is read next (a slow upload holds no model
     slot), then the request takes a model slot and a lease on the tenant's quota, runs, and is billed; the lease is
     given back on any other way out."""
-    admitted = await admit(request, state, caller, model, input_kind, outputs, cube_schema)
-    cube, decode_s = await read_body(request, state, caller, admitted)
+    capture = body_format == "dca1000"
+    admitted = await admit(request, state, caller, model, input_kind, outputs, cube_schema, layout=layout,
+                           capture=capture)
+    if capture:
+        taken, decode_s = await read_capture_body(request, state.uploads, state.settings, caller.tenant,
+                                                  admitted.expected, admitted.content_length, frame)
+        cube = taken.adc
+    else:
+        cube, decode_s = await read_body(request, state, caller, admitted)
     billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding)
     net = admitted.served.net
     body = SegmentResponse(request_id=billed.request_id, model=admitted.name, preset=net.profile.name,
                            shape=list(net.profile.shape), class_names=list(net.class_names), views=billed.views,
                            compute=billed.compute, usage=billed.usage)
-    return await respond(body, billed, admitted, encoding, state, caller)
+    response = await respond(body, billed, admitted, encoding, state, caller)
+    if capture:
+        response.headers.update({"X-Capture-Frames": str(taken.frames), "X-Capture-Frame": str(taken.index)})
+    return response
 
 
 @dataclass
@@ -253,9 +274,14 @@ class Billed:
 
 
 async def admit(request: Request, state: ServiceState, caller: Principal, model: str | None, input_kind: InputKind,
-                outputs: str, cube_schema: str | None) -> Admitted:
+                outputs: str, cube_schema: str | None, *, layout: str | None = None,
+                capture: bool = False) -> Admitted:
     """Every check made before the body is read: outputs, content type and length, the model (ready, ledger up),
-    the cube schema, a length no cube of the model can have (413) and the tenant's quota (429)."""
+    the cube schema, a length no cube of the model can have (413) and the tenant's quota (429). ``layout``: an ADC
+    frame's layout (None: by shape); ``capture``: the body is a DCA1000 capture (?input=adc only)."""
+    if (capture or layout is not None) and input_kind is not InputKind.adc:
+        raise ApiError(422, f"?{'format=dca1000' if capture else 'layout='} is for ADC samples: send them with "
+                            f"?input=adc, not ?input={input_kind.value}", error="invalid_parameters")
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
     content_length = _content_length(request)
@@ -264,8 +290,10 @@ async def admit(request: Request, state: ServiceState, caller: Principal, model:
         _check_cube_schema(cube_schema, served, input_kind, state.settings.max_json_depth)
     profile = served.net.profile
     accepted = {kind: ExpectedCube(served.spec.name, adc_shape(profile) if kind is InputKind.adc else profile.shape,
-                                   kind) for kind in InputKind}
-    check_declared_length(content_length, list(accepted.values()))
+                                   kind, AdcFrameInput(profile, layout) if kind is InputKind.adc else None)
+                for kind in InputKind}
+    if not capture:  # a capture of several frames is bounded by max_body_bytes alone
+        check_declared_length(content_length, list(accepted.values()))
     await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
     return Admitted(chosen, served, accepted[input_kind], content_length)
 
