@@ -1,5 +1,5 @@
 """The Open Inference Protocol's infer against POST /v1/segment on the same cubes, at concurrency 1: a real
-``python -m service.server`` (uvicorn) on loopback with the shipped ``small`` pair and its default SQLite ledger; one
+``python -m service`` (uvicorn) on loopback with the shipped ``small`` pair and its default SQLite ledger; one
 client, requests alternating between the routes frame by frame (side by side, so the machine's load hits both alike).
 
 ``/v1/segment`` gets the .npy complex cube and answers its default outputs (objects, RLE masks); the V2 route gets the
@@ -31,7 +31,7 @@ from benchmarks.recording_export import machine
 from pipelines.demo.serve_process import free_port, stop_process, wait_ready
 from radar.simulate import simulate_sequence
 from radar.transforms import log_power
-from service.server import server_command
+from service.http_server import server_command
 
 RESULTS = Path(__file__).resolve().parent / "results" / "open_inference.json"
 MODEL = "small"  # the first model the default settings serve (the shipped pair)

@@ -7,7 +7,7 @@ Ray is embedded (local, 2 CPUs) and started once. Models: the shipped checkpoint
 present, else tiny random-weight checkpoints of the ``small`` preset (score threshold 0 and 8 detections per
 frame, so that region growing and the segmenter do real work). Batch segmentation reads a ``small`` store
 built in-process from the simulator; every segmenter actor loads and warms its model before the clock
-starts. Serve: ``service.serve_app.RadarsegService`` with 1, then 2 replicas (1 CPU and 1 torch thread each,
+starts. Serve: ``service.ray_serve.RadarsegService`` with 1, then 2 replicas (1 CPU and 1 torch thread each,
 one SQLite ledger), warmed up, then ``--requests`` cubes posted by 4 client threads. Configurations
 alternate over ``--rounds`` rounds and the best round of each is reported with every round kept.
 Our machines have 2 cores shared with other work: the 1-minute load average is recorded beside each
@@ -98,7 +98,7 @@ def batch_run(store: Path, out: Path, ckpt: dict, workers: int) -> dict:
 def serve_run(url: str, ckpt: dict, replicas: int, body: bytes, requests: int, ledger_dir: Path) -> dict:
     from ray import serve
 
-    from service.serve_app import RadarsegService
+    from service.ray_serve import RadarsegService
 
     settings = {"models": [{"name": "bench", "detector": ckpt["detector"], "segmenter": ckpt["segmenter"],
                             "score_threshold": ckpt["score_threshold"], "max_objects": ckpt["max_objects"]}],

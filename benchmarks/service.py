@@ -1,4 +1,4 @@
-"""The HTTP service under load: a real ``python -m service.server`` (uvicorn) on loopback.
+"""The HTTP service under load: a real ``python -m service`` (uvicorn) on loopback.
 
 Three parts, each written into benchmarks/results/service.json with the load average it ran under (a part not
 run keeps its previous figures):
@@ -14,7 +14,7 @@ run keeps its previous figures):
 - ``slow_clients``: normal clients alone (the idle p95), then the same clients while 16 clients
   upload at 1 KB/s (each reconnects when cut off with 408): the share of normal requests answered 200 and their
   p95 against the idle p95. Goal: >= 95 % and <= 2x.
-- ``startup``: a fresh ``python -m service.server`` with the default models: seconds from the start of
+- ``startup``: a fresh ``python -m service`` with the default models: seconds from the start of
   the process to the first ``/healthz`` 200 and to ``/readyz`` 200, and the stages its log reports (importing
   the service, each model's load and warm-up). Goals: ``/healthz`` within 2 s; ready in <= 10 s on an idle machine.
 - ``fairness``: two tenants; one holds 10 uploads that send nothing (reopening each when answered),
@@ -53,7 +53,7 @@ import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipelines.demo.serve_process import free_port, stop_process, wait_ready  # noqa: E402
-from service.server import server_command  # noqa: E402
+from service.http_server import server_command  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "service.json"

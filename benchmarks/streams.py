@@ -1,4 +1,4 @@
-"""A stream's frame against /v1/segment on the same cubes: a real ``python -m service.server`` (uvicorn) on loopback
+"""A stream's frame against /v1/segment on the same cubes: a real ``python -m service`` (uvicorn) on loopback
 with the shipped ``small`` pair and its default SQLite ledger; one client, requests alternating between the two
 routes frame by frame (side by side, so the machine's load hits both alike).
 
@@ -25,7 +25,7 @@ import numpy as np
 
 from pipelines.demo.serve_process import free_port, stop_process, wait_ready
 from radar.simulate import simulate_sequence
-from service.server import server_command
+from service.http_server import server_command
 
 RESULTS = Path(__file__).resolve().parent / "results" / "streams.json"
 NPY = {"content-type": "application/x-npy"}

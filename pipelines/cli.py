@@ -238,12 +238,12 @@ def _served_model(args: argparse.Namespace) -> dict[str, str]:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    """Become ``python -m service.server`` (same pid, so whoever started us stops the server by it): the service's
+    """Become ``python -m service`` (same pid, so whoever started us stops the server by it): the service's
     own runner binds the port before the models load and bounds request heads. By module name, so that pipelines
     never imports the service; its settings (RADARSEG_*) and their defaults are the service's."""
     import os
 
-    argv = [sys.executable, "-m", "service.server", "--log-level", args.log_level]
+    argv = [sys.executable, "-m", "service", "--log-level", args.log_level]
     argv += [f"--{name}={getattr(args, name)}" for name in ("host", "port") if getattr(args, name) is not None]
     if (args.detector is None) != (args.segmenter is None):
         raise UserError("--detector and --segmenter go together (one served model), or neither (RADARSEG_MODELS)")

@@ -1,4 +1,4 @@
-"""The ``error`` field of each HTTP status the service answers with (its own module: ``service.server`` answers
+"""The ``error`` field of each HTTP status the service answers with (its own module: ``service.http_server`` answers
 refusals with it before the app, and FastAPI, have been imported)."""
 
 ERROR_TYPES = {

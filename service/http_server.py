@@ -1,4 +1,5 @@
-"""Run the service under uvicorn with the HTTP limits of its settings: ``python -m service.server``.
+"""The service under uvicorn with the HTTP limits of its settings: what ``python -m service`` (and
+``radarseg serve``) runs.
 
 What an ASGI app cannot do itself, because it happens before a request reaches it, is done here:
 
@@ -44,6 +45,7 @@ import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
 from service.error_types import ERROR_TYPES
+from service.public_text import EscapeControlCharacters
 from service.settings import Settings
 from service.starting_app import StartingApp
 
@@ -342,8 +344,8 @@ def bind(host: str, port: int) -> socket.socket:
 
 
 def server_command(port: int, log_level: str = "warning") -> list[str]:
-    """``python -m service.server`` on ``port`` with this interpreter (settings from RADARSEG_*)."""
-    return [sys.executable, "-m", "service.server", "--port", str(port), "--log-level", log_level]
+    """``python -m service`` on ``port`` with this interpreter (settings from RADARSEG_*)."""
+    return [sys.executable, "-m", "service", "--port", str(port), "--log-level", log_level]
 
 
 def serve(settings: Settings, *, log_level: str = "info") -> None:
@@ -370,13 +372,15 @@ def serve(settings: Settings, *, log_level: str = "info") -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service.server", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m service", description=__doc__.split("\n")[0])
     parser.add_argument("--host", help="bind address (default 127.0.0.1, or RADARSEG_HOST)")
     parser.add_argument("--port", type=int, help="port (default 8000, or RADARSEG_PORT)")
     parser.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"])
     args = parser.parse_args(argv)
     overrides = {name: getattr(args, name) for name in ("host", "port") if getattr(args, name) is not None}
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:  # names from radars and checkpoints cannot forge a log line
+        handler.addFilter(EscapeControlCharacters())
     try:
         serve(Settings(**overrides), log_level=args.log_level)
     except PortInUse as exc:
@@ -384,6 +388,3 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     return 0
 
-
-if __name__ == "__main__":
-    sys.exit(main())

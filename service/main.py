@@ -1,10 +1,12 @@
 """The app factory: ``create_app(settings)`` builds a FastAPI app that owns its model pool, usage
-ledger and metrics registry. ``uvicorn --factory service.main:create_app`` (or ``radarseg serve``) runs it.
+ledger and metrics registry. ``python -m service`` (``radarseg serve``) runs it behind the HTTP limits of the
+settings (``service.http_server``), ``uvicorn --factory service.main:create_app`` plainly, and Ray Serve through
+:func:`build_app`.
 
 Models load and the ledger opens in the lifespan, so importing this module does no work; when a
 checkpoint is missing or the database is unreachable the app still starts: ``/healthz`` answers 200,
 ``/readyz`` and ``/v1/segment`` answer 503 with the reason. At start-up, quota leases left expired by a
-process that died are given back. ``python -m service.server`` runs the app with the HTTP limits of the
+process that died are given back. ``python -m service`` runs the app with the HTTP limits of the
 settings (head size, count and time, connections, port checked before the models load), answering while the
 service imports and loading the models in the background (``create_app(..., load_in_background=True)``).
 """
@@ -155,3 +157,14 @@ def _document_errors_as_sent(app: FastAPI) -> None:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+DEPLOYMENT_NAME = "radarseg"  # the Ray Serve deployment of the app (service.ray_serve)
+
+
+def build_app(args: dict[str, Any]) -> Any:
+    """Ray Serve's application builder (``import_path: service.main:build_app`` in deploy/serve.yaml): the app of
+    :func:`create_app` in each replica, with ``args["settings"]`` overriding the ``RADARSEG_*`` environment (Ray is
+    imported only here)."""
+    from service.ray_serve import build_app as build
+
+    return build(args)

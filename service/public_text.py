@@ -5,6 +5,7 @@ a header)."""
 
 from __future__ import annotations
 
+import logging
 import re
 
 ABSOLUTE_PATH = re.compile(r"(?<![\w.~-])/(?:[^\s'\"/:,;()\[\]]+/)+(?=[^\s'\"/:,;()\[\]]+)")
@@ -19,3 +20,14 @@ def without_directories(text: str) -> str:
 def printable(text: str) -> str:
     """``text`` with control characters (CR, LF, ESC, ...) escaped as ``\\xNN`` / ``\\uNNNN``: safe in one log line."""
     return CONTROL.sub(lambda m: m.group().encode("unicode_escape").decode("ascii"), text)
+
+
+class EscapeControlCharacters(logging.Filter):
+    """A log handler's filter: each record's message with its control characters escaped (:func:`printable`), so a
+    CR/LF in a name it quotes stays inside its line."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        message = record.getMessage()
+        if CONTROL.search(message):
+            record.msg, record.args = printable(message), None
+        return True

@@ -6,6 +6,8 @@
     serve run deploy/serve.yaml                                     # a local Ray, or RAY_ADDRESS's cluster
     serve deploy deploy/serve.yaml --address http://127.0.0.1:8265  # onto a running cluster
 
+(``import_path: service.main:build_app``, beside the app factory, imports this module when Serve calls it.)
+
 Each replica is a Ray actor that builds its own app in the replica (``__serve_build_asgi_app__``, called
 once after ``__init__``), so its lifespan loads the models once per replica and opens the usage ledger;
 the routes, errors, metrics, keys and quotas are exactly those of the uvicorn service. Settings come
@@ -28,10 +30,8 @@ from fastapi import FastAPI
 from ray import serve
 from ray.serve import Application
 
-from service.main import create_app
+from service.main import DEPLOYMENT_NAME, create_app
 from service.settings import Settings
-
-DEPLOYMENT_NAME = "radarseg"
 
 
 @serve.deployment(name=DEPLOYMENT_NAME, max_ongoing_requests=2, ray_actor_options={"num_cpus": 1})
@@ -48,8 +48,8 @@ class RadarsegService:
 
 
 def build_app(args: dict[str, Any]) -> Application:
-    """Application builder for ``import_path: service.serve_app:build_app`` (``args`` from the Serve
-    config): ``settings`` is a mapping of Settings fields that override the ``RADARSEG_*`` environment."""
+    """Application builder (``service.main.build_app``; ``args`` from the Serve config): ``settings`` is a mapping
+    of Settings fields that override the ``RADARSEG_*`` environment."""
     unknown = set(args) - {"settings"}
     if unknown:
         raise ValueError(f"unknown application arguments {sorted(unknown)}; expected only 'settings'")
@@ -58,5 +58,3 @@ def build_app(args: dict[str, Any]) -> Application:
         raise ValueError(f"'settings' must be a mapping of service settings, got {type(settings).__name__}")
     return RadarsegService.bind(settings)
 
-
-app = RadarsegService.bind()  # ``import_path: service.serve_app:app``: settings from the environment only

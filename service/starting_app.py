@@ -1,4 +1,4 @@
-"""The ASGI app ``python -m service.server`` runs: it answers at once and becomes the service's app once that is
+"""The ASGI app ``python -m service`` runs: it answers at once and becomes the service's app once that is
 built, so that the port answers within seconds of the start instead of after every import and model.
 
 Importing the service (torch, the models) takes seconds and loading the models tens of seconds. Until the app is

@@ -300,7 +300,8 @@ def test_serve_config_validates_and_points_at_the_service():
 
 def test_serve_application_builder_checks_its_arguments():
     pytest.importorskip("ray.serve", reason=SERVE_MISSING)
-    from service.serve_app import RadarsegService, build_app
+    from service.main import build_app
+    from service.ray_serve import RadarsegService
 
     assert build_app({"settings": {"max_queue": 3}}) is not None
     with pytest.raises(ValueError, match="unknown application arguments"):
@@ -315,7 +316,7 @@ def test_every_module_the_deploy_docs_name_imports():
     text = "\n".join(p.read_text() for p in (DEPLOY / "README.md", COMPOSE, DEPLOY / "serve.yaml"))
     modules = set(re.findall(r"python -m ((?:pipelines|service)(?:\.\w+)+)", text))
     modules |= {m.split(":")[0] for m in re.findall(r"\b(service\.\w+:\w+)", text)}
-    assert {"pipelines.datasets.preprocess", "pipelines.inference.segment_batch", "service.serve_app"} <= modules
+    assert {"pipelines.datasets.preprocess", "pipelines.inference.segment_batch", "service.main"} <= modules
     for name in modules:
         assert importlib.util.find_spec(name) is not None, name
     parser = argparse.ArgumentParser()

@@ -125,9 +125,9 @@ def Server(env: dict[str, str], log_path: Path) -> ApiProcess:  # noqa: N802 (re
 
 def GuardedServer(env: dict[str, str], log_path: Path, port: int | None = None,  # noqa: N802
                   log_level: str = "warning") -> ApiProcess:
-    """A ``python -m service.server`` process on loopback (a free port unless given): the app under uvicorn with
+    """A ``python -m service`` process on loopback (a free port unless given): the app under uvicorn with
     the settings' HTTP limits (head size and count, port bound before the models load)."""
-    from service.server import server_command
+    from service.http_server import server_command
 
     port = port or free_port()
     return ApiProcess(server_command(port, log_level), port, env, log_path)

@@ -1,4 +1,4 @@
-"""The service under abuse, against real ``python -m service.server`` processes on loopback: slow
+"""The service under abuse, against real ``python -m service`` processes on loopback: slow
 uploaders, hostile heads and bodies, malformed HTTP, ambiguous credentials, the metrics' visibility, offline docs,
 a busy port, kill -9 mid-request, and a bounded schemathesis run. Counts and waits are bounded; nothing asserts a
 time."""

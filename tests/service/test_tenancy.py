@@ -1,4 +1,4 @@
-"""The service between tenants, against one real ``python -m service.server`` on loopback with small
+"""The service between tenants, against one real ``python -m service`` on loopback with small
 limits: a fast start, header and cube value bounds, security headers, fair uploads, quotas that one tenant's cubes
 or in-flight requests cannot turn against another, and connections that make no progress closed. Counts are small
 and waits bounded by the 1-2 s limits set here; nothing asserts a time."""
