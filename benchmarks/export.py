@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint, load_checkpoint, load_pair
 from models.erasenet.model import STEPS, EraseNet
 from models.export.export_cache import exported_dir
 from models.export.onnx_engine import OnnxEraseNet
@@ -141,9 +141,9 @@ def bench_preset(preset: str, n_frames: int, repeats: int, cache: Path) -> dict[
 def agreement(pair: tuple[Path, Path], n_frames: int, cache: Path) -> dict[str, object]:
     """Both engines on ``n_frames`` fresh frames of the pair's preset: label agreement on the ROI voxels, frames
     whose objects (class, voxels) are identical, the largest logit difference on the ROI points."""
-    det, seg = (load_checkpoint(p) for p in pair)
+    det, seg = load_pair(*pair)
     reference = EraseNet.from_checkpoints(det, seg)
-    onnx = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=exported_dir(*pair, root=cache))
+    onnx = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=exported_dir(det, seg, root=cache))
     fractions, same_objects, logit_diff, voxels = [], 0, 0.0, 0
     for frame in simulate_sequence(reference.profile.name, n_frames, seed=4848):
         expected, got = reference.segment(frame.cube), onnx.segment(frame.cube)

@@ -27,12 +27,15 @@ def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Che
     Raises:
         ValueError: an engine not in :data:`ENGINES`.
     """
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    from models.checkpoint import load_pair
+
+    detector, segmenter = load_pair(detector, segmenter)  # the boundary: Checkpoints below
     if engine == "torch":
         from models.erasenet.model import EraseNet
 
         return EraseNet.from_checkpoints(detector, segmenter, **kwargs)
-    if engine in ("onnx", "onnx-int8"):
-        from models.export.export_cache import onnx_erasenet
+    from models.export.export_cache import onnx_erasenet
 
-        return onnx_erasenet(detector, segmenter, int8=engine == "onnx-int8", **kwargs)
-    raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
+    return onnx_erasenet(detector, segmenter, int8=engine == "onnx-int8", **kwargs)

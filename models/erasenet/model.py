@@ -20,8 +20,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.capabilities import Stage
-from models.checkpoint import Checkpoint, CheckpointError, expect_stage, load_checkpoint
+from models.checkpoint import Checkpoint, load_pair
 from models.compute import ComputeCounter, MacRecorder, count_params, counted_layers
 from models.detector.inference import FrozenDetector
 from models.erasenet.compute_report import STEPS, FrameCompute
@@ -148,7 +147,7 @@ class EraseNet:
         """Both stages from checkpoints that carry their own architecture; the detector's checkpoint
         gives the preset, class names and input normalisation. A swapped pair, the same file twice or a
         checkpoint of another stage raises CheckpointError naming what was given and what was expected."""
-        det, seg = cls.load_pair(detector, segmenter)
+        det, seg = load_pair(detector, segmenter)
         if det.preset != seg.preset:
             raise UserError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
         # A radar described by a file travels in the checkpoint (extra["radar_file"], its file form).
@@ -159,24 +158,6 @@ class EraseNet:
         return cls(det.build(), seg.build(), profile, class_names=det.class_names,
                    mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
                    device=device, **kwargs)
-
-    @staticmethod
-    def load_pair(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint
-                  ) -> tuple[Checkpoint, Checkpoint]:
-        """The two checkpoints, checked to be a detector and a segmenter (CheckpointError naming a swapped pair,
-        the same file twice, or a checkpoint of another stage). Cheap: nothing is built."""
-        if not isinstance(detector, Checkpoint) and not isinstance(segmenter, Checkpoint):
-            if Path(detector).resolve() == Path(segmenter).resolve():
-                raise CheckpointError(f"the same file {detector} given as detector and as segmenter; expected a "
-                                      f"detector checkpoint and a segmenter checkpoint")
-        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector, option="detector")
-        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter, option="segmenter")
-        if det.stage == "segmenter" and seg.stage == "detector":
-            raise CheckpointError(f"detector {det.source or ''} and segmenter {seg.source or ''} are swapped: "
-                                  f"{det.describe()} given as detector, {seg.describe()} as segmenter")
-        expect_stage(det, Stage.DETECTOR, option="detector")
-        expect_stage(seg, Stage.SEGMENTER, option="segmenter")
-        return det, seg
 
     @property
     def history_frames(self) -> int:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint
 from models.export import quantize
 from models.export.onnx_engine import OnnxEraseNet
 from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
@@ -99,7 +99,7 @@ def cache_root() -> Path:
     return Path(configured).expanduser() if configured else Path.home() / ".cache" / "radarseg" / "onnx"
 
 
-def exported_dir(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint,
+def exported_dir(detector: Checkpoint, segmenter: Checkpoint,
                  root: Path | None = None, *, int8: Int8Calibration | None = None) -> Path:
     """The export of this checkpoint pair, made now if the cache does not hold it yet.
 
@@ -174,20 +174,18 @@ class Int8Calibration:
         return cls(tuple(cubes), description, tuple(quantize.METHODS if methods is None else methods))
 
 
-def onnx_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *, int8: bool = False,
+def onnx_erasenet(detector: Checkpoint, segmenter: Checkpoint, *, int8: bool = False,
                   calibration: Int8Calibration | None = None, onnx_dir: str | Path | None = None,
                   **kwargs: Any) -> OnnxEraseNet:
     """The ONNX engine on the cached export of these checkpoints (exported now if never before), or on the export
     in ``onnx_dir``. ``int8``: the quantised graphs, calibrated on ``calibration`` (default:
     :meth:`Int8Calibration.simulated` frames of the checkpoints' preset) and on the ROI this model's own seeds give
     (``score_threshold``, ``max_objects``)."""
-    det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
-    seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
     if onnx_dir is not None:
-        return OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=onnx_dir, int8=int8, **kwargs)
+        return OnnxEraseNet.from_checkpoints(detector, segmenter, onnx_dir=onnx_dir, int8=int8, **kwargs)
     if int8:
-        calibration = calibration or Int8Calibration.simulated(det.profile)
+        calibration = calibration or Int8Calibration.simulated(detector.profile)
         seeds = {k: kwargs[k] for k in ("score_threshold", "max_objects") if k in kwargs}
         calibration = calibration.with_pipeline(**seeds)
     onnx_dir = exported_dir(detector, segmenter, int8=calibration if int8 else None)
-    return OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=onnx_dir, int8=int8, **kwargs)
+    return OnnxEraseNet.from_checkpoints(detector, segmenter, onnx_dir=onnx_dir, int8=int8, **kwargs)

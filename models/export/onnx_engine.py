@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint
 from models.erasenet.model import EraseNet
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import segmenter_macs
@@ -117,14 +117,12 @@ class OnnxEraseNet(EraseNet):
         return 0
 
     @classmethod
-    def from_checkpoints(cls, detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *,
+    def from_checkpoints(cls, detector: Checkpoint, segmenter: Checkpoint, *,
                          onnx_dir: str | Path, int8: bool = False, **kwargs: Any) -> OnnxEraseNet:
         """Both stages from checkpoints, run from the export in ``onnx_dir`` (``models.export.export_cache`` makes
         and caches exports: :func:`models.export.export_cache.onnx_erasenet`). ``int8``: the export must hold the
         quantised graphs (ValueError otherwise, and for a float export asked as int8)."""
-        det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
-        seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
-        net = super().from_checkpoints(det, seg, onnx_dir=onnx_dir, **kwargs)
+        net = super().from_checkpoints(detector, segmenter, onnx_dir=onnx_dir, **kwargs)
         if (net.precision == "int8") != int8:
             raise ValueError(f"{onnx_dir}: a {net.precision} export, but {'int8' if int8 else 'float32'} graphs "
                              "were asked for")

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint
 from models.compute import ComputeCounter, count_params
 from models.detector.inference import fold_batch_norms
 from models.export.kernel_maps_numpy import input_names as map_input_names
@@ -162,22 +162,15 @@ def export_segmenter(segmenter: nn.Module, profile: RadarProfile, path: Path, *,
     return [cost.to_dict() for cost in graph.net.layer_costs()]
 
 
-def checkpoint_digest(checkpoint: str | Path | Checkpoint) -> str:
-    """sha256 of a checkpoint file (or of a checkpoint object's serialised form)."""
-    digest = hashlib.sha256()
-    if isinstance(checkpoint, Checkpoint):
-        buffer = io.BytesIO()
-        torch.save(checkpoint.to_dict(), buffer)
-        digest.update(buffer.getvalue())
-        return digest.hexdigest()
-    with Path(checkpoint).open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+def checkpoint_digest(checkpoint: Checkpoint) -> str:
+    """sha256 of a checkpoint's serialised form (what :func:`models.checkpoint.save_checkpoint` writes): the same for
+    the object and for the file it was loaded from or is saved to."""
+    buffer = io.BytesIO()
+    torch.save(checkpoint.to_dict(), buffer)
+    return hashlib.sha256(buffer.getvalue()).hexdigest()
 
 
-def export_onnx(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint,
-                out: str | Path) -> dict[str, Any]:
+def export_onnx(detector: Checkpoint, segmenter: Checkpoint, out: str | Path) -> dict[str, Any]:
     """Export both stages into ``out`` (``detector.onnx``, ``segmenter.onnx``, ``manifest.json``).
 
     Returns:
@@ -190,8 +183,7 @@ def export_onnx(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     import onnx
     import onnxruntime
 
-    det = detector if isinstance(detector, Checkpoint) else load_checkpoint(detector)
-    seg = segmenter if isinstance(segmenter, Checkpoint) else load_checkpoint(segmenter)
+    det, seg = detector, segmenter
     if det.preset != seg.preset:
         raise ValueError(f"detector is for preset {det.preset!r} but segmenter for {seg.preset!r}")
     profile = det.profile

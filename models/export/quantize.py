@@ -247,7 +247,7 @@ def roi_label_agreement(float_labels: Sequence[np.ndarray], int8_labels: Sequenc
     return same / total if total else 1.0
 
 
-def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, out: str | Path, *,
+def export_int8(detector: Checkpoint, segmenter: Checkpoint, out: str | Path, *,
                 cubes: Sequence[np.ndarray], calibration: dict[str, Any], methods: Sequence[str] = METHODS,
                 float_dir: str | Path | None = None, pipeline: dict[str, Any] | None = None,
                 int8_detector: bool | None = None) -> dict[str, Any]:
@@ -267,12 +267,11 @@ def export_int8(detector: str | Path | Checkpoint, segmenter: str | Path | Check
     Returns:
         The manifest (written last: a directory with a manifest is complete).
     """
-    from models.erasenet.model import EraseNet
     from models.export.onnx_export import export_onnx
 
     if not methods:
         raise ValueError("give at least one calibration method")
-    det, seg = EraseNet.load_pair(detector, segmenter)
+    det, seg = detector, segmenter
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "manifest.json").unlink(missing_ok=True)

@@ -47,7 +47,7 @@ import torch
 from torch import nn
 
 from models.capabilities import Stage, dense_input_shapes
-from models.checkpoint import Checkpoint, load_checkpoint
+from models.checkpoint import Checkpoint, load_checkpoint, load_pair
 from models.compute import count_macs, count_params
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
@@ -169,10 +169,8 @@ class Prediction:
     macs_paper: float
 
 
-def _check_checkpoint(checkpoint: Checkpoint, path: str, stage: Stage, preset: str, class_names: Sequence[str]) -> None:
-    found = checkpoint.stage
-    if found != stage:
-        raise UserError(f"{path}: expected a {stage} checkpoint, found stage {found!r} ({checkpoint.model_name})")
+def _check_checkpoint(checkpoint: Checkpoint, path: str, preset: str, class_names: Sequence[str]) -> None:
+    """UserError unless the checkpoint (its stage checked where it was loaded) is for the store's radar and classes."""
     if checkpoint.preset != preset:
         raise UserError(f"{path}: the model is for preset {checkpoint.preset!r}, the store is {preset!r}")
     if tuple(checkpoint.class_names) != tuple(class_names):
@@ -190,16 +188,16 @@ class EraseNetPredictor:
         self.spec = spec
         kwargs = {} if score_threshold is None else {"score_threshold": score_threshold}
         if spec.kind is Entry.ERASENET:
-            det, seg = (load_checkpoint(p) for p in spec.checkpoints)
-            _check_checkpoint(det, spec.checkpoints[0], Stage.DETECTOR, preset, class_names)
-            _check_checkpoint(seg, spec.checkpoints[1], Stage.SEGMENTER, preset, class_names)
+            det, seg = load_pair(*spec.checkpoints)
+            _check_checkpoint(det, spec.checkpoints[0], preset, class_names)
+            _check_checkpoint(seg, spec.checkpoints[1], preset, class_names)
             self.net = load_erasenet(det, seg, device=device, **kwargs)
             r, a, d = self.net.profile.shape
             detector = count_macs(self.net.detector, (1, d, r, a))
             self.paper_extra = detector.macs_paper - detector.macs  # per frame, the detector always runs
         else:
-            seg = load_checkpoint(spec.checkpoints[0])
-            _check_checkpoint(seg, spec.checkpoints[0], Stage.SEGMENTER, preset, class_names)
+            seg = load_checkpoint(spec.checkpoints[0], stage=Stage.SEGMENTER)
+            _check_checkpoint(seg, spec.checkpoints[0], preset, class_names)
             profile = seg.profile
             # No detector: CFAR gives the centres of every frame.
             self.net = EraseNet(None, seg.build(), profile, class_names=seg.class_names,
@@ -237,7 +235,7 @@ class BaselinePredictor:
         self.models: list[tuple[nn.Module, ViewStats]] = []  # (network, its view scaling)
         for path in spec.checkpoints:
             model, checkpoint, stats = load_baseline(path, device=device)  # ValueError if not a baseline
-            _check_checkpoint(checkpoint, path, Stage.BASELINE, preset, class_names)
+            _check_checkpoint(checkpoint, path, preset, class_names)  # its stage checked by load_baseline
             self.models.append((model, stats))
         views = [view for model, _ in self.models for view in predicted_views(model)]
         if sorted(views) != ["ra", "rd"]:

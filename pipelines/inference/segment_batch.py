@@ -347,9 +347,10 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
     if cfg.engine == "onnx":  # export once here, not in every actor at once (they share this node's cache)
+        from models.checkpoint import load_pair
         from models.export.export_cache import exported_dir
 
-        exported_dir(cfg.detector, cfg.segmenter)
+        exported_dir(*load_pair(cfg.detector, cfg.segmenter))
     job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
                                  stage_args=(cfg.detector, cfg.segmenter),
                                  stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from models.checkpoint import load_pair
 from models.erasenet.engines import load_erasenet
 from models.export.export_cache import Int8Calibration, exported_dir
 from models.export.onnx_export import export_onnx, validate
@@ -23,9 +24,10 @@ def int8_export(tmp_path_factory):
     """(float dir, int8 dir) of the shipped pair, calibrated with MinMax on 4 simulated frames."""
     torch.set_num_threads(1)
     root = tmp_path_factory.mktemp("int8")
-    export_onnx(DETECTOR, SEGMENTER, root / "float")
+    detector, segmenter = load_pair(DETECTOR, SEGMENTER)
+    export_onnx(detector, segmenter, root / "float")
     cubes, description = simulated_calibration_frames("small", 4)
-    export_int8(DETECTOR, SEGMENTER, root / "int8", cubes=cubes, calibration=description, methods=("MinMax",),
+    export_int8(detector, segmenter, root / "int8", cubes=cubes, calibration=description, methods=("MinMax",),
                 float_dir=root / "float")
     return root / "float", root / "int8"
 
@@ -106,7 +108,7 @@ def test_roi_label_agreement_counts_voxels_labelled_by_either():
 
 
 def test_export_cache_keys_on_checkpoints_and_calibration(tiny_checkpoints, tmp_path):
-    det, seg = tiny_checkpoints
+    det, seg = load_pair(*tiny_checkpoints)
     cubes, description = simulated_calibration_frames("small", 2)
     seeds = {"score_threshold": 0.0, "max_objects": 1}  # the untrained tiny detector: its best cell
     first = Int8Calibration(tuple(cubes[:1]), description, ("MinMax",)).with_pipeline(**seeds)
@@ -117,4 +119,5 @@ def test_export_cache_keys_on_checkpoints_and_calibration(tiny_checkpoints, tmp_
     assert exported_dir(det, seg, tmp_path, int8=first.with_pipeline(score_threshold=0.0, max_objects=2)) != one
     plain = exported_dir(det, seg, tmp_path)
     assert plain not in (one,) and json.loads((plain / "manifest.json").read_text()).get("precision") is None
+    assert exported_dir(*load_pair(*tiny_checkpoints), tmp_path) == plain  # the files loaded again: the same key
     assert json.loads((one / "manifest.json").read_text())["precision"] == "int8"
