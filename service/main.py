@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -79,6 +80,7 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     (``/healthz`` 200, ``/readyz`` 503 ``loading`` with each model's stage, ``/v1/segment`` 503 not ready);
     otherwise start-up waits for them (the test client, Ray Serve replicas)."""
     settings = settings or Settings()
+    os.environ.update(settings.models_environment())  # what models.* read from the environment, from the settings
     ledger = Ledger(settings.resolved_ledger_url(), table_prefix=settings.ledger_table_prefix,
                     timeout_s=settings.ledger_timeout_s)
     metrics_ = ServiceMetrics()

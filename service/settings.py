@@ -17,7 +17,7 @@ import re
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
@@ -79,6 +79,16 @@ class Settings(BaseSettings):
     # torch intra-op threads of each replica's inference thread; None: OMP_NUM_THREADS if set, else the CPUs
     # divided among the replicas
     torch_threads: Annotated[int | None, Field(ge=1, le=256)] = None
+    # OpenMP's thread count as the environment gives it (OMP_NUM_THREADS, no prefix: Ray sets it to an actor's CPUs)
+    omp_num_threads: Annotated[int | None, Field(ge=1, le=4096, validation_alias=AliasChoices(
+        "omp_num_threads", "OMP_NUM_THREADS"))] = None
+    # What the models layer reads from the environment, declared here so that every setting of the service is in
+    # this object: the app exports the ones set (service.main) before any model loads. onnx_cache: where the onnx
+    # engines' exports are kept (default ~/.cache/radarseg/onnx); onnx_cache_key_file: the secret that seals them
+    # (default ~/.config/radarseg/onnx-cache.key); sparse_kernels: the sparse convolutions' kernels (models.sparse)
+    onnx_cache: Path | None = None
+    onnx_cache_key_file: Path | None = None
+    sparse_kernels: Annotated[str | None, Field(max_length=32)] = None
     # a complex128 carrada cube (256 x 256 x 64) and its header; the header check refuses other shapes early
     max_body_bytes: Annotated[int, Field(ge=1024, le=MAX_BODY_LIMIT)] = 64 * 2**20 + 65536
 
@@ -209,10 +219,15 @@ class Settings(BaseSettings):
     def inference_threads(self) -> int:
         """torch threads per replica: ``torch_threads``, else ``OMP_NUM_THREADS`` when set (Ray sets it to an
         actor's CPUs), else the CPUs shared among the replicas."""
-        omp = os.environ.get("OMP_NUM_THREADS", "")
-        if self.torch_threads is None and omp.isdigit() and int(omp) > 0:
-            return int(omp)
+        if self.torch_threads is None and self.omp_num_threads is not None:
+            return self.omp_num_threads
         return self.torch_threads or max(1, (os.cpu_count() or 1) // self.replicas)
+
+    def models_environment(self) -> dict[str, str]:
+        """The environment variables the models layer reads, as these settings give them (the ones set)."""
+        named = {"RADARSEG_ONNX_CACHE": self.onnx_cache, "RADARSEG_ONNX_CACHE_KEY_FILE": self.onnx_cache_key_file,
+                 "RADARSEG_SPARSE_KERNELS": self.sparse_kernels}
+        return {name: str(value) for name, value in named.items() if value is not None}
 
     @property
     def tenants(self) -> list[str]:
