@@ -33,8 +33,8 @@ import torch
 
 import models.sparse.tensor as sparse_tensor
 from models.erasenet.model import EraseNet
+from models.heap import freeze_loaded_heap
 from models.sparse import compiled
-from process.heap import freeze_loaded_heap
 from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 
 from models.erasenet.model import EraseNet
+from models.heap import freeze_loaded_heap
 from models.sparse import compiled
-from process.heap import freeze_loaded_heap
 from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]

@@ -28,8 +28,8 @@ import torch
 from models.detector.targets import build_centre_targets
 from models.registry import create_model
 from pipelines.datasets.preprocess import PreprocessConfig, main
-from pipelines.datasets.ray_runtime import init_ray
 from pipelines.datasets.store import CENTRE_COLUMNS, StoreDataset
+from pipelines.ray_runtime import init_ray
 
 RESULTS = Path(__file__).parent / "results" / "preprocess.json"
 

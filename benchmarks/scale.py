@@ -43,9 +43,9 @@ from models.checkpoint import Checkpoint, save_checkpoint  # noqa: E402
 from models.registry import create_model  # noqa: E402
 from pipelines.datasets.preprocess import PreprocessConfig  # noqa: E402
 from pipelines.datasets.preprocess import main as preprocess  # noqa: E402
-from pipelines.datasets.ray_runtime import init_ray  # noqa: E402
 from pipelines.demo.serve_process import free_port  # noqa: E402
 from pipelines.inference.segment_batch import SegmentBatchConfig, main  # noqa: E402
+from pipelines.ray_runtime import init_ray  # noqa: E402
 from radar.simulate import simulate_sequence  # noqa: E402
 from service.settings import DEFAULT_DETECTOR, DEFAULT_SEGMENTER, resolve_path  # noqa: E402
 

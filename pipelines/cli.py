@@ -497,7 +497,7 @@ def _add_model_commands(sub: Any) -> None:
     """upload-check, models, serve, demo."""
     upload = sub.add_parser("upload-check", help="what `ray job submit --working-dir DIR` would upload; a one-line "
                                                  "error over Ray's limit (HTTP 413) naming the largest files")
-    from pipelines.datasets import upload_check
+    from pipelines import upload_check
 
     upload_check.add_arguments(upload)
     upload.set_defaults(func=upload_check.run)

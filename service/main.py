@@ -25,7 +25,7 @@ from fastapi import Depends, FastAPI
 from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
-from process.heap import freeze_loaded_heap
+from models.heap import freeze_loaded_heap
 from service.billing import Billing
 from service.deps import ServiceState
 from service.errors import DeclaredBodyLimit, install_error_handlers

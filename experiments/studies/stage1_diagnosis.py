@@ -60,12 +60,12 @@ import torch
 from models.checkpoint import load_checkpoint
 from models.erasenet.detection import detect_centres
 from models.erasenet.model import EraseNet
+from models.heap import freeze_loaded_heap
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
 from pipelines.evaluation.evaluate import AP_SCORE_THRESHOLD
 from pipelines.evaluation.scoring import DetectionScorer
-from process.heap import freeze_loaded_heap
 from radar.detections import Centres
 from radar.input_kind import InputKind
 from radar.metrics import match_frame

@@ -18,7 +18,7 @@ hands the runner a :class:`ShardedJob`. The runner
 
 Every shard summary holds ``shard`` and ``frames`` (slots in the shard). Also here, shared by both jobs:
 the execution arguments. Elsewhere: what a stage reads and writes per shard (:mod:`pipelines.datasets.shard_frames`),
-the Ray start-up (:mod:`pipelines.datasets.ray_runtime`) and the code version (:mod:`pipelines.datasets.provenance`).
+the Ray start-up (:mod:`pipelines.ray_runtime`) and the code version (:mod:`pipelines.datasets.provenance`).
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ from pathlib import Path
 from typing import Any
 
 from pipelines.datasets.provenance import code_version
-from pipelines.datasets.ray_runtime import init_ray
 from pipelines.datasets.shard_frames import FrameSlot, ShardJob, SourceSpec
 from pipelines.datasets.sharded_store import SHARD_FRAMES, Sharded, done_shards, finish_store
 from pipelines.progress import progress
+from pipelines.ray_runtime import init_ray
 
 log = logging.getLogger(__name__)
 

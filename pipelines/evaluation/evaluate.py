@@ -40,6 +40,7 @@ from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
 from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
+from models.heap import freeze_loaded_heap
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import (
@@ -54,7 +55,6 @@ from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
 from pipelines.evaluation.tracking import TrackingTally
 from pipelines.jobs import run_module
 from pipelines.progress import progress
-from process.heap import freeze_loaded_heap
 from radar.detections import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT
 from radar.errors import UserError

@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from models.erasenet.engines import ENGINES
+from models.heap import freeze_loaded_heap
 from pipelines.datasets import shard_frames, sharded_job
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
@@ -60,7 +61,6 @@ from pipelines.inference.predictions_store import (
     encode_prediction,
 )
 from pipelines.jobs import run_module
-from process.heap import freeze_loaded_heap
 from radar import transforms
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError

@@ -30,10 +30,10 @@ from torch.utils.data import DataLoader, DistributedSampler
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.slimming.penalty import slimming_penalty
-from pipelines.datasets.ray_runtime import init_ray
 from pipelines.datasets.store import frames_of_split, open_store
 from pipelines.datasets.store_info import StoreInfo
 from pipelines.progress import progress
+from pipelines.ray_runtime import init_ray
 from pipelines.training.config import TrainConfig
 from pipelines.training.optim import make_optimizer, make_scheduler, resolve_device
 from pipelines.training.task import Task, unwrap

@@ -117,3 +117,22 @@ def test_a_frame_whose_claim_was_taken_writes_nothing_and_is_not_billed(make_set
     assert lost.status_code == 409 and lost.json()["error"] == "stream_claim_lost", lost.text
     _ledger_matches(client, answers)
     assert client.get(f"/v1/streams/{stream_id}").json()["last_seq"] == 5  # the other frame's write stands
+
+
+def test_too_many_streams_says_to_retry_when_the_first_stream_expires(make_settings, client_for):
+    client = client_for(make_settings(warmup=False, max_streams_per_tenant=1, stream_idle_s=120))
+    assert client.post("/v1/streams").status_code == 201
+    refused = client.post("/v1/streams")
+    assert refused.status_code == 429 and refused.json()["error"] == "too_many_streams"
+    assert 115 <= int(refused.headers["retry-after"]) <= 121, refused.headers  # not 1: a slot frees on expiry
+
+
+def test_log_lines_escape_the_control_characters_of_names(caplog):
+    import logging
+
+    from service.public_text import EscapeControlCharacters
+
+    record = logging.LogRecord("service", logging.INFO, __file__, 1, "model %s ready: preset %s", ("tiny",
+                               "lab\r\n2026-01-01 INFO forged"), None)
+    assert EscapeControlCharacters().filter(record)
+    assert record.getMessage() == "model tiny ready: preset lab\\r\\n2026-01-01 INFO forged"

@@ -17,10 +17,10 @@ import pytest
 
 from pipelines.cli import main as cli_main
 from pipelines.datasets.preprocess import PreprocessConfig, _split_by_fractions, main, plan_job, simulated_frames
-from pipelines.datasets.ray_runtime import init_ray
 from pipelines.datasets.sharded_store import done_shards
 from pipelines.datasets.store import array_checksums, open_store, summarise
 from pipelines.jobs import job_module, parse_config, run_module
+from pipelines.ray_runtime import init_ray
 from radar import transforms
 from radar.io.errors import DataError
 from radar.io.recording import Recording

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gc
 import weakref
 
-from process.heap import freeze_loaded_heap
+from models.heap import freeze_loaded_heap
 
 
 class _Node:
