@@ -1,0 +1,431 @@
+// Compiled CPU kernels of int8 sparse convolutions (models/sparse/int8.py builds and loads this file).
+//
+// Activations are unsigned 8-bit (N, C) rows (C a multiple of 4), weights signed 8-bit, accumulated exactly in
+// int32 over a kernel map's neighbour table (as sparse_conv.cpp's float kernels: `neighbours[j, k]` a row of the
+// gathered side, `src.size(0)` where missing):
+//
+//   neighbour_conv_int8(src (N, C) u8, neighbours (M, K), packed weight, ...) -> (M, D)
+//       acc[j] = sum_k (src[neighbours[j, k]] - zero_point) . weight[k]      (submanifold / strided)
+//   scatter_conv_int8(src (M, C) u8, neighbours (M, K), packed weight, num_out, ...) -> (num_out, D)
+//       acc[neighbours[j, k]] = (src[j] - zero_point) . weight[k]            (transposed; each output once)
+//
+// then the epilogue, in the loop that writes the rows: v = acc * scale[d] + bias[d] + residual[j, d] (a uint8
+// residual times its per-channel scale, or a float one), ReLU, and either float32 out or requantised to uint8
+// (q = clamp(rint(v / out_scale), 0, 255)).
+//
+// Micro-kernels (R rows x columns of int32 accumulators, the weight chunk kept in registers over the rows):
+// - AVX-512 VNNI: `vpdpbusd` multiplies 4 unsigned activation bytes by 4 signed weight bytes per int32 lane and
+//   adds them exactly (no intermediate saturation); 8 rows x up to 3 vectors of 16 lanes (+ one 8-lane vector
+//   through AVX512VL). Weights packed (K, C/4, Dp, 4) int8.
+// - AVX2: `vpmaddwd` on activations and weights widened to int16: pairs of u8 x s8 products summed into int32,
+//   exact (|255 * 127 * 2| fits int16 x int16 -> int32; `vpmaddubsw` would saturate its int16 pair sums);
+//   4 rows x up to 3 vectors of 8 lanes. Weights packed (K, C/2, Dp, 2) int16.
+// - anything else: plain C++ over the VNNI layout.
+// Output columns are padded to a multiple of 8 inside the kernels; blocks of 64 output rows run in parallel.
+
+#include <ATen/Parallel.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/zeros.h>
+#include <torch/csrc/utils/pybind.h>
+
+#include <immintrin.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <type_traits>
+#include <vector>
+
+namespace {
+
+constexpr int64_t kLanes = 8;
+constexpr int64_t kBlockRows = 64;
+constexpr int kMaxChunkVectors = 3;
+
+#if defined(__AVX512F__) && defined(__AVX512VNNI__) && defined(__AVX512VL__)
+#define RADARSEG_INT8_VNNI512 1
+constexpr const char* kPath = "avx512-vnni";
+constexpr int64_t kWide = 16;
+constexpr int kMaxRows = 8;
+constexpr int kGroup = 4;  // input channels per packed weight group
+typedef int8_t packed_t;
+#elif defined(__AVX2__)
+#define RADARSEG_INT8_AVX2 1
+constexpr const char* kPath = "avx2";
+constexpr int64_t kWide = 8;
+constexpr int kMaxRows = 4;
+constexpr int kGroup = 2;
+typedef int16_t packed_t;
+#else
+constexpr const char* kPath = "scalar";
+constexpr int64_t kWide = 8;
+constexpr int kMaxRows = 4;
+constexpr int kGroup = 4;
+typedef int8_t packed_t;
+#endif
+
+inline int64_t padded(int64_t d) { return (d + kLanes - 1) / kLanes * kLanes; }
+
+template <int N>
+using Count = std::integral_constant<int, N>;
+
+inline int32_t load_u32(const uint8_t* p) {
+  int32_t v;
+  std::memcpy(&v, p, sizeof(v));
+  return v;
+}
+
+// acc[r][d0:d0+columns] += src[r][0:C] . w[:, d0:...] for R rows; w is packed (C / kGroup, Dp, kGroup).
+template <int R, int NW, int NH>
+inline void rows_times_weight_chunk(const uint8_t* const* src, const packed_t* w, int64_t C, int64_t Dp, int64_t d0,
+                                    int32_t* const* dst) {
+#if defined(RADARSEG_INT8_VNNI512)
+  __m512i acc[R][NW > 0 ? NW : 1];
+  __m256i tail[R];
+  for (int r = 0; r < R; ++r) {
+    for (int v = 0; v < NW; ++v) acc[r][v] = _mm512_loadu_si512(dst[r] + d0 + v * kWide);
+    if (NH) tail[r] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(dst[r] + d0 + NW * kWide));
+  }
+  for (int64_t c = 0; c < C; c += 4) {
+    const packed_t* wc = w + (c / 4 * Dp + d0) * 4;
+    __m512i wv[NW > 0 ? NW : 1];
+    __m256i wt = _mm256_setzero_si256();
+    for (int v = 0; v < NW; ++v) wv[v] = _mm512_loadu_si512(wc + v * kWide * 4);
+    if (NH) wt = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(wc + NW * kWide * 4));
+    for (int r = 0; r < R; ++r) {
+      const int32_t x = load_u32(src[r] + c);
+      for (int v = 0; v < NW; ++v) acc[r][v] = _mm512_dpbusd_epi32(acc[r][v], _mm512_set1_epi32(x), wv[v]);
+      if (NH) tail[r] = _mm256_dpbusd_epi32(tail[r], _mm256_set1_epi32(x), wt);
+    }
+  }
+  for (int r = 0; r < R; ++r) {
+    for (int v = 0; v < NW; ++v) _mm512_storeu_si512(dst[r] + d0 + v * kWide, acc[r][v]);
+    if (NH) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + NW * kWide), tail[r]);
+  }
+#elif defined(RADARSEG_INT8_AVX2)
+  static_assert(NH == 0, "AVX2 chunks are whole 8-lane vectors");
+  __m256i acc[R][NW > 0 ? NW : 1];
+  for (int r = 0; r < R; ++r)
+    for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(dst[r] + d0 + v * 8));
+  for (int64_t c = 0; c < C; c += 2) {
+    const packed_t* wc = w + (c / 2 * Dp + d0) * 2;
+    __m256i wv[NW > 0 ? NW : 1];
+    for (int v = 0; v < NW; ++v) wv[v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(wc + v * 16));
+    for (int r = 0; r < R; ++r) {
+      // two activation bytes as an int16 pair, zero-extended (the bytes are unsigned)
+      const int32_t x = static_cast<int32_t>(src[r][c]) | (static_cast<int32_t>(src[r][c + 1]) << 16);
+      const __m256i xv = _mm256_set1_epi32(x);
+      for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_add_epi32(acc[r][v], _mm256_madd_epi16(xv, wv[v]));
+    }
+  }
+  for (int r = 0; r < R; ++r)
+    for (int v = 0; v < NW; ++v) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + v * 8), acc[r][v]);
+#else
+  const int64_t columns = NW * kWide + NH * kLanes;
+  for (int r = 0; r < R; ++r)
+    for (int64_t c = 0; c < C; ++c) {
+      const int32_t x = src[r][c];
+      const packed_t* wc = w + (c / 4 * Dp + d0) * 4 + c % 4;
+      for (int64_t d = 0; d < columns; ++d) dst[r][d0 + d] += x * static_cast<int32_t>(wc[d * 4]);
+    }
+#endif
+}
+
+// The padded columns in chunks of at most kMaxChunkVectors wide vectors (two + two for four), then one 8-lane
+// vector for 8 columns left over where kWide is 16.
+template <typename F>
+inline void over_columns(int64_t Dp, F&& chunk) {
+  for (int64_t d0 = 0; d0 < Dp;) {
+    const int64_t wide = (Dp - d0) / kWide;
+    const bool half = (Dp - d0) % kWide != 0;
+    if (wide >= kMaxChunkVectors && wide != 4) {
+      chunk(d0, Count<kMaxChunkVectors>{}, Count<0>{});
+      d0 += kMaxChunkVectors * kWide;
+    } else if (wide >= 2) {
+      chunk(d0, Count<2>{}, Count<0>{});
+      d0 += 2 * kWide;
+    } else if (wide == 1) {
+      chunk(d0, Count<1>{}, Count<0>{});
+      d0 += kWide;
+    } else if (half) {
+#if defined(RADARSEG_INT8_VNNI512)
+      chunk(d0, Count<0>{}, Count<1>{});
+#endif
+      d0 += kLanes;
+    }
+  }
+}
+
+template <typename F>
+inline void with_rows(int rows, F&& body) {
+  switch (rows) {
+#if defined(RADARSEG_INT8_VNNI512)
+    case 8: body(Count<8>{}); break;
+    case 7: body(Count<7>{}); break;
+    case 6: body(Count<6>{}); break;
+    case 5: body(Count<5>{}); break;
+#endif
+    case 4: body(Count<4>{}); break;
+    case 3: body(Count<3>{}); break;
+    case 2: body(Count<2>{}); break;
+    default: body(Count<1>{}); break;
+  }
+}
+
+inline void rows_times_weight_any(int rows, const uint8_t* const* src, const packed_t* w, int64_t C, int64_t Dp,
+                                  int32_t* const* dst) {
+  with_rows(rows, [&](auto r) {
+    over_columns(Dp, [&](int64_t d0, auto nw, auto nh) {
+      rows_times_weight_chunk<decltype(r)::value, decltype(nw)::value, decltype(nh)::value>(src, w, C, Dp, d0, dst);
+    });
+  });
+}
+
+// The epilogue of a layer (see the file's comment); `zero_point` with `weight_sums` (K, D): the input offset.
+struct Epilogue {
+  const float* scale = nullptr;  // (D,) acc -> float
+  const float* bias = nullptr;   // (D,)
+  const uint8_t* residual_u8 = nullptr;
+  const float* residual_scale = nullptr;  // (D,)
+  const float* residual_f32 = nullptr;
+  bool relu = false;
+  float out_scale = 0.0f;  // > 0: uint8 out
+
+  inline void write(void* out, int64_t row, const int32_t* acc, int64_t D) const {
+    const float inverse = out_scale > 0.0f ? 1.0f / out_scale : 0.0f;
+    for (int64_t d = 0; d < D; ++d) {
+      float v = static_cast<float>(acc[d]) * scale[d];
+      if (bias) v += bias[d];
+      if (residual_u8) v += static_cast<float>(residual_u8[row * D + d]) * residual_scale[d];
+      if (residual_f32) v += residual_f32[row * D + d];
+      if (relu) v = std::max(v, 0.0f);
+      if (out_scale > 0.0f) {
+        const float q = std::nearbyint(v * inverse);
+        static_cast<uint8_t*>(out)[row * D + d] = static_cast<uint8_t>(std::min(std::max(q, 0.0f), 255.0f));
+      } else {
+        static_cast<float*>(out)[row * D + d] = v;
+      }
+    }
+  }
+};
+
+struct Layer {
+  const uint8_t* feats;
+  int64_t N, C, M, K, D, Dp;
+  const int64_t* nbr;
+  const packed_t* w;
+  int64_t zero_point;
+  const int32_t* weight_sums;  // (K, D) or null
+};
+
+Layer make_layer(const at::Tensor& src, const at::Tensor& neighbours, const at::Tensor& packed, int64_t D,
+                 int64_t zero_point, const c10::optional<at::Tensor>& weight_sums, const char* what) {
+  TORCH_CHECK(src.device().is_cpu() && neighbours.device().is_cpu() && packed.device().is_cpu(), what,
+              ": CPU tensors expected");
+  TORCH_CHECK(src.scalar_type() == at::kByte && src.dim() == 2 && src.is_contiguous(), what,
+              ": contiguous uint8 features (N, C) expected, got ", src.scalar_type());
+  TORCH_CHECK(src.size(1) % 4 == 0, what, ": input channels must be a multiple of 4, got ", src.size(1));
+  TORCH_CHECK(neighbours.scalar_type() == at::kLong && neighbours.dim() == 2 && neighbours.is_contiguous(), what,
+              ": contiguous int64 neighbours (M, K) expected");
+  const int64_t K = neighbours.size(1), C = src.size(1), Dp = padded(D);
+  TORCH_CHECK(packed.is_contiguous() && packed.element_size() == sizeof(packed_t) && packed.dim() == 4 &&
+                  packed.size(0) == K && packed.size(1) == C / kGroup && packed.size(2) == Dp &&
+                  packed.size(3) == kGroup,
+              what, ": a weight packed by this build's pack_weight for K = ", K, ", C = ", C, ", D = ", D,
+              " expected, got ", packed.sizes());
+  TORCH_CHECK(zero_point >= 0 && zero_point <= 255, what, ": zero point must be in [0, 255]");
+  const int32_t* sums = nullptr;
+  if (zero_point != 0) {
+    TORCH_CHECK(weight_sums.has_value() && weight_sums->scalar_type() == at::kInt && weight_sums->is_contiguous() &&
+                    weight_sums->dim() == 2 && weight_sums->size(0) == K && weight_sums->size(1) == D,
+                what, ": a non-zero zero point needs weight_sums (K, D) int32");
+    sums = weight_sums->data_ptr<int32_t>();
+  }
+  return Layer{src.data_ptr<uint8_t>(), src.size(0), C, neighbours.size(0), K, D, Dp,
+               neighbours.data_ptr<int64_t>(), reinterpret_cast<const packed_t*>(packed.data_ptr()), zero_point,
+               sums};
+}
+
+Epilogue make_epilogue(const at::Tensor& scale, const c10::optional<at::Tensor>& bias,
+                       const c10::optional<at::Tensor>& residual, const c10::optional<at::Tensor>& residual_scale,
+                       bool relu, double out_scale, int64_t rows, int64_t D, const char* what) {
+  Epilogue e;
+  auto check_vector = [&](const at::Tensor& t, const char* name) {
+    TORCH_CHECK(t.scalar_type() == at::kFloat && t.is_contiguous() && t.dim() == 1 && t.size(0) == D, what, ": ",
+                name, " must be a contiguous float32 vector of ", D, " values");
+  };
+  check_vector(scale, "scale");
+  e.scale = scale.data_ptr<float>();
+  if (bias.has_value()) {
+    check_vector(*bias, "bias");
+    e.bias = bias->data_ptr<float>();
+  }
+  if (residual.has_value()) {
+    TORCH_CHECK(residual->is_contiguous() && residual->dim() == 2 && residual->size(0) == rows &&
+                    residual->size(1) == D,
+                what, ": a contiguous residual (", rows, ", ", D, ") expected");
+    if (residual->scalar_type() == at::kByte) {
+      TORCH_CHECK(residual_scale.has_value(), what, ": a uint8 residual needs its residual_scale");
+      check_vector(*residual_scale, "residual_scale");
+      e.residual_u8 = residual->data_ptr<uint8_t>();
+      e.residual_scale = residual_scale->data_ptr<float>();
+    } else {
+      TORCH_CHECK(residual->scalar_type() == at::kFloat, what, ": a uint8 or float32 residual expected");
+      e.residual_f32 = residual->data_ptr<float>();
+    }
+  }
+  TORCH_CHECK(std::isfinite(out_scale) && out_scale >= 0.0, what, ": out_scale must be finite and >= 0");
+  e.relu = relu;
+  e.out_scale = static_cast<float>(out_scale);
+  return e;
+}
+
+at::Tensor make_output(int64_t rows, int64_t D, const Epilogue& e) {
+  return at::empty({rows, D}, at::TensorOptions().dtype(e.out_scale > 0.0f ? at::kByte : at::kFloat));
+}
+
+// `acc` rows (block buffer, row width Dp) of an output block: each row's int32 sums over its present neighbours.
+void neighbour_block(const Layer& L, int64_t j0, int64_t rows, int32_t* acc) {
+  const uint8_t* srcs[kBlockRows];
+  int32_t* dsts[kBlockRows];
+  std::fill(acc, acc + kBlockRows * L.Dp, 0);
+  for (int64_t k = 0; k < L.K; ++k) {
+    int count = 0;
+    for (int64_t r = 0; r < rows; ++r) {  // branch-free listing of the rows with a neighbour at offset k
+      const int64_t n = L.nbr[(j0 + r) * L.K + k];
+      srcs[count] = L.feats + (n < L.N ? n : 0) * L.C;
+      dsts[count] = acc + r * L.Dp;
+      count += n < L.N;
+    }
+    const packed_t* wk = L.w + k * (L.C / kGroup) * L.Dp * kGroup;
+    for (int p = 0; p < count; p += kMaxRows)
+      rows_times_weight_any(std::min(kMaxRows, count - p), srcs + p, wk, L.C, L.Dp, dsts + p);
+    if (L.weight_sums) {
+      const int32_t* sums = L.weight_sums + k * L.D;
+      for (int p = 0; p < count; ++p)
+        for (int64_t d = 0; d < L.D; ++d) dsts[p][d] -= static_cast<int32_t>(L.zero_point) * sums[d];
+    }
+  }
+}
+
+}  // namespace
+
+at::Tensor neighbour_conv_int8_raw(at::Tensor src, at::Tensor neighbours, at::Tensor packed, int64_t D,
+                                   int64_t zero_point, c10::optional<at::Tensor> weight_sums) {
+  const Layer L = make_layer(src, neighbours, packed, D, zero_point, weight_sums, "neighbour_conv_int8_raw");
+  auto out = at::empty({L.M, D}, at::TensorOptions().dtype(at::kInt));
+  int32_t* dst = out.data_ptr<int32_t>();
+  const int64_t blocks = (L.M + kBlockRows - 1) / kBlockRows;
+  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
+    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
+    for (int64_t block = begin; block < end; ++block) {
+      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, L.M - j0);
+      neighbour_block(L, j0, rows, acc.data());
+      for (int64_t r = 0; r < rows; ++r) std::memcpy(dst + (j0 + r) * D, acc.data() + r * L.Dp, D * sizeof(int32_t));
+    }
+  });
+  return out;
+}
+
+at::Tensor neighbour_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor packed, int64_t zero_point,
+                               c10::optional<at::Tensor> weight_sums, at::Tensor scale, c10::optional<at::Tensor> bias,
+                               c10::optional<at::Tensor> residual, c10::optional<at::Tensor> residual_scale, bool relu,
+                               double out_scale) {
+  const int64_t D = scale.size(0);
+  const Layer L = make_layer(src, neighbours, packed, D, zero_point, weight_sums, "neighbour_conv_int8");
+  const Epilogue e = make_epilogue(scale, bias, residual, residual_scale, relu, out_scale, L.M, D,
+                                   "neighbour_conv_int8");
+  auto out = make_output(L.M, D, e);
+  void* dst = out.data_ptr();
+  const int64_t blocks = (L.M + kBlockRows - 1) / kBlockRows;
+  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
+    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
+    for (int64_t block = begin; block < end; ++block) {
+      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, L.M - j0);
+      neighbour_block(L, j0, rows, acc.data());
+      for (int64_t r = 0; r < rows; ++r) e.write(dst, j0 + r, acc.data() + r * L.Dp, D);
+    }
+  });
+  return out;
+}
+
+at::Tensor scatter_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor packed, int64_t num_out,
+                             int64_t zero_point, c10::optional<at::Tensor> weight_sums, at::Tensor scale,
+                             c10::optional<at::Tensor> bias, bool relu, double out_scale) {
+  const int64_t D = scale.size(0);
+  const Layer L = make_layer(src, neighbours, packed, D, zero_point, weight_sums, "scatter_conv_int8");
+  TORCH_CHECK(L.M == L.N, "scatter_conv_int8: one neighbour row per source row expected");
+  TORCH_CHECK(num_out >= 0, "scatter_conv_int8: num_out must be >= 0");
+  const Epilogue e = make_epilogue(scale, bias, c10::nullopt, c10::nullopt, relu, out_scale, num_out, D,
+                                   "scatter_conv_int8");
+  auto out = make_output(num_out, D, e);
+  void* dst = out.data_ptr();
+  {  // rows no pair reaches: the epilogue of zero
+    std::vector<int32_t> zero(static_cast<size_t>(D), 0);
+    for (int64_t row = 0; row < num_out; ++row) e.write(dst, row, zero.data(), D);
+  }
+  if (L.M == 0 || num_out == 0) return out;
+  const int64_t blocks = (L.M + kBlockRows - 1) / kBlockRows;
+  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
+    std::vector<int32_t> tmp(static_cast<size_t>(kMaxRows * L.Dp));
+    const uint8_t* srcs[kBlockRows];
+    int64_t targets[kBlockRows];
+    int32_t* dsts[kMaxRows];
+    for (int r = 0; r < kMaxRows; ++r) dsts[r] = tmp.data() + r * L.Dp;
+    for (int64_t block = begin; block < end; ++block) {
+      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, L.M - j0);
+      for (int64_t k = 0; k < L.K; ++k) {
+        int count = 0;
+        for (int64_t r = 0; r < rows; ++r) {
+          const int64_t n = L.nbr[(j0 + r) * L.K + k];
+          srcs[count] = L.feats + (j0 + r) * L.C;
+          targets[count] = n;
+          count += n >= 0 && n < num_out;
+        }
+        const packed_t* wk = L.w + k * (L.C / kGroup) * L.Dp * kGroup;
+        for (int p = 0; p < count; p += kMaxRows) {
+          const int group = std::min(kMaxRows, count - p);
+          std::fill(tmp.begin(), tmp.end(), 0);
+          rows_times_weight_any(group, srcs + p, wk, L.C, L.Dp, dsts);
+          for (int r = 0; r < group; ++r) {
+            if (L.weight_sums)
+              for (int64_t d = 0; d < D; ++d)
+                dsts[r][d] -= static_cast<int32_t>(L.zero_point) * L.weight_sums[k * D + d];
+            e.write(dst, targets[p + r], dsts[r], D);  // each output row has exactly one pair: plain stores
+          }
+        }
+      }
+    }
+  });
+  return out;
+}
+
+// (K, C, D) int8 -> this build's packed layout (K, C / kGroup, Dp, kGroup), zero columns past D.
+at::Tensor pack_weight(at::Tensor weight) {
+  TORCH_CHECK(weight.scalar_type() == at::kChar && weight.dim() == 3 && weight.is_contiguous(),
+              "pack_weight: a contiguous int8 weight (K, C_in, C_out) expected");
+  const int64_t K = weight.size(0), C = weight.size(1), D = weight.size(2), Dp = padded(D);
+  TORCH_CHECK(C % 4 == 0, "pack_weight: input channels must be a multiple of 4, got ", C);
+  const auto dtype = sizeof(packed_t) == 1 ? at::kChar : at::kShort;
+  auto out = at::zeros({K, C / kGroup, Dp, kGroup}, at::TensorOptions().dtype(dtype));
+  const int8_t* w = weight.data_ptr<int8_t>();
+  packed_t* p = reinterpret_cast<packed_t*>(out.data_ptr());
+  for (int64_t k = 0; k < K; ++k)
+    for (int64_t c = 0; c < C; ++c)
+      for (int64_t d = 0; d < D; ++d)
+        p[((k * (C / kGroup) + c / kGroup) * Dp + d) * kGroup + c % kGroup] = w[(k * C + c) * D + d];
+  return out;
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.attr("path") = kPath;
+  m.def("pack_weight", &pack_weight, "(K, C, D) int8 weight in this build's packed layout");
+  m.def("neighbour_conv_int8_raw", &neighbour_conv_int8_raw,
+        "int32 acc[j] = sum_k (src[nbr[j, k]] - zero_point) . weight[k]");
+  m.def("neighbour_conv_int8", &neighbour_conv_int8,
+        "the int8 gather convolution with its epilogue (scale, bias, residual, ReLU, float or uint8 out)");
+  m.def("scatter_conv_int8", &scatter_conv_int8,
+        "the int8 scatter convolution (each output row reached once) with its epilogue");
+}
