@@ -67,7 +67,8 @@ def test_empty_maps_and_missing_rows(kernels):
     assert empty.shape == (0, 8)
     src = torch.full((3, 4), 7, dtype=torch.uint8)
     table = torch.full((5, 8), 3)  # nothing present
-    assert torch.equal(kernels.neighbour_conv_int8_raw(src, table, packed, 8, 0, None), torch.zeros(5, 8, dtype=torch.int32))
+    got = kernels.neighbour_conv_int8_raw(src, table, packed, 8, 0, None)
+    assert torch.equal(got, torch.zeros(5, 8, dtype=torch.int32))
 
 
 def epilogue_reference(acc: torch.Tensor, scale, bias, residual, residual_scale, relu, out_scale):
