@@ -4,11 +4,13 @@
 answers the /v1/segment answer with each object's ``track_id`` and velocity vector and the stream's tracks,
 ``GET /v1/streams/{id}`` shows it, ``DELETE /v1/streams/{id}`` closes it. The tracker's state lives in the ledger's
 database (:mod:`service.stream_store`): any replica serves the next frame, and one restarted mid-stream loses no
-track. A frame is billed as a /v1/segment request.
+track. A frame is billed as a /v1/segment request, once its tracks are written: a frame whose stream was closed
+(DELETE) while it ran is a 404 ``stream_closed`` and one whose hold was taken by another frame a 409
+``stream_claim_lost``, neither billed; every billed answer carries its compute and request id.
 
 Order: ``seq`` must be after the stream's last frame (a repeated or older one is a 409); a gap of ``k`` frames is
 coasted (every track predicted over ``k`` frame periods). Two frames of one stream never run at once: the second
-is a 409 with Retry-After while the first holds the stream.
+is a 409 with Retry-After while the first holds the stream, and the first's hold is renewed while it runs.
 """
 
 from __future__ import annotations
