@@ -20,7 +20,7 @@ def main() -> None:
     parser.add_argument("--model", default="small", help="a served model (GET /v1/models)")
     parser.add_argument("--json", action="store_true", help="send and receive JSON tensors instead of binary ones")
     args = parser.parse_args()
-    client = triton.InferenceServerClient(args.url, network_timeout=120)
+    client = triton.InferenceServerClient(args.url, network_timeout=600)  # a first, unwarmed inference is slow
     assert client.is_server_ready() and client.is_model_ready(args.model)
     metadata = client.get_model_metadata(args.model)
     print("inputs:", {i["name"]: i["shape"] for i in metadata["inputs"]})
