@@ -18,7 +18,6 @@ after: the machine is shared, so compare engines within one run.
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import platform
@@ -122,18 +121,13 @@ def timing(nets: dict, cubes: list[np.ndarray], repeats: int) -> dict[str, objec
 
 def accuracy(detector: str, segmenter: str, store: str, engine: str, onnx_dir: Path, frames: int) -> dict:
     """RA / RD mIoU, pedestrian IoU and mAP of one engine on the store (``pipelines.evaluation.evaluate``)."""
-    from pipelines.evaluation import evaluate as evaluation
+    from pipelines.evaluation.evaluate import EvaluateConfig, evaluate
 
-    load = functools.partial(load_erasenet, engine=engine, onnx_dir=onnx_dir)
-    original = evaluation.load_erasenet
-    evaluation.load_erasenet = lambda det, seg, device="cpu", **kwargs: load(det, seg, **kwargs)
-    try:
-        with tempfile.TemporaryDirectory(prefix="edge-eval-") as out:
-            metrics = evaluation.evaluate(evaluation.EvaluateConfig(
-                detector=detector, segmenter=segmenter, store=store, out=out, split=None, max_frames=frames,
-                pictures=0, sweep_frames=0, oracle=False, threads=1, progress=False))
-    finally:
-        evaluation.load_erasenet = original
+    with tempfile.TemporaryDirectory(prefix="edge-eval-") as out:
+        metrics = evaluate(EvaluateConfig(
+            detector=detector, segmenter=segmenter, store=store, out=out, split=None, max_frames=frames, pictures=0,
+            sweep_frames=0, oracle=False, threads=1, progress=False, engine=engine,
+            onnx_dir=None if engine == "torch" else str(onnx_dir)))
     segmentation = metrics["segmentation"]
     return {"frames": metrics["frames"], "RA_mIoU": segmentation["RA"]["mIoU"], "RD_mIoU": segmentation["RD"]["mIoU"],
             "RA_pedestrian_IoU": segmentation["RA"]["iou"]["pedestrian"],

@@ -20,8 +20,8 @@ import logging
 import os
 import shlex
 import sys
-from collections.abc import Sequence
-from types import ModuleType
+from collections.abc import Callable, Sequence
+from types import ModuleType, SimpleNamespace
 from typing import Any
 
 from radar.errors import UserError
@@ -75,6 +75,14 @@ def _with_json_option(parser: argparse.ArgumentParser) -> None:
             _with_json_option(sub)
 
 
+def field_defaults(config: type) -> SimpleNamespace:
+    """The defaults of a config dataclass's fields by name: a job's options take theirs from here
+    (``default=defaults.seed``), so each default is written once, in the config (tests/pipelines/test_defaults_once.py).
+    """
+    return SimpleNamespace(**{f.name: f.default for f in dataclasses.fields(config)
+                              if f.default is not dataclasses.MISSING})
+
+
 def job_parser(module: ModuleType, prog: str, description: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, description=description or (module.__doc__ or "").split("\n")[0])
     module.add_arguments(parser)
@@ -106,16 +114,32 @@ def config_of(module: ModuleType, args: argparse.Namespace) -> Any:
         raise UserError(str(exc)) from exc
 
 
-# Smoke mode (RADARSEG_SMOKE=1): every job runs its command on tiny sizes, so that the README's commands run
-# as written in seconds (tests/test_readme_commands.py). Config field -> (cap, whether an unset value, None or
-# 0 meaning "all" or "the profile's", becomes the cap).
+# Smoke mode (RADARSEG_SMOKE=1): every job runs its command on tiny sizes, so that the documented commands run
+# as written in seconds (tests/test_documented_commands.py). Each config declares the rule beside the field it
+# applies to (``sequences: int | None = smoke(None, cap(4))``): renaming the field keeps its rule.
 SMOKE_ENV = "RADARSEG_SMOKE"
-SMOKE_CAPS: dict[str, tuple[int, bool]] = {
-    "sequences": (4, False), "frames": (6, False), "shard_frames": (2, False),  # preprocess (TMVA-Net needs 5)
-    "epochs": (1, True), "max_steps": (2, True), "batch_size": (2, True),  # training
-    "max_frames": (2, True), "pictures": (1, False), "sweep_frames": (2, False),  # evaluate, compare, slim-sweep
-    "limit": (4, True), "finetune_steps": (1, False), "finetune_steps_baseline": (1, False),
-}
+SMOKE = "smoke"  # the field metadata key of a field's smoke rule: its value -> its value in smoke mode
+
+
+def smoke(default: Any, rule: Callable[[Any], Any]) -> Any:
+    """A config field with ``default`` whose value becomes ``rule(value)`` in smoke mode (:func:`smoke_config`)."""
+    return dataclasses.field(default=default, metadata={SMOKE: rule})
+
+
+def cap(limit: int, *, fill: bool = False) -> Callable[[Any], Any]:
+    """Smoke rule: a size capped at ``limit``; with ``fill`` an unset value (None or 0: "all", or "the recipe's")
+    becomes ``limit`` too."""
+    return lambda value: min(value, limit) if value else (limit if fill else value)
+
+
+def always(smoke_value: Any) -> Callable[[Any], Any]:
+    """Smoke rule: ``smoke_value`` whatever was asked (one torch thread, every shard in this process)."""
+    return lambda value: smoke_value
+
+
+def first(values: Sequence[Any]) -> tuple[Any, ...]:
+    """Smoke rule: the first of several (one ratio of a sweep)."""
+    return tuple(values[:1])
 
 
 def smoke_mode() -> bool:
@@ -124,29 +148,10 @@ def smoke_mode() -> bool:
 
 
 def smoke_config(cfg: Any) -> Any:
-    """``cfg`` with every size in :data:`SMOKE_CAPS` capped, one ratio of a sweep, one torch thread, sharded jobs
-    in process."""
+    """``cfg`` with every field that declares a smoke rule (:func:`smoke`) set by that rule."""
     if not dataclasses.is_dataclass(cfg):
         return cfg
-    fields = {f.name for f in dataclasses.fields(cfg)}
-    changes: dict[str, Any] = {}
-    for name, (cap, fill) in SMOKE_CAPS.items():
-        if name in fields:
-            value = getattr(cfg, name)
-            if value:
-                changes[name] = min(value, cap)
-            elif fill:
-                changes[name] = cap
-    if "ratios" in fields and len(cfg.ratios) > 1:
-        changes["ratios"] = tuple(cfg.ratios[:1])
-    if "threads" in fields:
-        changes["threads"] = 1
-    if "in_process" in fields:  # sharded jobs: every shard in this process, no Ray start (tests/deploy runs Ray)
-        changes["in_process"] = True
-    if getattr(cfg, "jitter_from", None):  # a detector trained for smoke-sized steps matches nothing to measure
-        changes["jitter_from"] = None
-        log.warning("smoke mode: the errors of --jitter-from %s are not measured; seeds get Gaussian errors, as "
-                    "with --jitter-std", cfg.jitter_from)
+    changes = {f.name: f.metadata[SMOKE](getattr(cfg, f.name)) for f in dataclasses.fields(cfg) if SMOKE in f.metadata}
     return dataclasses.replace(cfg, **changes)
 
 

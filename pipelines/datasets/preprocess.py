@@ -55,7 +55,7 @@ from pipelines.datasets.store import (
     create_store,
     encode_frame,
 )
-from pipelines.jobs import run_module
+from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from radar.errors import UserError
 from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
@@ -79,16 +79,16 @@ class PreprocessConfig:
     source: str  # "sim", "recording:DIR" or "carrada:ROOT"
     out: str  # store path (a directory ending in .zarr by convention)
     preset: str | None = None  # sim only (default small)
-    sequences: int | None = None  # sim only (default 2)
-    frames: int | None = None  # sim only: frames per sequence (default 8)
+    sequences: int | None = smoke(None, cap(4))  # sim only (default 2)
+    frames: int | None = smoke(None, cap(6))  # sim only: frames per sequence (default 8)
     seed: int = 0  # sim only
     split_fractions: tuple[float, float, float] | None = None  # train, val, test by sequence
     address: str | None = None  # Ray address; None = embedded local Ray (or RAY_ADDRESS under a job)
     tasks: int | None = None  # shard tasks in flight; None = the cluster's CPUs
-    shard_frames: int = SHARD_FRAMES
+    shard_frames: int = smoke(SHARD_FRAMES, cap(2))  # TMVA-Net needs 5 frames
     max_objects: int = MAX_OBJECTS
     progress: bool = True
-    in_process: bool = False  # every shard in this process, no Ray
+    in_process: bool = smoke(False, always(True))  # every shard in this process, no Ray
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -125,12 +125,13 @@ class JobPlan(sharded_job.ShardedPlan):
 # --------------------------------------------------------------------------- arguments
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The job's arguments (shared by ``python -m pipelines.datasets.preprocess`` and ``radarseg preprocess``)."""
+    defaults = field_defaults(PreprocessConfig)
     add_source_arguments(parser, SOURCE_KINDS)
     parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
     parser.add_argument("--preset", help="sim: radar preset (carrada, nxp, small; default small) or a profile file")
     parser.add_argument("--sequences", type=int, help="sim: number of sequences (default 2)")
     parser.add_argument("--frames", type=int, help="sim: frames per sequence (default 8)")
-    parser.add_argument("--seed", type=int, default=0, help="sim: scene seed")
+    parser.add_argument("--seed", type=int, default=defaults.seed, help="sim: scene seed")
     parser.add_argument("--split-fractions", type=float, nargs=3, metavar=("TRAIN", "VAL", "TEST"),
                         help="split by sequence in name order (default 0.7 0.15 0.15; CARRADA: its split file)")
     parser.add_argument("--tasks", type=int, help="shard tasks in flight (default: the cluster's CPUs)")
@@ -188,7 +189,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
     if kind is SourceKind.SIM:
         preset = cfg.preset or "small"
         try:
-            get_profile(preset)
+            profile = get_profile(preset)
         except (UnknownPresetError, ProfileError) as exc:
             raise UserError(f"--preset: {exc}") from None
         n_sequences = 2 if cfg.sequences is None else cfg.sequences
@@ -209,6 +210,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
             raise UserError(f"--source {cfg.source!r}: {root} holds RAD cubes, not ADC samples (use recording:DIR)")
         # the store records a seed for any source
         source = sharded_job.SourceSpec(kind, str(root), reader.profile.name, seed=0)
+        profile = reader.profile  # a file-described radar is known by its recording, not by name
         frame_counts = {seq: reader.n_frames(seq) for seq in sorted(reader.sequences())}
         simulator = reader.meta.get("simulator") if isinstance(reader, Recording) else None
         if not any(frame_counts.values()):
@@ -236,7 +238,7 @@ def plan_job(cfg: PreprocessConfig) -> JobPlan:
     for sequence_id, seq in enumerate(names):
         for index in range(frame_counts[seq]):
             slots.append(Slot(len(slots), sequence_id, seq, index, SPLIT_CODE[splits[seq]]))
-    layout = StoreLayout(get_profile(source.preset), len(slots), cfg.shard_frames, max_objects=cfg.max_objects)
+    layout = StoreLayout(profile, len(slots), cfg.shard_frames, max_objects=cfg.max_objects)
     plan = JobPlan(cfg=cfg, out=Path(cfg.out).expanduser().absolute(), source=source, layout=layout, sequences=names,
                    frames=tuple(slots), split_rule=split_rule, simulator=simulator)
     _check_out(plan)

@@ -66,7 +66,7 @@ from pipelines.datasets.views import (
 )
 from pipelines.evaluation.report import fmt_num, fmt_pct, md_table
 from pipelines.evaluation.scoring import ViewConfusion, predicted_views, view_summary
-from pipelines.jobs import run_module
+from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from pipelines.progress import progress
 from radar.cfar import cfar_centres
 from radar.errors import UserError
@@ -140,10 +140,10 @@ class CompareConfig:
     out: str
     models: tuple[ModelSpec, ...]
     split: str | None = "test"  # None: every frame of the store
-    max_frames: int = 0  # 0 = every usable frame of the split
-    pictures: int = 3
+    max_frames: int = smoke(0, cap(2, fill=True))  # 0 = every usable frame of the split
+    pictures: int = smoke(3, cap(1))
     score_threshold: float | None = None  # ERASE-Net seed threshold (None = EraseNet's default)
-    threads: int = 1
+    threads: int = smoke(1, always(1))
     device: str = "cpu"
     progress: bool = True
     command: str = ""  # recorded in the report
@@ -467,8 +467,9 @@ def render_compare(result: dict[str, Any]) -> str:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    defaults = field_defaults(CompareConfig)
     parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
-    parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
+    parser.add_argument("--split", default=defaults.split, help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (compare.json, compare.md, compare_frames.png)")
     parser.add_argument("--erasenet", action="append", default=[], metavar="NAME=DETECTOR,SEGMENTER",
                         help="an ERASE-Net, e.g. 'ERASE-Net (M)=checkpoints/detector.pt,checkpoints/segmenter.pt'")
@@ -476,11 +477,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="TMVA-Net / SMVA-Net checkpoint, or a U-Net pair 'U-Net=unet_rd.pt,unet_ra.pt'")
     parser.add_argument("--cfar-segmenter", metavar="[NAME=]SEGMENTER",
                         help=f"CFAR + region growing + this segmenter (default name {CFAR_NAME!r})")
-    parser.add_argument("--max-frames", type=int, default=0, help="score this many frames, evenly spread (0: all)")
-    parser.add_argument("--pictures", type=int, default=3, help="frames in compare_frames.png")
+    parser.add_argument("--max-frames", type=int, default=defaults.max_frames,
+                        help="score this many frames, evenly spread (0: all)")
+    parser.add_argument("--pictures", type=int, default=defaults.pictures, help="frames in compare_frames.png")
     parser.add_argument("--score-threshold", type=float, help="ERASE-Net seed score threshold")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (timings are taken with these)")
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    parser.add_argument("--threads", type=int, default=defaults.threads,
+                        help="torch threads (timings are taken with these)")
+    parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

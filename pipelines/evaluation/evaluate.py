@@ -38,7 +38,7 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
-from models.erasenet.engines import load_erasenet
+from models.erasenet.engines import ENGINES, load_erasenet
 from models.erasenet.model import EraseNet
 from models.heap import freeze_loaded_heap
 from pipelines.datasets.history import earlier_frames, earlier_slots
@@ -53,7 +53,7 @@ from pipelines.datasets.store import (
 from pipelines.evaluation.report import tracking_headline
 from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
 from pipelines.evaluation.tracking import TrackingTally
-from pipelines.jobs import run_module
+from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from pipelines.progress import progress
 from radar.detections import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT
@@ -75,15 +75,17 @@ class EvaluateConfig:
     store: str
     out: str
     split: str | None = "test"  # None: every frame of the store
-    max_frames: int = 0  # 0 = every frame of the split
-    pictures: int = 4
+    max_frames: int = smoke(0, cap(2, fill=True))  # 0 = every frame of the split
+    pictures: int = smoke(4, cap(1))
     sweep: tuple[float, ...] = D_THRESH_SWEEP_M
-    sweep_frames: int = 48
+    sweep_frames: int = smoke(48, cap(2))
     score_threshold: float | None = None  # operating threshold (None = EraseNet's default)
     oracle: bool = True  # also segment from ground-truth seeds
     doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
-    device: str = "cpu"
-    threads: int = 0  # torch intra-op threads (0 = torch's default); the per-stage seconds are taken with these
+    device: str = "cpu"  # the torch runtime's device
+    engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.erasenet.engines)
+    onnx_dir: str | None = None  # the ONNX runtimes: this export instead of the cached one
+    threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default); per-stage seconds with these
     progress: bool = True
     single_cube: bool = False  # a detector that reads earlier frames sees each frame alone (no history)
 
@@ -92,6 +94,8 @@ class EvaluateConfig:
             raise ValueError("max_frames, pictures and sweep_frames must be >= 0")
         if any(d <= 0 for d in self.sweep):
             raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
+        if self.engine not in ENGINES:
+            raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
 
 
 class _RecallCounter:
@@ -145,7 +149,11 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
-    net = load_erasenet(det_ckpt, seg_ckpt, device=cfg.device, **kwargs)
+    if cfg.engine == "torch":
+        kwargs["device"] = cfg.device
+    elif cfg.onnx_dir is not None:
+        kwargs["onnx_dir"] = cfg.onnx_dir
+    net = load_erasenet(det_ckpt, seg_ckpt, engine=cfg.engine, **kwargs)
     freeze_loaded_heap()  # no full garbage collection over torch and the models every few frames
     root, frames = store_frames(cfg.store, net.profile, cfg.split, cfg.max_frames)
     split_name = cfg.split or "all"
@@ -295,30 +303,35 @@ def _metrics(cfg: EvaluateConfig, net: EraseNet, checkpoints: tuple[Any, Any], t
 
 
 def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
-    """What a checkpoint says about its training (profile, epochs, steps, time, validation figures)."""
+    """What a checkpoint says about its training (recipe, epochs, steps, time, validation figures; checkpoints
+    written before the recipe had its name call it "profile")."""
     metrics = extra.get("metrics", {})
-    return {"stage": extra.get("stage"), "profile": extra.get("profile"), "epoch": extra.get("epoch"),
-            "step": extra.get("step"), "elapsed_s": metrics.get("elapsed_s"),
+    return {"stage": extra.get("stage"), "recipe": extra.get("recipe", extra.get("profile")),
+            "epoch": extra.get("epoch"), "step": extra.get("step"), "elapsed_s": metrics.get("elapsed_s"),
             **{k: v for k, v in metrics.items() if k.startswith("val_")}}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    defaults = field_defaults(EvaluateConfig)
     parser.add_argument("--detector", required=True, help="detector checkpoint")
     parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
     parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
-    parser.add_argument("--split", default="test", help="train, val, test, or 'all'")
+    parser.add_argument("--split", default=defaults.split, help="train, val, test, or 'all'")
     parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
-    parser.add_argument("--max-frames", type=int, default=0, help="evaluate this many frames, evenly spread (0: all)")
-    parser.add_argument("--pictures", type=int, default=4, help="frames drawn (truth above prediction)")
+    parser.add_argument("--max-frames", type=int, default=defaults.max_frames,
+                        help="evaluate this many frames, evenly spread (0: all)")
+    parser.add_argument("--pictures", type=int, default=defaults.pictures, help="frames drawn (truth above prediction)")
     parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
-    parser.add_argument("--sweep-frames", type=int, default=48,
+    parser.add_argument("--sweep-frames", type=int, default=defaults.sweep_frames,
                         help="frames of the region-growing D_thresh sweep")
     parser.add_argument("--score-threshold", type=float, help=f"detector score threshold (default: {SCORE_THRESHOLD})")
     parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
     parser.add_argument("--no-doppler-refinement", action="store_true",
                         help="keep the detector's own Doppler (no refinement from the cube)")
-    parser.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    parser.add_argument("--threads", type=int, default=0,
+    parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")
+    parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
+                        help="the runtime scored (onnx, onnx-int8: the export cached on first use)")
+    parser.add_argument("--threads", type=int, default=defaults.threads,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--single-cube", action="store_true",
@@ -331,7 +344,7 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           pictures=args.pictures,
                           sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
                           score_threshold=args.score_threshold, oracle=not args.no_oracle,
-                          doppler_refinement=not args.no_doppler_refinement, device=args.device,
+                          doppler_refinement=not args.no_doppler_refinement, device=args.device, engine=args.engine,
                           threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube)
 
 

@@ -208,8 +208,8 @@ def _training(metrics: dict[str, Any]) -> list[str]:
     training = metrics.get("training", {})
     if training:
         lines += ["", "## Training (from the checkpoints)", ""]
-        lines += md_table(["stage", "profile", "epochs", "steps", "training time (s)", "validation"],
-                        [[stage, str(info.get("profile")), str(info.get("epoch")), str(info.get("step")),
+        lines += md_table(["stage", "recipe", "epochs", "steps", "training time (s)", "validation"],
+                        [[stage, str(info.get("recipe")), str(info.get("epoch")), str(info.get("step")),
                           fmt_num(info.get("elapsed_s"), ".0f"),
                           ", ".join(f"{k.removeprefix('val_')} {fmt_num(v)}" for k, v in info.items()
                                     if k.startswith("val_") and isinstance(v, float))]

@@ -60,7 +60,7 @@ from pipelines.inference.predictions_store import (
     create_predictions,
     encode_prediction,
 )
-from pipelines.jobs import run_module
+from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from radar import transforms
 from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
@@ -83,16 +83,16 @@ class SegmentBatchConfig:
     segmenter: str
     out: str
     split: str | None = None  # store only: train, val, test; None = every valid frame
-    limit: int | None = None  # the first LIMIT selected frames only (smoke tests)
+    limit: int | None = smoke(None, cap(4, fill=True))  # the first LIMIT selected frames only (smoke tests)
     score_threshold: float = SCORE_THRESHOLD
     max_objects: int = MAX_OBJECTS
     address: str | None = None
     workers: int | None = None  # segmenter actors; None = the cluster's CPUs
     cpus_per_worker: float = 1.0
     torch_threads: int = 1  # per actor: one core each, so actors scale instead of fighting over cores
-    shard_frames: int = SHARD_FRAMES
+    shard_frames: int = smoke(SHARD_FRAMES, cap(2))
     progress: bool = True
-    in_process: bool = False  # every shard in this process (one ShardSegmenter), no Ray
+    in_process: bool = smoke(False, always(True))  # every shard in this process (one ShardSegmenter), no Ray
     engine: str = "torch"  # models.erasenet.engines: torch, or onnx (the exported graphs in onnxruntime)
 
     def to_dict(self) -> dict[str, Any]:
@@ -128,6 +128,7 @@ class BatchPlan(sharded_job.ShardedPlan):
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The job's arguments (shared by ``python -m pipelines.inference.segment_batch`` and ``radarseg
     segment-batch``)."""
+    defaults = field_defaults(SegmentBatchConfig)
     add_source_arguments(parser, SOURCE_KINDS)
     parser.add_argument("--detector", required=True, help="detector checkpoint")
     parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
@@ -140,9 +141,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detections per frame and width of the object table")
     parser.add_argument("--workers", type=int, help="segmenter actors, each loading the model once "
                                                     "(default: the cluster's CPUs / --cpus-per-worker)")
-    parser.add_argument("--cpus-per-worker", type=float, default=1.0, help="CPUs reserved per actor")
-    parser.add_argument("--torch-threads", type=int, default=1, help="torch threads per actor")
-    parser.add_argument("--engine", choices=ENGINES, default="torch",
+    parser.add_argument("--cpus-per-worker", type=float, default=defaults.cpus_per_worker,
+                        help="CPUs reserved per actor")
+    parser.add_argument("--torch-threads", type=int, default=defaults.torch_threads, help="torch threads per actor")
+    parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
                         help="torch (default), or onnx: the exported graphs in onnxruntime (exported once into "
                              "each node's $RADARSEG_ONNX_CACHE, default ~/.cache/radarseg/onnx)")
     sharded_job.add_execution_arguments(parser)

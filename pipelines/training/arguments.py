@@ -7,40 +7,46 @@ import argparse
 import json
 from typing import Any
 
-from pipelines.training.config import OPTIMIZERS
+from pipelines.jobs import field_defaults
+from pipelines.renamed_options import add_renamed
+from pipelines.training.config import OPTIMIZERS, TrainConfig
 
 
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    defaults = field_defaults(TrainConfig)
     parser.add_argument("--store", required=True, help="preprocessed store (zarr)")
     parser.add_argument("--out", required=True, help="run directory (keep it outside the repository, or under "
                                                      "runs/, which git and ray job submit ignore)")
-    parser.add_argument("--profile", choices=("quick", "paper"), default="quick",
-                        help="hyperparameter profile: quick (2-core CPU) or paper (GPUs)")
+    parser.add_argument("--recipe", choices=("quick", "paper"), default=defaults.recipe,
+                        help="training recipe (hyperparameters): quick (2-core CPU) or paper (GPUs)")
+    add_renamed(parser, "--profile", "--recipe", " (a profile is a radar's; training takes a recipe)")
     parser.add_argument("--model-config", type=json.loads, help="builder keyword arguments as JSON")
-    parser.add_argument("--epochs", type=int, help="epochs (default: the profile's)")
-    parser.add_argument("--batch-size", type=int, help="frames per step, >= 2 (default: the profile's)")
-    parser.add_argument("--lr", type=float, help="learning rate (default: the profile's)")
+    parser.add_argument("--epochs", type=int, help="epochs (default: the recipe's)")
+    parser.add_argument("--batch-size", type=int, help="frames per step, >= 2 (default: the recipe's)")
+    parser.add_argument("--lr", type=float, help="learning rate (default: the recipe's)")
     parser.add_argument("--optimizer", choices=OPTIMIZERS,
-                        help="instead of the profile's (detector and baselines Adam, segmenter SGD), e.g. Adam for "
+                        help="instead of the recipe's (detector and baselines Adam, segmenter SGD), e.g. Adam for "
                              "sparsity training")
-    parser.add_argument("--seed", type=int, default=0, help="seed of initialisation and shuffling")
-    parser.add_argument("--device", default="auto", help="auto (CUDA when present), cpu, cuda, cuda:N")
-    parser.add_argument("--train-split", default="train", help="store split trained on")
-    parser.add_argument("--val-split", default="val", help="'none' to skip validation (model.pt = last epoch)")
+    parser.add_argument("--seed", type=int, default=defaults.seed, help="seed of initialisation and shuffling")
+    parser.add_argument("--device", default=defaults.device, help="auto (CUDA when present), cpu, cuda, cuda:N")
+    parser.add_argument("--train-split", default=defaults.train_split, help="store split trained on")
+    parser.add_argument("--val-split", default=defaults.val_split,
+                        help="'none' to skip validation (model.pt = last epoch)")
     parser.add_argument("--max-steps", type=int, help="stop after this many optimiser steps (smoke runs)")
     parser.add_argument("--max-minutes", type=float,
                         help="stop after this many minutes of training (validation included; equal budgets)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    parser.add_argument("--threads", type=int, default=defaults.threads, help="torch threads (0: torch's default)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
-    parser.add_argument("--workers", type=int, default=0, help="DataLoader worker processes")
-    parser.add_argument("--ray-workers", type=int, default=0, help="data-parallel Ray Train workers (0: no Ray)")
+    parser.add_argument("--workers", type=int, default=defaults.workers, help="DataLoader worker processes")
+    parser.add_argument("--ray-workers", type=int, default=defaults.ray_workers,
+                        help="data-parallel Ray Train workers (0: no Ray)")
     parser.add_argument("--address", help="Ray address for --ray-workers (default: embedded local Ray)")
-    parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=0.0,
+    parser.add_argument("--slim-lambda", type=float, nargs="?", const=1e-4, default=defaults.slim_lambda,
                         help="network slimming: L1 weight on every BatchNorm scale (1e-4 when given alone)")
     parser.add_argument("--init", help="start from this checkpoint's architecture and weights (e.g. a pruned one)")
     parser.add_argument("--val-frames", type=int,
-                        help="validation frames scored per epoch, evenly spread (default: the profile's; 0 = all)")
-    parser.add_argument("--curve-every", type=int, default=0, metavar="STEPS",
+                        help="validation frames scored per epoch, evenly spread (default: the recipe's; 0 = all)")
+    parser.add_argument("--curve-every", type=int, default=defaults.curve_every, metavar="STEPS",
                         help="learning curve: validate before the first step, every STEPS steps and at each epoch's "
                              "end into RUN/curve.jsonl, against training CPU seconds (0: off)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -48,7 +54,7 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
 
 def common_config(args: argparse.Namespace) -> dict[str, Any]:
     """The :class:`~pipelines.training.config.TrainConfig` fields of :func:`add_common_arguments`' options."""
-    return dict(store=args.store, out=args.out, profile=args.profile, model_config=args.model_config,
+    return dict(store=args.store, out=args.out, recipe=args.recipe, model_config=args.model_config,
                 epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, optimizer=args.optimizer, seed=args.seed,
                 device=args.device, train_split=args.train_split,
                 val_split=None if args.val_split.lower() == "none" else args.val_split,

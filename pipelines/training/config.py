@@ -1,7 +1,7 @@
-"""One training config for every stage, the profiles' hyperparameters as data, and one override rule:
-a config field that is not None replaces the profile's value.
+"""One training config for every stage, the recipes' hyperparameters as data, and one override rule:
+a config field that is not None replaces the recipe's value.
 
-Profiles (:data:`PROFILES`): ``paper`` is the paper's recipe (detector: Adam 1e-4 divided by 10 every
+Recipes (:data:`RECIPES`): ``paper`` is the paper's (detector: Adam 1e-4 divided by 10 every
 10 epochs, 300 epochs; segmenter: SGD from 0.24 with cosine decay, 300 epochs; baselines: the
 reference's Adam 1e-4 x0.9 every 20 epochs, batch 6); ``quick`` converges on a 2-core CPU on the
 ``small`` preset (detector 12 epochs, segmenter MinkUNet ratio 0.25 for 3 epochs, baselines 8 epochs).
@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import logging
 from dataclasses import dataclass
 from typing import Any
 
 from models.capabilities import Stage
 from models.registry import get_builder
+from pipelines.jobs import always, cap, smoke
+
+log = logging.getLogger(__name__)
 
 OPTIMIZERS = ("adam", "sgd")
 SCHEDULES = ("step", "cosine")  # step: per epoch (step_every or milestones); cosine: per optimiser step
@@ -26,7 +30,7 @@ DEFAULT_JITTER_STD = (1.0, 1.0, 0.5)
 
 @dataclass(frozen=True)
 class Hyper:
-    """Hyperparameters of one stage under one profile (every field may be overridden)."""
+    """Hyperparameters of one stage under one recipe (every field may be overridden)."""
 
     model: str  # registered model name ("" for the baselines: the command names it)
     model_config: dict[str, Any]
@@ -48,7 +52,7 @@ class Hyper:
     history_drop: float = 0.25  # detector reading history (model_config history_frames): share trained on one cube
 
 
-PROFILES: dict[str, dict[str, Hyper]] = {
+RECIPES: dict[str, dict[str, Hyper]] = {
     "detector": {
         # The paper: Adam, 1e-4, divided by 10 every 10 epochs, 300 epochs (read literally).
         "paper": Hyper("centre_detector", {}, epochs=300, batch_size=16, lr=1e-4, step_every=10),
@@ -68,6 +72,13 @@ PROFILES: dict[str, dict[str, Hyper]] = {
 }
 
 
+def _unmeasured(detector: str | None) -> None:
+    """Smoke rule of ``jitter_from``: a detector trained for smoke-sized steps matches nothing to measure."""
+    if detector:
+        log.warning("smoke mode: the errors of --jitter-from %s are not measured; seeds get Gaussian errors, as "
+                    "with --jitter-std", detector)
+
+
 def check_budget(max_minutes: float | None) -> None:
     if max_minutes is not None and not max_minutes > 0:
         raise ValueError(f"max_minutes must be > 0, got {max_minutes}")
@@ -75,45 +86,45 @@ def check_budget(max_minutes: float | None) -> None:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """A training job of any stage. ``None`` hyperparameters come from the profile (:data:`PROFILES`)."""
+    """A training job of any stage. ``None`` hyperparameters come from the recipe (:data:`RECIPES`)."""
 
     stage: str
     store: str
     out: str
-    profile: str = "quick"
+    recipe: str = "quick"
     model: str | None = None
     view: str | None = None  # one-view models (U-Net): "ra" or "rd"
     model_config: dict[str, Any] | None = None  # extra builder keyword arguments
-    epochs: int | None = None
-    batch_size: int | None = None
+    epochs: int | None = smoke(None, cap(1, fill=True))
+    batch_size: int | None = smoke(None, cap(2, fill=True))
     lr: float | None = None
-    optimizer: str | None = None  # "adam" or "sgd" instead of the profile's (e.g. Adam for sparsity training)
+    optimizer: str | None = None  # "adam" or "sgd" instead of the recipe's (e.g. Adam for sparsity training)
     seed: int = 0
     device: str = "auto"
     train_split: str = "train"
     val_split: str | None = "val"
-    max_steps: int | None = None  # stop after this many optimiser steps in all (smoke tests)
+    max_steps: int | None = smoke(None, cap(2, fill=True))  # stop after this many optimiser steps in all
     max_minutes: float | None = None  # stop after this much training time in all (equal budgets)
     resume: bool = False
     workers: int = 0  # DataLoader worker processes
-    jitter_from: str | None = None  # segmenter: detector checkpoint whose errors are measured
+    jitter_from: str | None = smoke(None, _unmeasured)  # segmenter: detector checkpoint whose errors are measured
     jitter_std: tuple[float, float, float] | None = None  # segmenter: Gaussian errors in bins instead
     ray_workers: int = 0  # 0 = single process without Ray
     address: str | None = None  # Ray address for --ray-workers (None = embedded local Ray)
-    threads: int = 0  # torch intra-op threads (0 = torch's default)
+    threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default)
     progress: bool = True
     slim_lambda: float = 0.0  # network slimming: weight of the L1 penalty on every BatchNorm scale
     init: str | None = None  # start from this checkpoint's architecture and weights (fine-tuning)
     lovasz_weight: float | None = None  # segmenter: Lovasz-softmax beside the weighted cross entropy
     class_weights: tuple[float, ...] | None = None  # detector: focal weight per foreground class at its centres
-    val_frames: int | None = None  # validation frames per epoch instead of the profile's (0 = all)
+    val_frames: int | None = None  # validation frames per epoch instead of the recipe's (0 = all)
     curve_every: int = 0  # validate every this many steps too, into curve.jsonl (learning curves; 0 = off)
 
     def __post_init__(self) -> None:
         if self.stage not in tuple(Stage):
             raise ValueError(f"stage must be one of {[str(s) for s in Stage]}, got {self.stage!r}")
-        if self.profile not in PROFILES[self.stage]:
-            raise ValueError(f"profile must be one of {sorted(PROFILES[self.stage])}, got {self.profile!r}")
+        if self.recipe not in RECIPES[self.stage]:
+            raise ValueError(f"recipe must be one of {sorted(RECIPES[self.stage])}, got {self.recipe!r}")
         for name in ("epochs", "batch_size", "max_steps"):
             value = getattr(self, name)
             if value is not None and value < 1:
@@ -162,15 +173,15 @@ class TrainConfig:
             raise ValueError(f"{name} takes no view (it predicts what it predicts), got {self.view!r}")
 
     def hyper(self) -> Hyper:
-        """The profile's hyperparameters with every override that is not None (another ``model`` without a
-        ``model_config`` is built with its builder's defaults: the profile's arguments belong to its own model)."""
-        base = PROFILES[self.stage][self.profile]
+        """The recipe's hyperparameters with every override that is not None (another ``model`` without a
+        ``model_config`` is built with its builder's defaults: the recipe's arguments belong to its own model)."""
+        base = RECIPES[self.stage][self.recipe]
         overrides = {name: getattr(self, name) for name in ("model", "epochs", "batch_size", "lr", "optimizer",
                                                              "lovasz_weight", "val_frames")
                      if getattr(self, name) is not None}
         if self.model_config is not None:
             overrides["model_config"] = dict(self.model_config)
-        elif self.model is not None and self.model != base.model:  # the profile's builder arguments are its model's
+        elif self.model is not None and self.model != base.model:  # the recipe's builder arguments are its model's
             overrides["model_config"] = {}
         if self.jitter_std is not None:
             overrides["jitter_std"] = tuple(self.jitter_std)
@@ -194,7 +205,7 @@ class TrainConfig:
 
     def identity(self) -> dict[str, Any]:
         """What a resumed run must share with the run it continues."""
-        keep = ("stage", "store", "profile", "model", "view", "model_config", "batch_size", "lr", "seed",
+        keep = ("stage", "store", "recipe", "model", "view", "model_config", "batch_size", "lr", "seed",
                 "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer", "lovasz_weight",
                 "class_weights")
         return {k: v for k, v in self.to_dict().items() if k in keep}

@@ -168,7 +168,7 @@ def _checkpoint(task: Task, model: nn.Module, extra: dict[str, Any]) -> Checkpoi
     return Checkpoint(model_name=task.hyper.model, config=task.model_config(), state_dict=state,
                       preset=task.store.profile.name, class_names=task.store.class_names,
                       normalisation=task.normalisation(),
-                      extra={"stage": task.stage, "profile": task.cfg.profile, **_radar_description(task),
+                      extra={"stage": task.stage, "recipe": task.cfg.recipe, **_radar_description(task),
                              **task.extra(), **extra})
 
 

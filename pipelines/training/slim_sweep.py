@@ -48,7 +48,7 @@ from pipelines.datasets.views import ViewDataset, load_baseline
 from pipelines.evaluation.evaluate import EvaluateConfig, evaluate
 from pipelines.evaluation.report import fmt_pct
 from pipelines.evaluation.scoring import score_baseline, score_detector
-from pipelines.jobs import run_module
+from pipelines.jobs import always, cap, field_defaults, first, run_module, smoke
 from pipelines.training.config import DEFAULT_JITTER_STD, TrainConfig
 from pipelines.training.loop import train
 from radar.errors import UserError
@@ -74,15 +74,15 @@ class SweepConfig:
     minkunet: str | None = None
     spvcnn: str | None = None
     smvanet: str | None = None
-    ratios: tuple[float, ...] = PAPER_RATIOS
+    ratios: tuple[float, ...] = smoke(PAPER_RATIOS, first)
     split: str = "test"
-    max_frames: int = 0  # frames scored per model and ratio (0 = the whole split)
-    finetune_steps: int = 0  # 0 = prune only
-    finetune_steps_baseline: int | None = None  # SMVA-Net's, when its steps cost too much (None: finetune_steps)
+    max_frames: int = smoke(0, cap(2, fill=True))  # frames scored per model and ratio (0 = the whole split)
+    finetune_steps: int = smoke(0, cap(1))  # 0 = prune only
+    finetune_steps_baseline: int | None = smoke(None, cap(1))  # SMVA-Net's if its steps cost too much (None: the same)
     lr_erasenet: float = 1e-3
     lr_baseline: float = 1e-5
-    batch_size: int = 4
-    threads: int = 1
+    batch_size: int = smoke(4, cap(2, fill=True))
+    threads: int = smoke(1, always(1))
     seed: int = 0
     notes: str = ""  # how the input checkpoints were made (printed in the report)
 
@@ -299,22 +299,27 @@ def main(cfg: SweepConfig, command: str | None = None) -> dict[str, Any]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    defaults = field_defaults(SweepConfig)
     parser.add_argument("--store", required=True, help="preprocessed store (zarr) to score (and fine-tune) on")
-    parser.add_argument("--out", default="reports", help="where slimming.md/.png/.json go")
-    parser.add_argument("--work", default="out/slim-sweep", help="pruned checkpoints and fine-tune runs")
+    parser.add_argument("--out", default=defaults.out, help="where slimming.md/.png/.json go")
+    parser.add_argument("--work", default=defaults.work, help="pruned checkpoints and fine-tune runs")
     for kind in SLIMMED:
         parser.add_argument(f"--{kind}", help=f"{kind} checkpoint (trained with --slim-lambda, ideally)")
     parser.add_argument("--ratios", type=float, nargs="+", default=list(PAPER_RATIOS),
                         help="compression ratios (fraction of BatchNorm channels removed)")
-    parser.add_argument("--split", default="test", help="store split scored")
-    parser.add_argument("--max-frames", type=int, default=0, help="frames scored per model and ratio (0: all)")
-    parser.add_argument("--finetune-steps", type=int, default=0, help="optimiser steps after pruning (0: none)")
+    parser.add_argument("--split", default=defaults.split, help="store split scored")
+    parser.add_argument("--max-frames", type=int, default=defaults.max_frames,
+                        help="frames scored per model and ratio (0: all)")
+    parser.add_argument("--finetune-steps", type=int, default=defaults.finetune_steps,
+                        help="optimiser steps after pruning (0: none)")
     parser.add_argument("--finetune-steps-smvanet", type=int, help="SMVA-Net's fine-tuning steps (default: the same)")
-    parser.add_argument("--lr-erasenet", type=float, default=1e-3, help="fine-tuning lr of the detector and segmenters")
-    parser.add_argument("--lr-baseline", type=float, default=1e-5, help="fine-tuning lr of the baselines")
-    parser.add_argument("--batch-size", type=int, default=4, help="fine-tuning batch size")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads")
-    parser.add_argument("--seed", type=int, default=0, help="seed of fine-tuning")
+    parser.add_argument("--lr-erasenet", type=float, default=defaults.lr_erasenet,
+                        help="fine-tuning lr of the detector and segmenters")
+    parser.add_argument("--lr-baseline", type=float, default=defaults.lr_baseline,
+                        help="fine-tuning lr of the baselines")
+    parser.add_argument("--batch-size", type=int, default=defaults.batch_size, help="fine-tuning batch size")
+    parser.add_argument("--threads", type=int, default=defaults.threads, help="torch threads")
+    parser.add_argument("--seed", type=int, default=defaults.seed, help="seed of fine-tuning")
     parser.add_argument("--notes-file", help="markdown file saying how the checkpoints were made (goes in the report)")
 
 

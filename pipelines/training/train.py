@@ -1,14 +1,14 @@
 """Training of both ERASE-Net stages from the preprocessed store (docs/design.md sections 5 and 7), and the export
 of a shippable checkpoint::
 
-    radarseg train detector  --store STORE.zarr --out runs/det [--profile quick|paper] [--resume]
+    radarseg train detector  --store STORE.zarr --out runs/det [--recipe quick|paper] [--resume]
     radarseg train segmenter --store STORE.zarr --out runs/seg --jitter-from runs/det/model.pt
     radarseg train export RUN/model.pt checkpoints/detector.pt   # float16 weights only
     radarseg train class-gains RUN/model.pt TUNED.pt --store STORE.zarr   # a threshold per class (heatmap per class)
     radarseg train class-offsets SEG.pt TUNED.pt --store STORE.zarr --detector DET.pt   # the segmenter's logit offsets
     python -m pipelines.training.train ...                                # the same arguments
 
-The loop, the tasks and the profiles live in :mod:`pipelines.training`; this module is the job
+The loop, the tasks and the recipes live in :mod:`pipelines.training`; this module is the job
 (:mod:`pipelines.jobs`): options, config, ``main(cfg) -> dict``.
 """
 
@@ -24,7 +24,7 @@ import torch
 from models.capabilities import ERASENET_STAGES, Stage
 from models.checkpoint import export_checkpoint
 from pipelines.datasets.store_info import StoreInfo
-from pipelines.jobs import run_module
+from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from pipelines.training.arguments import add_common_arguments, common_config, format_training
 from pipelines.training.class_gains import write_class_gains
 from pipelines.training.class_offsets import write_class_offsets
@@ -50,7 +50,7 @@ class ClassGainsConfig:
     target: str
     store: str
     split: str = "val"
-    frames: int = 0
+    frames: int = smoke(0, cap(6))
 
 
 @dataclass(frozen=True)
@@ -62,9 +62,9 @@ class ClassOffsetsConfig:
     stores: tuple[str, ...]
     detector: str
     split: str | None = "val"
-    max_frames: int = 0  # of each store's split, evenly spread; 0: all
+    max_frames: int = smoke(0, cap(2, fill=True))  # of each store's split, evenly spread; 0: all
     progress: bool = True
-    threads: int = 0  # torch intra-op threads (0: torch's default)
+    threads: int = smoke(0, always(1))  # torch intra-op threads (0: torch's default)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -72,7 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                                    metavar="{detector,segmenter,export,class-gains,class-offsets}")
     for stage in ERASENET_STAGES:
         sub = stages.add_parser(stage, help=f"train the {stage} from a store")
-        sub.add_argument("--model", help="registered model name (default: the profile's)")
+        sub.add_argument("--model", help="registered model name (default: the recipe's)")
         add_common_arguments(sub)
         if stage is Stage.DETECTOR:
             sub.add_argument("--class-weights", type=float, nargs="+", metavar="W",
@@ -94,8 +94,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gains.add_argument("source", help="detector checkpoint trained with --model-config '{\"heatmap_classes\": N}'")
     gains.add_argument("target", help="the copy to write, with the class gains")
     gains.add_argument("--store", required=True, help="preprocessed store whose split chooses the thresholds")
-    gains.add_argument("--split", default="val", help="split of the store (default val)")
-    gains.add_argument("--frames", type=int, default=0, help="frames of the split, evenly spread (default 0: all)")
+    gains_defaults = field_defaults(ClassGainsConfig)
+    gains.add_argument("--split", default=gains_defaults.split, help="split of the store")
+    gains.add_argument("--frames", type=int, default=gains_defaults.frames,
+                       help="frames of the split, evenly spread (0: all)")
     offsets = stages.add_parser("class-offsets", help="a segmenter's offset per class on its logits (best mean RA/RD "
                                                       "mIoU on a store's frames from a detector's seeds), written "
                                                       "into a copy of the checkpoint")
@@ -104,9 +106,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     offsets.add_argument("--store", required=True, action="append", help="preprocessed store whose frames choose "
                                                                          "the offsets (repeat it for several)")
     offsets.add_argument("--detector", required=True, help="the detector whose seeds the segmenter is paired with")
-    offsets.add_argument("--split", default="val", help="split of the store (default val; 'all': every frame)")
-    offsets.add_argument("--frames", type=int, default=0, help="frames of the split, evenly spread (default 0: all)")
-    offsets.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    offsets_defaults = field_defaults(ClassOffsetsConfig)
+    offsets.add_argument("--split", default=offsets_defaults.split, help="split of the store ('all': every frame)")
+    offsets.add_argument("--frames", type=int, default=offsets_defaults.max_frames,
+                         help="frames of the split, evenly spread (0: all)")
+    offsets.add_argument("--threads", type=int, default=offsets_defaults.threads,
+                         help="torch threads (0: torch's default)")
     offsets.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

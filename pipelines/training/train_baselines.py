@@ -1,7 +1,7 @@
 """Training of the 2-D baselines (U-Net per view, TMVA-Net, SMVA-Net; docs/design.md section 9) with the same loop
 as ERASE-Net (:mod:`pipelines.training`; the stage is :mod:`pipelines.training.baselines`)::
 
-    radarseg train-baseline tmvanet --store STORE.zarr --out runs/tmva [--profile quick|paper]
+    radarseg train-baseline tmvanet --store STORE.zarr --out runs/tmva [--recipe quick|paper]
     radarseg train-baseline unet --view ra --store STORE.zarr --out runs/unet-ra [--resume]
     python -m pipelines.training.train_baselines ...                       # the same arguments
 """

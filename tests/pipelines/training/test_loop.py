@@ -13,7 +13,7 @@ from models.checkpoint import export_checkpoint, load_checkpoint
 from pipelines.datasets.store_info import StoreInfo
 from pipelines.jobs import parse_config
 from pipelines.training import train as train_job
-from pipelines.training.config import PROFILES, TrainConfig
+from pipelines.training.config import RECIPES, TrainConfig
 from pipelines.training.jitter import SeedJitter
 from pipelines.training.loop import Budget, train, train_loop
 from pipelines.training.optim import make_optimizer
@@ -148,13 +148,13 @@ def test_roi_samples_and_measured_jitter(small_store):
 
 
 def test_profiles_and_arguments(small_store, tmp_path):
-    assert PROFILES["detector"]["paper"].lr == 1e-4 and PROFILES["detector"]["paper"].epochs == 300
-    assert PROFILES["segmenter"]["paper"].lr == 0.24
+    assert RECIPES["detector"]["paper"].lr == 1e-4 and RECIPES["detector"]["paper"].epochs == 300
+    assert RECIPES["segmenter"]["paper"].lr == 0.24
     cfg = parse_args(["segmenter", "--store", str(small_store), "--out", str(tmp_path), "--model", "spvcnn",
                       "--model-config", '{"ratio": 0.2}', "--jitter-std", "1", "2", "0.5", "--epochs", "3"])
     hyper = cfg.hyper()
     assert hyper.model == "spvcnn" and hyper.model_config == {"ratio": 0.2} and hyper.epochs == 3
-    assert hyper.jitter_std == (1.0, 2.0, 0.5) and hyper.lr == PROFILES["segmenter"]["quick"].lr
+    assert hyper.jitter_std == (1.0, 2.0, 0.5) and hyper.lr == RECIPES["segmenter"]["quick"].lr
     with pytest.raises(ValueError, match="stage"):
         TrainConfig(stage="tracker", store="s", out="o")
     with pytest.raises(ValueError, match="names its model"):
@@ -233,7 +233,7 @@ def _empty_val_store(small_store, tmp_path):
 
 def test_another_model_drops_the_profiles_builder_arguments_and_bad_ones_are_named(small_store, tmp_path):
     cfg = TrainConfig(stage="segmenter", store="s.zarr", out="o", model="minkunet_tiny")
-    assert cfg.hyper().model_config == {}  # the quick profile's {"ratio": 0.25} is MinkUNet's, not the tiny variant's
+    assert cfg.hyper().model_config == {}  # the quick recipe's {"ratio": 0.25} is MinkUNet's, not the tiny variant's
     assert TrainConfig(stage="segmenter", store="s.zarr", out="o").hyper().model_config == {"ratio": 0.25}
     bad = TrainConfig(stage="detector", store=str(small_store), out=str(tmp_path / "bad"),
                       model="centre_detector_tiny", model_config={"depth": 3}, max_steps=1, progress=False)
