@@ -75,7 +75,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
     net = build_erasenet(preset, cubes[0])
     random_weights = net.score_threshold == 0.0
     for engine in ENGINES:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
-        with compiled.using_engine(SPARSE_ENGINE[engine]):
+        with compiled.using_kernels(SPARSE_ENGINE[engine]):
             net.segment(cubes[0], kind=InputKind.log_power)
     times, macs, macs_paper, executed = {engine: [] for engine in ENGINES}, [], [], []
     stages: dict[str, list[float]] = {}  # the compiled engine's seconds per stage (FrameCompute.seconds)
@@ -86,7 +86,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
             net.max_objects = max(1, sum(1 for o in frame.objects if o.n_voxels))
         for _ in range(repeats):
             for engine in reversed(ENGINES):  # the compiled engine last: its result's MACs are kept below
-                with compiled.using_engine(SPARSE_ENGINE[engine]):
+                with compiled.using_kernels(SPARSE_ENGINE[engine]):
                     started = time.perf_counter()
                     result = net.segment(cube, kind=InputKind.log_power)
                     times[engine].append(time.perf_counter() - started)

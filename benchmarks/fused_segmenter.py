@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
     result = {"pairs": {name: compare(pair, cubes) for name, pair in PAIRS.items()}, "threads": 1,
               "load_average_before": load_before, "load_average_after": os.getloadavg(), "cpu": _cpu(),
-              "engine": compiled.get_engine(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
+              "engine": compiled.get_kernels(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     RESULTS.write_text(json.dumps(result, indent=2))
     for name, figures in result["pairs"].items():

@@ -112,7 +112,7 @@ def bench_ratio(ratio: float, batches: list, cfg: BenchConfig) -> dict:
 
 def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     torch.set_num_threads(cfg.threads)
-    compiled.set_engine(cfg.engine)
+    compiled.set_kernels(cfg.engine)
     engine = "compiled" if cfg.engine != "reference" and compiled.available() else "reference"
     samples = roi_samples(cfg.preset, cfg.frames, cfg.seed)
     batches = [collate(samples[i:i + cfg.batch_size]) for i in range(0, len(samples) - cfg.batch_size + 1,
@@ -190,7 +190,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path, s
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--engine", default="auto", choices=compiled.ENGINES, help="sparse engine (default auto)")
+    parser.add_argument("--engine", default="auto", choices=compiled.KERNELS, help="sparse engine (default auto)")
     parser.add_argument("--smoke", action="store_true", help="two frames, one repeat, the shipped ratio only")
     parser.add_argument("--output", default=str(RESULTS))
     parser.add_argument("--against", help="git commit to compare with, interleaved (see the docstring)")

@@ -156,7 +156,7 @@ def interleaved(fn: Callable[[], object], repeats: int, device: torch.device) ->
     times: dict[str, list[float]] = {engine: [] for engine in ENGINES}
     for round_ in range(repeats + 1):
         for engine in ENGINES:
-            with compiled.using_engine(SPARSE_ENGINE[engine]):
+            with compiled.using_kernels(SPARSE_ENGINE[engine]):
                 start = time.perf_counter()
                 fn()
                 if device.type == "cuda":
@@ -194,7 +194,7 @@ def bench_submanifold_vs_dense(num_voxels: int, layout: str, cfg: BenchConfig, d
         conv(x).feats.sum().backward()
 
     sparse_times = interleaved(sparse_step, cfg.repeats, device)
-    with compiled.using_engine(SPARSE_ENGINE["native"]):  # the compiled engine alone, no other engine's runs between
+    with compiled.using_kernels(SPARSE_ENGINE["native"]):  # the compiled engine alone, no other engine's runs between
         native_alone = timed(sparse_step, cfg.repeats, device)
 
     dense_conv = nn.Conv3d(32, 32, 3, padding=1, bias=False).to(device)
@@ -278,7 +278,7 @@ def bench_paths(cfg: BenchConfig, device: torch.device) -> dict:
         for _ in range(cfg.repeats):
             for path in times:
                 conv.path = "auto" if path == "native" else path
-                with compiled.using_engine("compiled" if path == "native" else "reference"):
+                with compiled.using_kernels("compiled" if path == "native" else "reference"):
                     start = time.perf_counter()
                     conv(x).feats.sum().backward()
                     times[path].append(time.perf_counter() - start)

@@ -13,7 +13,7 @@ Built once from a trained model in eval mode (a copy of its weights taken then):
   (the useful MACs, as the eager model's per-layer counters give; the compiled kernels execute exactly these),
   without per-layer hooks.
 
-Under the reference engine (``RADARSEG_SPARSE_ENGINE=reference``, or a device or dtype the compiled engine does not
+Under the reference engine (``RADARSEG_SPARSE_KERNELS=reference``, or a device or dtype the compiled engine does not
 take) the same folded layers run through :func:`models.sparse.paths.apply_kernel_map` with the epilogue in PyTorch,
 so the fused form runs wherever the eager one does.
 """

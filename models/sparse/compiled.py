@@ -1,17 +1,17 @@
-"""The compiled sparse engine: which engine runs the sparse convolutions, and the C++ kernels it loads.
+"""The compiled sparse kernels: which kernels run the sparse convolutions, and the C++ extension they load.
 
-Two sparse engines run `models.sparse.conv`'s convolutions: `reference` (pure PyTorch, any device and dtype) and
-`compiled` (`csrc/sparse_conv.cpp`: gather-multiply kernels over the kernel map's neighbour table, float32 on
-CPU; `csrc/kernel_maps.cpp`: every kernel map of a voxel pyramid in one pass). The setting (`set_engine`, or the
-environment variable `RADARSEG_SPARSE_ENGINE` read at first use) is one of:
+Two sets of sparse kernels run `models.sparse.conv`'s convolutions: `reference` (pure PyTorch, any device and dtype)
+and `compiled` (`csrc/sparse_conv.cpp`: gather-multiply kernels over the kernel map's neighbour table, float32 on
+CPU; `csrc/kernel_maps.cpp`: every kernel map of a voxel pyramid in one pass). The setting (`set_kernels`, or the
+environment variable `RADARSEG_SPARSE_KERNELS` read at first use) is one of:
 
-- `auto` (default): compiled where it applies (CPU, float32) if it builds, else reference with one warning;
-- `compiled`: compiled where it applies; a failed build raises;
-- `reference`: always the pure-PyTorch engine.
+- `auto` (default): compiled where they apply (CPU, float32) if they build, else reference with one warning;
+- `compiled`: compiled where they apply; a failed build raises;
+- `reference`: always the pure-PyTorch kernels.
 
-The sparse engine is not the runtime (`--engine torch|onnx`, :mod:`models.erasenet.engines`): the `torch`
-runtime runs its sparse convolutions on this setting's engine. The names `native` and `torch` of earlier
-versions are refused with the new name.
+"Engine" names the runtime only (`--engine torch|onnx|onnx-int8`, :mod:`models.erasenet.engines`): the `torch`
+runtime runs its sparse convolutions on this setting's kernels. The earlier names (the variable
+`RADARSEG_SPARSE_ENGINE`, the values `native` and `torch`) are refused with the new ones.
 
 The extension is built on first use with torch's extension machinery (g++ and ninja) and cached under
 `$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of the sources,
@@ -42,9 +42,10 @@ from torch import Tensor
 
 logger = logging.getLogger(__name__)
 
-ENGINES = ("auto", "compiled", "reference")
+KERNELS = ("auto", "compiled", "reference")
 RENAMED = {"native": "compiled", "torch": "reference"}  # earlier names -> today's
-ENGINE_ENV = "RADARSEG_SPARSE_ENGINE"
+KERNELS_ENV = "RADARSEG_SPARSE_KERNELS"
+OLD_KERNELS_ENV = "RADARSEG_SPARSE_ENGINE"  # refused with the new name
 SOURCES = (Path(__file__).parent / "csrc" / "sparse_conv.cpp", Path(__file__).parent / "csrc" / "kernel_maps.cpp")
 """The extension's C++ files: the convolution kernels (and the module's bindings), and a pyramid's kernel maps."""
 CFLAGS = ("-O3", "-march=native", "-fopenmp")
@@ -54,48 +55,52 @@ LDFLAGS = ("-fopenmp",)
 # tests compare with on AVX-512 machines, so the AVX2 micro-kernels are checked there too).
 INSTRUCTION_SETS = {"native": (), "avx2": ("-mno-avx512f",)}
 
-_engine: str | None = None
+_kernels: str | None = None
 _module: ModuleType | None = None
 _build_error: str | None = None
 _lock = threading.Lock()
 
 
-def check_engine(name: str) -> str:
-    """`name` if it is one of `ENGINES`, else a ValueError naming them (or the new name of an old one)."""
+def check_kernels(name: str) -> str:
+    """`name` if it is one of `KERNELS`, else a ValueError naming them (or the new name of an old one)."""
     if name in RENAMED:
-        raise ValueError(f"sparse engine {name!r} is now called {RENAMED[name]!r} (one of {ENGINES})")
-    if name not in ENGINES:
-        raise ValueError(f"sparse engine must be one of {ENGINES}, got {name!r}")
+        raise ValueError(f"sparse kernels {name!r} are now called {RENAMED[name]!r} (one of {KERNELS})")
+    if name not in KERNELS:
+        raise ValueError(f"sparse kernels must be one of {KERNELS}, got {name!r}")
     return name
 
 
-def get_engine() -> str:
-    """The engine setting: the last `set_engine`, else `RADARSEG_SPARSE_ENGINE`, else `auto`."""
-    global _engine
-    if _engine is None:
-        value = os.environ.get(ENGINE_ENV, "auto").strip().lower() or "auto"
+def get_kernels() -> str:
+    """The kernels setting: the last `set_kernels`, else `RADARSEG_SPARSE_KERNELS`, else `auto`
+    (`RADARSEG_SPARSE_ENGINE`, its earlier name, is refused naming it)."""
+    global _kernels
+    if _kernels is None:
+        if OLD_KERNELS_ENV in os.environ:
+            raise ValueError(f"{OLD_KERNELS_ENV} is now {KERNELS_ENV} (the sparse kernels: {', '.join(KERNELS)}; "
+                             f"'engine' names the runtime, --engine torch|onnx|onnx-int8)")
+        value = os.environ.get(KERNELS_ENV, "auto").strip().lower() or "auto"
         try:
-            _engine = check_engine(value)
+            _kernels = check_kernels(value)
         except ValueError as error:
-            raise ValueError(f"{ENGINE_ENV}: {error}") from None
-    return _engine
+            raise ValueError(f"{KERNELS_ENV}: {error}") from None
+    return _kernels
 
 
-def set_engine(name: str) -> None:
-    """Choose the engine for every later convolution (see the module docstring)."""
-    global _engine
-    _engine = check_engine(name)
+def set_kernels(name: str) -> None:
+    """Choose the kernels for every later convolution (see the module docstring)."""
+    global _kernels
+    _kernels = check_kernels(name)
 
 
 @contextmanager
-def using_engine(name: str) -> Iterator[None]:
-    """`set_engine(name)` inside a `with` block, the previous setting restored after it."""
-    previous = get_engine()
-    set_engine(name)
+def using_kernels(name: str) -> Iterator[None]:
+    """`set_kernels(name)` inside a `with` block, the previous setting restored after it."""
+    previous = get_kernels()
+    set_kernels(name)
     try:
         yield
     finally:
-        set_engine(previous)
+        set_kernels(previous)
 
 
 def cpu_flags() -> str:
@@ -194,7 +199,7 @@ def build(instruction_set: str) -> ModuleType:
     directory = build_root() / name
     cached = (directory / f"{name}.so").is_file()
     if not cached:
-        logger.info("building the compiled sparse engine (%s) in %s (first use with this CPU and source)",
+        logger.info("building the compiled sparse kernels (%s) in %s (first use with this CPU and source)",
                     instruction_set, directory)
     started = time.perf_counter()
     try:
@@ -208,10 +213,10 @@ def build(instruction_set: str) -> ModuleType:
             )
     except Exception as error:  # noqa: BLE001  (compiler, ninja, linker or file errors all mean "no engine")
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise RuntimeError(f"the compiled sparse engine did not build ({type(error).__name__}: {first_line})") \
+        raise RuntimeError(f"the compiled sparse kernels did not build ({type(error).__name__}: {first_line})") \
             from error
     if not cached:
-        logger.info("built the compiled sparse engine in %.1f s", time.perf_counter() - started)
+        logger.info("built the compiled sparse kernels in %.1f s", time.perf_counter() - started)
     return module
 
 
@@ -246,7 +251,7 @@ def enabled_on(*devices: torch.device) -> bool:
         RuntimeError: the setting is `compiled` and the kernels did not build.
     """
     global _warned
-    engine = get_engine()
+    engine = get_kernels()
     if engine == "reference" or not all(device.type == "cpu" for device in devices):
         return False
     if engine == "compiled":
@@ -257,7 +262,7 @@ def enabled_on(*devices: torch.device) -> bool:
     except RuntimeError as error:
         if not _warned:
             _warned = True
-            warnings.warn(f"{error}; using the pure-PyTorch sparse engine", RuntimeWarning, stacklevel=3)
+            warnings.warn(f"{error}; using the pure-PyTorch sparse kernels", RuntimeWarning, stacklevel=3)
         return False
     return True
 

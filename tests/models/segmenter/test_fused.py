@@ -58,7 +58,7 @@ def test_fused_equals_eager(roi, engine):
     coords, feats = roi
     torch.manual_seed(1)
     model = _trained_like(create_model("minkunet_tiny", preset="small"))
-    with compiled.using_engine(engine):
+    with compiled.using_kernels(engine):
         logits, macs, executed = _eager(model, coords, feats)
         fused_logits, tally = FusedMinkUNet(model)(SparseTensor(coords, feats))
     torch.testing.assert_close(fused_logits, logits, rtol=1e-4, atol=1e-4)

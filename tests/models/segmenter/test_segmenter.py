@@ -75,7 +75,7 @@ def test_mac_count_matches_flop_counter(architecture, path):
         if hasattr(module, "path"):
             module.path = path
     # The pure-PyTorch engine's paths (FlopCounterMode sees its matrix products, not the compiled kernels).
-    with compiled.using_engine("reference"), FlopCounterMode(display=False) as counter, torch.no_grad():
+    with compiled.using_kernels("reference"), FlopCounterMode(display=False) as counter, torch.no_grad():
         model(inputs)
     assert last_forward_macs(model) > 0
     assert last_forward_executed_macs(model) * 2 == counter.get_total_flops()

@@ -38,7 +38,7 @@ def run(engine: str, conv: torch.nn.Module, x: SparseTensor, probe_seed: int):
     """Output features, input gradient and weight gradient of `sum(conv(x) * probe)` on one engine."""
     feats = x.feats.detach().clone().requires_grad_(True)
     conv.weight.grad = None
-    with compiled.using_engine(engine):
+    with compiled.using_kernels(engine):
         out = conv(x.replace_feats(feats)).feats
     probe = torch.randn(out.shape, generator=torch.Generator().manual_seed(probe_seed))
     (out * probe).sum().backward()
@@ -94,7 +94,7 @@ def test_strided_and_transposed_engines_agree(case, c_in, c_out, tensor_stride):
                      torch.randn(len(coords), c_in, generator=generator), tensor_stride)
     down = StridedConv3d(c_in, c_out)
     check_engines_agree(down, x, seed=1)
-    with compiled.using_engine("reference"):
+    with compiled.using_kernels("reference"):
         coarse = down(x)
     coarse = coarse.replace_feats(torch.randn(len(coarse), c_out, generator=generator))
     check_engines_agree(TransposedConv3d(c_out, c_in), coarse, seed=2)
@@ -110,7 +110,7 @@ def test_a_small_network_trains_the_same_on_both_engines():
     grads = {}
     for engine in ("compiled", "reference"):
         layers.zero_grad(set_to_none=True)
-        with compiled.using_engine(engine):
+        with compiled.using_kernels(engine):
             out = layers(SparseTensor(coords, feats)).feats
         out.square().sum().backward()
         grads[engine] = [p.grad.clone() for p in layers.parameters()]
@@ -123,47 +123,51 @@ def test_float64_and_the_torch_setting_use_the_torch_engine(monkeypatch):
     monkeypatch.setattr(compiled, "neighbour_conv", lambda *args: calls.append(args) or torch.zeros(0))
     coords = random_coords(torch.Generator().manual_seed(1), 20, 5, 1)
     conv = SubmanifoldConv3d(2, 2)
-    with compiled.using_engine("auto"):
+    with compiled.using_kernels("auto"):
         conv.double()(SparseTensor(coords, torch.randn(20, 2, dtype=torch.float64)))
-    with compiled.using_engine("reference"):
+    with compiled.using_kernels("reference"):
         conv.float()(SparseTensor(coords, torch.randn(20, 2)))
     assert calls == []
 
 
 def test_engine_setting_is_validated_and_read_from_the_environment(monkeypatch):
-    with pytest.raises(ValueError, match="sparse engine must be one of"):
-        compiled.set_engine("fast")
-    previous = compiled.get_engine()
+    with pytest.raises(ValueError, match="sparse kernels must be one of"):
+        compiled.set_kernels("fast")
+    previous = compiled.get_kernels()
     try:
-        monkeypatch.setattr(compiled, "_engine", None)
-        monkeypatch.setenv(compiled.ENGINE_ENV, "Reference")
-        assert compiled.get_engine() == "reference"
+        monkeypatch.setattr(compiled, "_kernels", None)
+        monkeypatch.setenv(compiled.KERNELS_ENV, "Reference")
+        assert compiled.get_kernels() == "reference"
         for old, new in (("native", "compiled"), ("torch", "reference")):  # an earlier name: the new one named
-            monkeypatch.setattr(compiled, "_engine", None)
-            monkeypatch.setenv(compiled.ENGINE_ENV, old)
-            expected = f"RADARSEG_SPARSE_ENGINE: sparse engine '{old}' is now called '{new}'"
+            monkeypatch.setattr(compiled, "_kernels", None)
+            monkeypatch.setenv(compiled.KERNELS_ENV, old)
+            expected = f"RADARSEG_SPARSE_KERNELS: sparse kernels '{old}' are now called '{new}'"
             with pytest.raises(ValueError, match=expected):
-                compiled.get_engine()
-        monkeypatch.setattr(compiled, "_engine", None)
-        monkeypatch.setenv(compiled.ENGINE_ENV, "gpu")
-        with pytest.raises(ValueError, match="RADARSEG_SPARSE_ENGINE"):
-            compiled.get_engine()
+                compiled.get_kernels()
+        monkeypatch.setattr(compiled, "_kernels", None)
+        monkeypatch.setenv(compiled.KERNELS_ENV, "gpu")
+        with pytest.raises(ValueError, match="RADARSEG_SPARSE_KERNELS"):
+            compiled.get_kernels()
+        monkeypatch.setattr(compiled, "_kernels", None)  # the variable's earlier name: refused naming the new one
+        monkeypatch.setenv(compiled.OLD_KERNELS_ENV, "reference")
+        with pytest.raises(ValueError, match="RADARSEG_SPARSE_ENGINE is now RADARSEG_SPARSE_KERNELS"):
+            compiled.get_kernels()
     finally:
-        compiled.set_engine(previous)
+        compiled.set_kernels(previous)
 
 
 def test_a_failed_build_falls_back_with_one_warning_under_auto_and_raises_under_compiled(monkeypatch):
     monkeypatch.setattr(compiled, "_module", None)
-    monkeypatch.setattr(compiled, "_build_error", "the compiled sparse engine did not build (no compiler)")
+    monkeypatch.setattr(compiled, "_build_error", "the compiled sparse kernels did not build (no compiler)")
     monkeypatch.setattr(compiled, "_warned", False)
     coords = random_coords(torch.Generator().manual_seed(2), 30, 5, 1)
     x = SparseTensor(coords, torch.randn(30, 3))
     conv = SubmanifoldConv3d(3, 2)
-    with compiled.using_engine("auto"), pytest.warns(RuntimeWarning, match="pure-PyTorch") as record:
+    with compiled.using_kernels("auto"), pytest.warns(RuntimeWarning, match="pure-PyTorch") as record:
         conv(x)
         conv(x)
     assert len([w for w in record if issubclass(w.category, RuntimeWarning)]) == 1
-    with compiled.using_engine("compiled"), pytest.raises(RuntimeError, match="did not build"):
+    with compiled.using_kernels("compiled"), pytest.raises(RuntimeError, match="did not build"):
         conv(x)
 
 
@@ -201,7 +205,7 @@ def test_kernel_maps_read_from_the_grid_agree_on_both_engines(kernel_size, strid
     coords = random_coords(torch.Generator().manual_seed(kernel_size), 400, 12, 2)
     tables = {}
     for engine in ("compiled", "reference"):
-        with compiled.using_engine(engine):
+        with compiled.using_kernels(engine):
             cache = SparseTensor(coords, torch.zeros(len(coords), 1)).cache
             tables[engine] = cache.kernel_map(1, kernel_size, stride)
         assert cache.index(1).uses_grid

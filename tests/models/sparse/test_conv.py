@@ -30,7 +30,7 @@ DTYPE = torch.float64  # tight tolerances: the sparse and dense sums run in diff
 
 @pytest.fixture(autouse=True)
 def torch_engine():
-    with compiled.using_engine("reference"):
+    with compiled.using_kernels("reference"):
         yield
 
 

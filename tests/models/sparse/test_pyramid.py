@@ -17,9 +17,9 @@ LEVELS = 5
 
 @pytest.fixture(scope="module", autouse=True)
 def built_engine():
-    """These test the compiled pass itself: it runs even where RADARSEG_SPARSE_ENGINE forces the reference engine."""
+    """These test the compiled pass itself: it runs even where RADARSEG_SPARSE_KERNELS forces the reference engine."""
     compiled.load()
-    with compiled.using_engine("compiled"):
+    with compiled.using_kernels("compiled"):
         yield
 
 
@@ -36,7 +36,7 @@ def sorted_voxels(seed: int, per_sample: int, batch_size: int, spread: int, low:
 
 def one_by_one(coords: torch.Tensor) -> KernelMapCache:
     cache = KernelMapCache(coords, 1)
-    with compiled.using_engine("reference"):
+    with compiled.using_kernels("reference"):
         for level in range(LEVELS):
             cache.kernel_map(1 << level, 3, 1)
             if level + 1 < LEVELS:
@@ -70,7 +70,7 @@ def test_unsorted_or_empty_voxels_and_the_reference_engine_are_left_to_the_one_b
     shuffled = coords[torch.randperm(len(coords), generator=torch.Generator().manual_seed(0))]
     assert not KernelMapCache(shuffled, 1).build_pyramid(1, LEVELS)
     assert not KernelMapCache(coords[:0], 1).build_pyramid(1, LEVELS)
-    with compiled.using_engine("reference"):
+    with compiled.using_kernels("reference"):
         assert not KernelMapCache(coords, 1).build_pyramid(1, LEVELS)
     cache = KernelMapCache(coords, 1)
     cache.kernel_map(1, 3, 1)
