@@ -59,11 +59,10 @@ demo: venv
 lint: venv
 	$(BIN)/ruff check .
 
-# Every benchmark, one after the other (about 10 minutes on 2 idle cores); figures in benchmarks/results/.
-BENCHMARKS := simulate detector stage1 sparse_conv end_to_end preprocess service scale baselines compare export
-
+# Every registered benchmark that runs on the repository alone, one after the other (benchmarks/harness.py): the
+# latest figures in benchmarks/results/NAME.json, each run appended to benchmarks/results/history/NAME.jsonl.
 bench: venv
-	for b in $(BENCHMARKS); do echo "== benchmarks/$$b.py"; $(BIN)/python -m benchmarks.$$b || exit 1; done
+	$(BIN)/python -m benchmarks run --all
 
 clean:
 	rm -rf out .pytest_cache
