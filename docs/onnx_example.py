@@ -1,9 +1,11 @@
 """ERASE-Net from its ONNX export with numpy, onnxruntime and the radar core alone: no torch, no models package.
 
-    python docs/onnx_example.py ONNX_DIR CUBE.npy LABELS.npy
+    python docs/onnx_example.py ONNX_DIR CUBE.npy LABELS.npy [EARLIER.npy ...]
 
 ``ONNX_DIR`` is what ``radarseg export onnx`` wrote; ``CUBE.npy`` a complex RAD cube (R, A, D) of the export's
-preset. Writes the label cube (R, A, D) uint8 and prints the seeds. The steps are those of
+preset; ``EARLIER.npy`` the complex cubes of the frames before it in its sequence, the latest first, for a detector
+that reads them (the manifest's ``detector.history_frames``; a frame not given counts as absent, as at the start of
+a sequence). Writes the label cube (R, A, D) uint8 and prints the seeds. The steps are those of
 ``models.erasenet.model.EraseNet.segment``: log power -> detector graph -> centres -> Doppler refinement -> region
 growing -> ROI features and kernel maps -> segmenter graph -> labels. ``radar/`` (numpy, scipy, scikit-image)
 does the radar steps; ``models/export/kernel_maps_numpy.py`` and ``centres_numpy.py`` (numpy only) are loaded by
@@ -42,8 +44,25 @@ kernel_maps_numpy = load_by_path(REPO / "models" / "export" / "kernel_maps_numpy
 centres_numpy = load_by_path(REPO / "models" / "export" / "centres_numpy.py")
 
 
-def segment(onnx_dir: Path, cube: np.ndarray, *, score_threshold: float = 0.3, max_objects: int = 32) -> np.ndarray:
-    """Label cube (R, A, D) uint8 of one complex RAD cube (background outside the grown regions)."""
+def detector_feed(manifest: dict, log_power: np.ndarray, earlier: list[np.ndarray]) -> dict[str, np.ndarray]:
+    """The detector graph's inputs: the frame's log power and, for a detector that reads ``history_frames`` earlier
+    frames, theirs (H, R, A, D) dB with ``history_present`` (H,) 1 where given, 0 where absent (zeros then)."""
+    n_history = manifest["detector"].get("history_frames", 0)
+    if not n_history:
+        return {"log_power": log_power}
+    history = np.zeros((n_history, *log_power.shape), np.float32)
+    present = np.zeros(n_history, np.float32)
+    for h, frame in enumerate(earlier[:n_history]):
+        if frame.shape != log_power.shape:
+            raise ValueError(f"an earlier cube must have the cube's shape {log_power.shape}, got {frame.shape}")
+        history[h], present[h] = frame, 1.0
+    return {"log_power": log_power, "history": history, "history_present": present}
+
+
+def segment(onnx_dir: Path, cube: np.ndarray, earlier: list[np.ndarray] = (), *, score_threshold: float = 0.3,
+            max_objects: int = 32) -> np.ndarray:
+    """Label cube (R, A, D) uint8 of one complex RAD cube (background outside the grown regions); ``earlier``: the
+    complex cubes before it in its sequence, the latest first."""
     manifest = json.loads((onnx_dir / "manifest.json").read_text())
     # a built-in preset by name, or the radar the manifest itself describes (a profile file's contents)
     profile = resolve_profile(manifest["preset"], manifest.get("radar_file"), source=str(onnx_dir / "manifest.json"))
@@ -55,7 +74,8 @@ def segment(onnx_dir: Path, cube: np.ndarray, *, score_threshold: float = 0.3, m
     detector = ort.InferenceSession(str(onnx_dir / "detector.onnx"), options, providers=["CPUExecutionProvider"])
 
     log_power = transforms.log_power(cube)  # (R, A, D) dB; the detector graph normalises it itself
-    heatmap, offset, doppler = detector.run(None, {"log_power": log_power})
+    earlier_log_power = [transforms.log_power(frame) for frame in earlier]
+    heatmap, offset, doppler = detector.run(None, detector_feed(manifest, log_power, earlier_log_power))
     found = centres_numpy.decode_centres(heatmap, offset, doppler, k=max_objects, score_threshold=score_threshold,
                                          output_stride=manifest["detector"]["output_stride"])
     centres = refine_doppler(log_power, Centres.from_mapping(found), DOPPLER_REFINEMENT)
@@ -75,6 +95,7 @@ def segment(onnx_dir: Path, cube: np.ndarray, *, score_threshold: float = 0.3, m
 
 if __name__ == "__main__":
     onnx_dir, cube_path, out = Path(sys.argv[1]), Path(sys.argv[2]), Path(sys.argv[3])
-    np.save(out, segment(onnx_dir, np.load(cube_path, allow_pickle=False)))
+    earlier_cubes = [np.load(path, allow_pickle=False) for path in sys.argv[4:]]
+    np.save(out, segment(onnx_dir, np.load(cube_path, allow_pickle=False), earlier_cubes))
     ours = sorted({m.split(".")[0] for m in sys.modules} & {"torch", "models", "pipelines", "service"})
     print(f"labels written to {out}; modules of torch or this package imported: {ours or 'none'}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,16 +55,35 @@ def _session(path: Path, threads: int, *, fold_weights: bool = False):
 
 
 class OnnxDetector:
-    """The detector graph called like the PyTorch detector: log power (R, A, D) -> dict of outputs, plus
-    the detector's own ``decode``."""
+    """The detector graph called like the PyTorch detector: log power (R, A, D) (and, for a graph with
+    ``history`` inputs, the earlier frames) -> dict of outputs, plus the detector's own ``decode``."""
 
     def __init__(self, session: Any, detector: nn.Module) -> None:
         self.session = session
         self.detector = detector
         self.output_names = [o.name for o in session.get_outputs()]
+        inputs = {i.name: i.shape for i in session.get_inputs()}
+        self.history_frames = int(inputs["history"][0]) if "history" in inputs else 0
+        self._absent: dict[str, np.ndarray] | None = None  # the history feed of a single cube, made once
 
-    def __call__(self, log_power: np.ndarray) -> dict[str, torch.Tensor]:
-        outputs = self.session.run(None, {"log_power": log_power})
+    def feed(self, log_power: np.ndarray, history: np.ndarray | None = None,
+             history_present: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """The graph's inputs: ``history`` (H, R, A, D) dB and ``history_present`` (H,) for a graph that reads
+        earlier frames (without them, every earlier frame absent: the single cube)."""
+        if not self.history_frames:
+            if history is not None:
+                raise ValueError("this detector graph reads one frame (history_frames 0): give no history")
+            return {"log_power": log_power}
+        if history is None:
+            if self._absent is None:
+                self._absent = {"history": np.zeros((self.history_frames, *log_power.shape), np.float32),
+                                "history_present": np.zeros(self.history_frames, np.float32)}
+            return {"log_power": log_power, **self._absent}
+        return {"log_power": log_power, "history": history, "history_present": history_present}
+
+    def __call__(self, log_power: np.ndarray, history: np.ndarray | None = None,
+                 history_present: np.ndarray | None = None) -> dict[str, torch.Tensor]:
+        outputs = self.session.run(None, self.feed(log_power, history, history_present))
         return {name: torch.from_numpy(value) for name, value in zip(self.output_names, outputs, strict=True)}
 
     def decode(self, outputs: dict[str, torch.Tensor], k: int = 100,
@@ -112,9 +132,8 @@ class OnnxEraseNet(EraseNet):
 
     @property
     def history_frames(self) -> int:
-        """0: the exported detector graph reads one cube (a detector that reads history is exported on its
-        single-cube path), so this engine takes no history."""
-        return 0
+        """Earlier frames the exported detector graph reads beside the cube (its ``history`` input; 0: one frame)."""
+        return self._run_detector.history_frames
 
     @classmethod
     def from_checkpoints(cls, detector: Checkpoint, segmenter: Checkpoint, *,
@@ -130,6 +149,24 @@ class OnnxEraseNet(EraseNet):
 
     def _detector_input(self, log_power: np.ndarray) -> np.ndarray:
         return np.ascontiguousarray(log_power, dtype=np.float32)  # the graph normalises
+
+    def _history_input(self, history: Sequence[np.ndarray | None]) -> dict[str, np.ndarray]:
+        """The graph's ``history`` (H, R, A, D) dB, zero where absent, and ``history_present`` (H,) float32."""
+        n_history = self.history_frames
+        if not n_history:
+            raise ValueError("this model's detector reads one frame (history_frames 0): give no history")
+        if len(history) > n_history:
+            raise ValueError(f"{len(history)} earlier frames given, the detector reads {n_history}")
+        shape = self.profile.shape
+        earlier = np.zeros((n_history, *shape), np.float32)
+        present = np.zeros(n_history, np.float32)
+        for h, frame in enumerate(history):
+            if frame is None:
+                continue
+            if frame.shape != shape:
+                raise ValueError(f"an earlier frame must have the cube's shape {shape}, got {frame.shape}")
+            earlier[h], present[h] = frame, 1.0
+        return {"history": earlier, "history_present": present}
 
     def voxel_logits(self, coords: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
         """The segmenter graph on voxels (N, 3) bins with features (N, 4): logits (N, C), labels (N,) int64,

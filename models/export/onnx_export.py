@@ -3,7 +3,11 @@
 ``detector.onnx``: log power (R, A, D) in dB -> ``heatmap`` (1, 1, H, W) probabilities, ``offset`` (1, 2, H, W)
 cells (range, angle) and ``doppler`` (1, 1, H, W) bins on the stride-4 grid (H = ceil(R / 4), W = ceil(A / 4));
 the input normalisation ``(lp - mean) / std`` and the (R, A, D) -> (1, D, R, A) transpose are inside the graph,
-BatchNorms folded into the convs. Fixed input shape (the preset's cube).
+BatchNorms folded into the convs. Fixed input shape (the preset's cube). A detector that reads earlier frames
+(``history_frames`` H > 0) takes them as two more inputs: ``history`` (H, R, A, D) float32, their log power in dB,
+the latest first (normalised inside the graph like ``log_power``), and ``history_present`` (H,) float32, 1 where
+that frame exists and 0 where it does not (its ``history`` slice is then ignored: zeros will do); all H absent is
+the single-cube path, the same outputs as the PyTorch detector given no history.
 
 ``segmenter.onnx``: ROI voxel ``features`` (N, 4) and the kernel maps of their coordinates
 (:mod:`models.export.kernel_maps_numpy`) -> ``logits`` (N, num_classes) and ``labels`` (N,) int64; every
@@ -41,11 +45,13 @@ from radar.roi import N_FEATURES
 OPSET = 17
 """ONNX opset of both graphs (onnxruntime >= 1.14, OpenVINO, TensorRT 8.6 read it)."""
 FORMAT = "radarseg.onnx"
-VERSION = 4
+VERSION = 5
 """Bump when the graphs' inputs, outputs or formulation change: the export cache keys on it (2: row blocks
 as Slice, not SplitToSequence; 3: each sparse conv's bias is its Gemm's C input, not an Add; 4: the 3^3 maps as
-z-columns, ``columns_s*`` inputs)."""
+z-columns, ``columns_s*`` inputs; 5: a detector that reads earlier frames takes ``history`` and
+``history_present``)."""
 DETECTOR_OUTPUTS = ("heatmap", "offset", "doppler")
+HISTORY_INPUTS = ("history", "history_present")
 SEGMENTER_OUTPUTS = ("logits", "labels")
 STANDARD_DOMAINS = ("", "ai.onnx")
 
@@ -63,9 +69,14 @@ class DetectorGraph(nn.Module):
         fold_batch_norms(self.detector)
         self.mean_db, self.inv_std = float(mean_db), 1.0 / float(std_db)
 
-    def forward(self, log_power: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(self, log_power: Tensor, history: Tensor | None = None,
+                history_present: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         x = ((log_power - self.mean_db) * self.inv_std).permute(2, 0, 1)[None]  # (1, D, R, A), as EraseNet's
-        outputs = self.detector(x)
+        if history is None:
+            outputs = self.detector(x)
+        else:  # (H, R, A, D) dB -> (1, H, D, R, A) normalised; an absent frame's channels are zeroed by its presence
+            earlier = ((history - self.mean_db) * self.inv_std).permute(0, 3, 1, 2)[None]
+            outputs = self.detector(x, earlier, history_present[None])
         return tuple(outputs[name] for name in DETECTOR_OUTPUTS)
 
 
@@ -130,9 +141,20 @@ def validate(path: Path) -> dict[str, Any]:
 
 
 def export_detector(detector: nn.Module, profile: RadarProfile, mean_db: float, std_db: float, path: Path) -> None:
-    """Write ``detector.onnx`` (see the module docstring)."""
+    """Write ``detector.onnx`` (see the module docstring): with ``history`` inputs for a detector that reads
+    earlier frames."""
     example = torch.full(profile.shape, float(mean_db))
-    _trace_to_onnx(DetectorGraph(detector, mean_db, std_db), (example,), path, ["log_power"], list(DETECTOR_OUTPUTS))
+    n_history = detector_history_frames(detector)
+    args, names = (example,), ["log_power"]
+    if n_history:
+        args = (example, torch.full((n_history, *profile.shape), float(mean_db)), torch.ones(n_history))
+        names = ["log_power", *HISTORY_INPUTS]
+    _trace_to_onnx(DetectorGraph(detector, mean_db, std_db), args, path, names, list(DETECTOR_OUTPUTS))
+
+
+def detector_history_frames(detector: nn.Module) -> int:
+    """Earlier frames the detector reads beside the cube (0: one frame)."""
+    return int(getattr(detector, "history_frames", 0) or 0)
 
 
 def example_voxels(profile: RadarProfile) -> np.ndarray:
@@ -209,6 +231,11 @@ def export_onnx(detector: Checkpoint, segmenter: Checkpoint, out: str | Path) ->
             "input_kind": "log power in dB, float32 (R, A, D) = cube_shape: 10 log10(|cube|^2 + 1) of the complex "
                           "RAD cube (radar.transforms.log_power)",
             "output_stride": int(getattr(detector_model, "output_stride", 4)),
+            "history_frames": detector_history_frames(detector_model),
+            **({"history_input": "history (H, R, A, D) float32: the H earlier frames' log power in dB as log_power, "
+                                 "the latest first; history_present (H,) float32: 1 where that frame exists, 0 "
+                                 "where not (its slice is ignored); all 0 is a single cube"}
+               if detector_history_frames(detector_model) else {}),
             "macs": int(detector_report.macs), "params": count_params(detector_model),
             "checkpoint_sha256": checkpoint_digest(detector),
         },

@@ -5,7 +5,8 @@
 float operators, so the files stay standard ONNX), weights signed int8 per output channel, activations 8-bit,
 ranges calibrated on frames:
 
-- the detector on the frames' log power (R, A, D) dB;
+- the detector on the frames' log power (R, A, D) dB, and a detector that reads earlier frames on the frames
+  before each in the list (:func:`calibration_history`; the first frame's absent), as the float pipeline feeds it;
 - the segmenter on what the float pipeline feeds it on those frames: the features of the ROI voxels region
   growing gives around the float detector's centres, and their kernel maps (captured from the float engine).
 
@@ -63,10 +64,10 @@ from radar.input_kind import InputKind
 
 log = logging.getLogger(__name__)
 
-QUANT_VERSION = 5
+QUANT_VERSION = 6
 """Bump when the quantisation recipe changes: the int8 export cache keys on it (4: the segmenter quantised from
 its z-column form, :func:`_column_segmenter`; 5: the detector computes in int8 only where it beats the int8-weights
-graph, not the float one)."""
+graph, not the float one; 6: a detector that reads earlier frames calibrated with them)."""
 METHODS = ("MinMax", "Entropy", "Percentile")
 CALIBRATION_FRAMES = 8
 """Default calibration frames (each frame's ROI gives the segmenter tens of thousands of voxel rows)."""
@@ -127,6 +128,14 @@ class _Feeds:
         return next(self._feeds, None)
 
 
+def calibration_history(cubes: Sequence[np.ndarray], index: int, history_frames: int) -> list[np.ndarray | None] | None:
+    """The earlier frames frame ``index`` of the calibration list reads: the ones before it in the list, the latest
+    first, None before the first (calibration frames come in sequences); None for a detector of one frame."""
+    if not history_frames:
+        return None
+    return [cubes[index - 1 - h] if index - 1 - h >= 0 else None for h in range(history_frames)]
+
+
 def float_pipeline_feeds(float_dir: Path, detector: Checkpoint, segmenter: Checkpoint, cubes: Sequence[np.ndarray],
                          pipeline: dict[str, Any] | None = None
                          ) -> tuple[list[dict[str, np.ndarray]], list[dict[str, np.ndarray]], list[np.ndarray]]:
@@ -148,12 +157,21 @@ def float_pipeline_feeds(float_dir: Path, detector: Checkpoint, segmenter: Check
         captured.append({"features": features, **kernel_maps(coords)})
         return run_segmenter(coords, features)
 
+    detector_feeds: list[dict[str, np.ndarray]] = []
+    run_feed = net._run_detector.feed
+
+    def capture_feed(*args: np.ndarray | None) -> dict[str, np.ndarray]:
+        detector_feeds.append(run_feed(*args))
+        return detector_feeds[-1]
+
     net.voxel_logits = capture  # type: ignore[method-assign]
+    net._run_detector.feed = capture_feed  # type: ignore[method-assign]
     labels = []
-    for cube in cubes:
-        result = net.segment(cube, kind=InputKind.log_power)
+    for index, cube in enumerate(cubes):
+        history = calibration_history(cubes, index, net.history_frames)
+        result = net.segment(cube, kind=InputKind.log_power, history=history)
         labels.append(result.labels)
-    return [{"log_power": np.ascontiguousarray(c, dtype=np.float32)} for c in cubes], captured, labels
+    return detector_feeds, captured, labels
 
 
 def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndarray]], method: str,
@@ -379,7 +397,9 @@ def _agreement_by_method(out: Path, det: Checkpoint, seg: Checkpoint, cubes: Seq
         trial = out / f".{method}"
         (trial / "manifest.json").write_text(json.dumps({**float_manifest, "precision": "int8"}))
         net = OnnxEraseNet.from_checkpoints(det, seg, onnx_dir=trial, threads=1, int8=True, **(pipeline or {}))
-        int8_labels = [net.segment(cube, kind=InputKind.log_power).labels for cube in cubes]
+        int8_labels = [net.segment(cube, kind=InputKind.log_power,
+                                   history=calibration_history(cubes, index, net.history_frames)).labels
+                       for index, cube in enumerate(cubes)]
         agreement[method] = roi_label_agreement(float_labels, int8_labels)
         log.info("%s: ROI label agreement with float %.5f", method, agreement[method])
     return agreement
