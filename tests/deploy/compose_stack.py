@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import httpx
 import pytest
 
 from tests.pipelines.conftest import REPO, free_port
@@ -158,7 +159,25 @@ class Stack:
             if len(health) == count and set(health.values()) == {"healthy"}:
                 return time.monotonic() - started
             if time.monotonic() - started > timeout_s:
-                raise AssertionError(f"not all healthy within {timeout_s:.0f} s: {health}\n{self.logs()}")
+                raise AssertionError(f"not all healthy within {timeout_s:.0f} s: {health}\n{self.logs()[-6000:]}")
+            time.sleep(2.0)
+
+    def wait_ready(self, timeout_s: float = 300) -> list[str]:
+        """The API replicas' URLs once each answers /readyz with 200 (models loaded, ledger up)."""
+        started = time.monotonic()
+        while True:
+            urls = [f"http://127.0.0.1:{self.host_port(c)}" for c in self.containers("api")]
+            answers = []
+            for url in urls:
+                try:
+                    answers.append(httpx.get(f"{url}/readyz", timeout=10))
+                except httpx.HTTPError as error:
+                    answers.append(error)
+            if all(isinstance(a, httpx.Response) and a.status_code == 200 for a in answers):
+                return urls
+            if time.monotonic() - started > timeout_s:
+                raise AssertionError(f"API replicas not ready within {timeout_s:.0f} s: "
+                                     f"{[getattr(a, 'text', a) for a in answers]}")
             time.sleep(2.0)
 
     def host_port(self, container: str, port: int = 8000) -> int:
@@ -180,7 +199,7 @@ class Stack:
         return Path(json.loads(out)[0]["Mountpoint"])
 
     def logs(self, tail: int = 40) -> str:
-        return self.run("logs", "--no-color", "--tail", str(tail), timeout_s=60, check=False).stdout[-6000:]
+        return self.run("logs", "--no-color", "--tail", str(tail), timeout_s=60, check=False).stdout
 
     def down(self, volumes: bool) -> None:
         self.run("down", "--remove-orphans", *(["-v"] if volumes else []), "-t", "20", timeout_s=300)

@@ -50,17 +50,21 @@ def stack():
         stack.up()
         TIMES["up_s"] = time.monotonic() - started
         TIMES["healthy_after_up_s"] = TIMES["up_s"] + stack.wait_healthy(6)
+        stack.wait_ready()
+        TIMES["apis_ready_after_up_s"] = time.monotonic() - started
         yield stack
     finally:
-        stack.down(volumes=True)
         out = REPO / "out" / "deploy-lane.json"
         out.parent.mkdir(exist_ok=True)
+        out.with_name("deploy-lane-logs.txt").write_text(stack.logs(tail=300))  # read after a failure
+        stack.down(volumes=True)
         out.write_text(json.dumps({k: round(v, 1) if isinstance(v, float) else v for k, v in TIMES.items()},
                                   indent=1))
 
 
 def _api_urls(stack: Stack) -> list[str]:
-    return [f"http://127.0.0.1:{stack.host_port(c)}" for c in stack.containers("api")]
+    """The API replicas' URLs, once both are ready."""
+    return stack.wait_ready()
 
 
 def _submit(stack: Stack, *job: str, wait: bool = True, timeout_s: float = 600) -> str:
@@ -217,6 +221,7 @@ def test_restart_and_down_up_keep_usage_stores_and_a_stream(stack):
         assert frame.status_code == 200, frame.text
         run(["docker", "restart", "-t", "20", first_api], timeout_s=120)
         stack.wait_healthy(6)
+        _api_urls(stack)
         url = f"http://127.0.0.1:{stack.host_port(first_api)}"
         frame = http.post(f"{url}/v1/streams/{stream}/frames?seq=2", content=bodies[1], headers={**NPY, **headers})
         assert frame.status_code == 200, frame.text
