@@ -1,8 +1,10 @@
-// radarseg viewer: segments a .npy RAD cube with this service and draws what came back.
-// Talks only to the documented API: GET /v1/models, GET /v1/examples[/{n}[?frame=K]],
-// POST /v1/segment?outputs=objects,masks,views&encoding=zlib, and for a sequence POST /v1/streams, then
+// radarseg viewer: segments a .npy RAD cube, an ADC frame (.npy) or a frame of a DCA1000 capture (.bin) with this
+// service and draws what came back. Talks only to the documented API: GET /v1/models, GET /v1/examples[/{n}[?frame=K]],
+// POST /v1/segment?outputs=objects,masks,views&encoding=zlib (with ?input=adc for an ADC frame, and
+// ?input=adc&format=dca1000&frame=K for a capture, read with the model's radar profile), and for a sequence POST /v1/streams, then
 // POST /v1/streams/{id}/frames?seq=K, DELETE /v1/streams/{id}. State the tests read: body[data-state]
-// (idle | loading | done | error), #message, canvas[data-drawn], #objects rows, #compute, and after a stream
+// (idle | loading | done | error), #message, canvas[data-drawn], #objects rows, #compute, body[data-input] (what was
+// sent: complex, log_power, adc or dca1000), #frame-control and #frame for a capture, and after a stream
 // canvas#ra-view[data-frames, data-arrows, data-trails].
 "use strict";
 
@@ -22,7 +24,8 @@ const STAGES = ["decode", "transform", "detect", "grow", "segment", "project"];
 const MARGIN = { left: 56, right: 74, top: 12, bottom: 46 };
 
 const $ = (id) => document.getElementById(id);
-const page = { key: null, model: null, cube: null, result: null, hover: -1, retry: null, trails: null };
+const page = { key: null, model: null, shapes: {}, cube: null, result: null, hover: -1, retry: null, trails: null };
+const HEAD_BYTES = 512; // a .npy header is read from the file's first bytes; the file itself goes to the service
 const ARROW_SECONDS = 1; // a velocity arrow ends where its object would be after this long
 
 class ApiFailure extends Error {
@@ -73,14 +76,30 @@ async function decodeArray(encoded) {
   return out;
 }
 
-// The .npy header's dtype decides ?input=: floats are log power in dB, anything else goes as a complex cube
-// (the service checks the rest and says what it expects).
-function inputKind(bytes) {
-  const head = new Uint8Array(bytes, 0, Math.min(bytes.byteLength, 512));
-  if (head.length < 12 || head[0] !== 0x93 || String.fromCharCode(...head.slice(1, 6)) !== "NUMPY") return "complex";
+// A .npy header's dtype and shape (null for bytes that are no .npy file).
+function npyHeader(head) {
+  if (head.length < 12 || head[0] !== 0x93 || String.fromCharCode(...head.slice(1, 6)) !== "NUMPY") return null;
   const text = String.fromCharCode(...head.slice(head[6] === 1 ? 10 : 12));
   const descr = /'descr':\s*'([^']+)'/.exec(text);
-  return descr && /^[<>|=]?f\d/.test(descr[1]) ? "log_power" : "complex";
+  const shape = /'shape':\s*\(([^)]*)\)/.exec(text);
+  return { descr: descr ? descr[1] : "", shape: shape ? shape[1].split(",").filter((n) => n.trim()).map(Number) : [] };
+}
+
+// What to send, from the first bytes and the name: a .bin that is no .npy is a DCA1000 capture (?input=adc&format=
+// dca1000); in a .npy, integers (16-bit I/Q on a trailing axis of 2) are an ADC frame, floats log power in dB, and
+// complex values the complex RAD cube when they have the model's cube shape, else an ADC frame (?input=adc). The
+// service checks the rest and says what it expects.
+function inputOf(head, name) {
+  const header = npyHeader(head);
+  if (!header) {
+    return /\.bin$/i.test(name) ? { input: "adc", format: "dca1000", what: "a DCA1000 capture" }
+      : { input: "complex", what: "a complex RAD cube" };
+  }
+  if (/^[<>|=]?[iu]\d/.test(header.descr)) return { input: "adc", what: "an ADC frame" };
+  if (/^[<>|=]?f\d/.test(header.descr)) return { input: "log_power", what: "a log power cube" };
+  const rad = page.shapes[page.model] || [];
+  const isRad = header.shape.length === rad.length && header.shape.every((n, i) => n === rad[i]);
+  return isRad ? { input: "complex", what: "a complex RAD cube" } : { input: "adc", what: "an ADC frame" };
 }
 
 // ------------------------------------------------------------------ messages and state
@@ -113,6 +132,7 @@ function showFailure(error) {
     extra.push(`used ${fmtCount(error.body.used_macs)} of ${fmtCount(error.body.limit_macs)} MACs today`);
   }
   if (error.retryAfter) extra.push(`retry after ${error.retryAfter} s`);
+  if (page.cube && page.cube.sent && error.status === 422) extra.push(`sent as ${page.cube.sent.what}`);
   if (error.status === 401) extra.push("enter an API key above");
   const detail = document.createElement("span");
   detail.className = "detail";
@@ -145,6 +165,7 @@ async function loadModels(wanted) {
     return option;
   }));
   const names = answer.models.map((m) => m.name);
+  page.shapes = Object.fromEntries(answer.models.map((m) => [m.name, m.shape]));
   page.model = wanted && names.includes(wanted) ? wanted : answer.default;
   select.value = page.model;
 }
@@ -168,15 +189,15 @@ async function segmentExample(n) {
   const url = example ? example.url : `/v1/examples/${n}?model=${encodeURIComponent(page.model)}`;
   const bytes = await (await api(url)).arrayBuffer();
   $("example").value = String(n);
-  await segment(bytes, `example ${n}`);
+  await segment(new Blob([bytes]), `example ${n}`);
 }
 
-async function segmentUrl(url) {
+async function segmentUrl(url, frame) {
   setState("loading");
   say("info", "Fetching the cube…");
   const response = await fetch(url);
   if (!response.ok) throw new Error(`could not fetch the cube at ${url}: HTTP ${response.status}`);
-  await segment(await response.arrayBuffer(), "the cube from the address");
+  await segment(await response.blob(), "the cube from the address", frame, url);
 }
 
 // ------------------------------------------------------------------ streams
@@ -192,6 +213,7 @@ async function playStream(n) {
   })).json();
   page.trails = new Map();
   page.cube = null;
+  showFrameControl();
   try {
     for (let k = 0; k < example.frames; k++) {
       say("info", `Stream of example ${n}: frame ${k + 1} of ${example.frames}…`);
@@ -222,17 +244,31 @@ async function playStream(n) {
 }
 
 // ------------------------------------------------------------------ segmentation
-async function segment(bytes, label) {
-  page.cube = { bytes, label };
+// Segments ``source`` (a Blob: a picked or dropped file is sent as it is, never read whole by the page; the service's
+// body limit answers 413 for a larger one). ``name`` tells a capture (.bin), whose frame ``frame`` is segmented.
+async function segment(source, label, frame = 0, name = label) {
+  const sameSource = page.cube && page.cube.source === source;
+  const sent = inputOf(new Uint8Array(await source.slice(0, HEAD_BYTES).arrayBuffer()), name);
+  page.cube = { source, label, name, frame, sent, frames: sameSource ? page.cube.frames : null };
   page.trails = null;
+  showFrameControl();
   setState("loading");
-  const kind = inputKind(bytes);
-  say("info", `Segmenting ${label} (${(bytes.byteLength / 2 ** 20).toFixed(1)} MiB, ${kind}) with ${page.model}…`);
-  const query = new URLSearchParams({ model: page.model, input: kind, outputs: "objects,masks,views",
+  document.body.dataset.input = sent.format || sent.input;
+  const what = sent.format ? `${label}, frame ${frame}` : label;
+  say("info", `Segmenting ${what} (${(source.size / 2 ** 20).toFixed(1)} MiB, ${sent.what}) with ${page.model}…`);
+  const query = new URLSearchParams({ model: page.model, input: sent.input, outputs: "objects,masks,views",
     encoding: "zlib" });
+  if (sent.format) {
+    query.set("format", sent.format);
+    query.set("frame", String(frame));
+  }
   const response = await api(`/v1/segment?${query}`, {
-    method: "POST", body: bytes, headers: { "Content-Type": "application/x-npy" },
+    method: "POST", body: source,
+    headers: { "Content-Type": sent.format ? "application/octet-stream" : "application/x-npy" },
   });
+  const frames = response.headers.get("X-Capture-Frames");
+  page.cube.frames = frames === null ? null : Number(frames);
+  showFrameControl();
   const answer = await response.json();
   const [ra, rd, raMask, rdMask] = await Promise.all([answer.views.ra.array, answer.views.rd.array,
     answer.ra_mask, answer.rd_mask].map(decodeArray));
@@ -240,9 +276,20 @@ async function segment(bytes, label) {
   page.hover = -1;
   render();
   const c = answer.compute;
-  say("ok", `${label}: ${answer.objects.length} object${answer.objects.length === 1 ? "" : "s"}, `
+  say("ok", `${what}${frames === null ? "" : ` (${frames} frames, from 0)`}: ${answer.objects.length} `
+    + `object${answer.objects.length === 1 ? "" : "s"}, `
     + `${fmtCount(c.macs.total)}MACs, ${fmtMs(c.seconds.total)} (model ${answer.model}, preset ${answer.preset})`);
   setState("done", response.status);
+}
+
+// The frame index control: shown for a capture once the service has said how many frames it holds.
+function showFrameControl() {
+  const frames = page.cube && page.cube.sent && page.cube.sent.format ? page.cube.frames : null;
+  $("frame-control").hidden = frames === null;
+  if (frames === null) return;
+  $("frame").max = String(frames - 1);
+  $("frame").value = String(page.cube.frame);
+  $("frame-count").textContent = `of ${frames} (0 to ${frames - 1})`;
 }
 
 // ------------------------------------------------------------------ drawing
@@ -623,7 +670,7 @@ function wire() {
   $("model").addEventListener("change", (event) => act(async () => {
     page.model = event.target.value;
     await loadExamples();
-    if (page.cube) await segment(page.cube.bytes, page.cube.label);
+    if (page.cube) await segment(page.cube.source, page.cube.label, page.cube.frame, page.cube.name);
   }));
   $("play").addEventListener("click", () => act(() => playStream(Number($("example").value) || 1)));
   $("example").addEventListener("change", (event) => {
@@ -631,8 +678,14 @@ function wire() {
   });
   $("file").addEventListener("change", (event) => {
     const file = event.target.files[0];
-    if (file) act(async () => segment(await file.arrayBuffer(), file.name));
+    if (file) act(() => segment(file, file.name));
     event.target.value = "";
+  });
+  $("frame").addEventListener("change", (event) => {
+    const frame = Number(event.target.value);
+    if (page.cube && Number.isInteger(frame) && frame >= 0) {
+      act(() => segment(page.cube.source, page.cube.label, frame, page.cube.name));
+    }
   });
   document.addEventListener("dragover", (event) => {
     event.preventDefault();
@@ -643,7 +696,7 @@ function wire() {
     event.preventDefault();
     document.body.classList.remove("dragging");
     const file = event.dataTransfer.files[0];
-    if (file) act(async () => segment(await file.arrayBuffer(), file.name));
+    if (file) act(() => segment(file, file.name));
   });
   const useKey = () => {
     page.key = $("api-key").value.trim() || null;
@@ -676,11 +729,11 @@ function start() {
     setState("loading");
     await loadModels(params.get("model"));
     await loadExamples();
-    if (params.get("cube")) await segmentUrl(params.get("cube"));
+    if (params.get("cube")) await segmentUrl(params.get("cube"), Number(params.get("frame")) || 0);
     else if (params.get("stream")) await playStream(Number(params.get("stream")));
     else if (params.get("example")) await segmentExample(Number(params.get("example")));
     else {
-      say("info", "Choose an example or open a .npy cube.");
+      say("info", "Choose an example, or open a cube or an ADC frame (.npy) or a DCA1000 capture (.bin).");
       setState("idle");
     }
   });
