@@ -20,6 +20,7 @@ HEADER_LENGTH = "Inference-Header-Content-Length"
 DATATYPES = {"BOOL": "?", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "INT8": "i1",
              "INT16": "<i2", "INT32": "<i4", "INT64": "<i8", "FP16": "<f2", "FP32": "<f4", "FP64": "<f8"}
 DATATYPE_OF = {np.dtype(code).newbyteorder("<").str: name for name, code in DATATYPES.items()}
+ExpectedInputs = dict[str, tuple[tuple[int, ...], tuple[str, ...]]]  # input name -> (shape, accepted datatypes)
 MAX_HEADER_BYTES = 1 << 16  # a binary request's JSON header: names, shapes and parameters, never the data
 
 
@@ -47,9 +48,10 @@ class InferRequest:
     binary_output: bool
 
 
-def _json_header(body: bytes, header_length: str | None) -> tuple[dict[str, Any], bytes]:
+def _json_header(body: bytes | bytearray, header_length: str | None) -> tuple[dict[str, Any], memoryview]:
+    view = memoryview(body)
     if header_length is None:
-        header, binary = body, b""
+        header, binary = body, view[len(body):]
     else:
         if not (header_length.isascii() and header_length.isdigit()) or int(header_length) > len(body):
             raise ProtocolError(400, f"{HEADER_LENGTH} {header_length[:24]!r}: expected the JSON header's length in "
@@ -58,7 +60,7 @@ def _json_header(body: bytes, header_length: str | None) -> tuple[dict[str, Any]
         if n > MAX_HEADER_BYTES:
             raise ProtocolError(400, f"{HEADER_LENGTH} {n}: a JSON header of at most {MAX_HEADER_BYTES} bytes is "
                                      "accepted with binary tensor data")
-        header, binary = body[:n], body[n:]
+        header, binary = bytes(view[:n]), view[n:]
     try:
         parsed = json.loads(header)
     except (ValueError, RecursionError) as exc:
@@ -68,8 +70,7 @@ def _json_header(body: bytes, header_length: str | None) -> tuple[dict[str, Any]
     return parsed, binary
 
 
-def _tensor(spec: Any, binary: memoryview, offset: int, expected: dict[str, tuple[tuple[int, ...], tuple[str, ...]]]
-            ) -> tuple[str, np.ndarray, int]:
+def _tensor(spec: Any, binary: memoryview, offset: int, expected: ExpectedInputs) -> tuple[str, np.ndarray, int]:
     """One input as an array (its shape and datatype checked against ``expected`` before any data is read) and the
     binary bytes it took."""
     if not isinstance(spec, dict) or not isinstance(spec.get("name"), str):
@@ -117,19 +118,19 @@ def _outputs(parsed: dict[str, Any], known: tuple[str, ...]) -> tuple[tuple[Requ
     return tuple(chosen), binary_default
 
 
-def parse_request(body: bytes, header_length: str | None, expected: dict[str, tuple[tuple[int, ...], tuple[str, ...]]],
+def parse_request(body: bytes | bytearray, header_length: str | None, expected: ExpectedInputs,
                   outputs: tuple[str, ...]) -> InferRequest:
     """The request in ``body``; ``expected``: input name -> (shape, accepted datatypes); ``outputs``: the names the
     model answers."""
-    parsed, binary = _json_header(body, header_length)
-    view, offset, inputs = memoryview(binary), 0, {}
+    parsed, view = _json_header(body, header_length)
+    offset, inputs = 0, {}
     for spec in parsed["inputs"]:
         name, array, used = _tensor(spec, view, offset, expected)
         if name in inputs:
             raise ProtocolError(400, f"input {name!r} given twice")
         inputs[name], offset = array, offset + used
-    if offset != len(binary):
-        raise ProtocolError(400, f"the body holds {len(binary) - offset} binary bytes no input's binary_data_size "
+    if offset != len(view):
+        raise ProtocolError(400, f"the body holds {len(view) - offset} binary bytes no input's binary_data_size "
                                  "accounts for")
     chosen, binary_output = _outputs(parsed, outputs)
     request_id = parsed.get("id")

@@ -130,7 +130,7 @@ def model_metadata(state: State, name: str = ModelName) -> JSONResponse:
                          "parameters": {"preset": profile.name, "class_names": ",".join(served.net.class_names)}})
 
 
-async def _read_body(request: Request, state: ServiceState, tenant: str) -> bytes:
+async def _read_body(request: Request, state: ServiceState, tenant: str) -> bytearray:
     """The whole body, within the upload gate's bounds and the body pace (408 for a stalled upload)."""
     declared = request.headers.get("content-length")
     length = int(declared) if declared is not None and declared.isascii() and declared.isdigit() else None
@@ -143,7 +143,7 @@ async def _read_body(request: Request, state: ServiceState, tenant: str) -> byte
                     ticket.charge(len(chunks))
         except ClientDisconnect:
             raise ApiError(400, "client disconnected before sending the whole body") from None
-    return bytes(chunks)
+    return chunks  # not copied again: the tensors are views of it
 
 
 def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndarray]:
