@@ -25,6 +25,13 @@ _ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
 }
 
 
+def require_at_least(minimum: int, **values: int) -> None:
+    """ValueError naming the first of ``values`` (an argument's name and value) below ``minimum``."""
+    for name, value in values.items():
+        if value < minimum:
+            raise ValueError(f"{name} must be >= {minimum}, got {value}")
+
+
 def make_activation(name: str) -> nn.Module:
     """A fresh activation module by name: ``silu``, ``relu``, ``sigmoid`` or ``identity``."""
     try:

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.detector.targets import CentreTargets
-from models.layers import SeparableConv2d
+from models.layers import SeparableConv2d, require_at_least
 
 HEATMAP_PRIOR_BIAS = -2.19  # sigmoid(-2.19) = 0.1
 
@@ -87,16 +87,8 @@ class CentreNetHead(nn.Module):
         heatmap_classes: int = 1,
     ) -> None:
         super().__init__()
-        if doppler_bins < 1:
-            raise ValueError(f"doppler_bins must be >= 1, got {doppler_bins}")
-        if in_channels < 1 or head_channels < 1:
-            raise ValueError(
-                f"in_channels and head_channels must be >= 1, got {in_channels}, {head_channels}"
-            )
-        if output_stride < 1:
-            raise ValueError(f"output_stride must be >= 1, got {output_stride}")
-        if heatmap_classes < 1:
-            raise ValueError(f"heatmap_classes must be >= 1, got {heatmap_classes}")
+        require_at_least(1, doppler_bins=doppler_bins, in_channels=in_channels, head_channels=head_channels,
+                         output_stride=output_stride, heatmap_classes=heatmap_classes)
         self.heatmap = _branch(in_channels, head_channels, heatmap_classes, separable=separable)
         self.heatmap_classes = heatmap_classes
         if heatmap_classes > 1:

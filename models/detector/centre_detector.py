@@ -43,6 +43,7 @@ from models.detector.efficientnet import (
     smaller_stages,
 )
 from models.detector.targets import CentreTargets
+from models.layers import require_at_least
 from models.registry import register_model
 from models.slimming.channel_surgery import apply_channel_table
 from radar.profiles import RadarProfile, get_profile
@@ -130,16 +131,12 @@ class CentreDetector(nn.Module):
         history_frames: int = 0,
     ) -> None:
         super().__init__()
-        if doppler_bins < 1:
-            raise ValueError(f"doppler_bins must be >= 1, got {doppler_bins}")
+        require_at_least(1, doppler_bins=doppler_bins, doppler_channels=doppler_channels)
+        require_at_least(0, history_frames=history_frames)
         if pad_multiple < 1 or pad_multiple % 4:
             raise ValueError(
                 f"pad_multiple must be a positive multiple of the output stride 4, got {pad_multiple}"
             )
-        if doppler_channels < 1:
-            raise ValueError(f"doppler_channels must be >= 1, got {doppler_channels}")
-        if history_frames < 0:
-            raise ValueError(f"history_frames must be >= 0, got {history_frames}")
         self.doppler_compress = nn.Conv2d(doppler_bins, doppler_channels, 1)
         self.register_buffer("cartesian", normalised_cartesian(*cartesian)[None], persistent=False)
         self.history_frames = history_frames
