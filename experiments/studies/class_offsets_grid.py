@@ -19,6 +19,7 @@ from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.store import open_store  # noqa
 from pipelines.evaluation.scoring import ViewConfusion
 from radar import transforms
+from radar.input_kind import InputKind
 
 parser = argparse.ArgumentParser()
 parser.add_argument("--store", required=True)
@@ -64,7 +65,7 @@ for i, slot in enumerate(slots):
     captured.clear()
     torch.Tensor.argmax = capture_argmax
     try:
-        result = net.segment(lp, is_log_power=True, history=history)
+        result = net.segment(lp, kind=InputKind.log_power, history=history)
     finally:
         torch.Tensor.argmax = orig_argmax
     truth = {"ra": arrays["ra_mask"][int(slot)], "rd": arrays["rd_mask"][int(slot)]}
