@@ -98,6 +98,7 @@ def batch_run(store: Path, out: Path, ckpt: dict, workers: int) -> dict:
 def serve_run(url: str, ckpt: dict, replicas: int, body: bytes, requests: int, ledger_dir: Path) -> dict:
     from ray import serve
 
+    from service.main import create_app
     from service.ray_serve import RadarsegService
 
     settings = {"models": [{"name": "bench", "detector": ckpt["detector"], "segmenter": ckpt["segmenter"],
@@ -105,7 +106,7 @@ def serve_run(url: str, ckpt: dict, replicas: int, body: bytes, requests: int, l
                 "torch_threads": 1, "max_queue": 4, "data_dir": str(ledger_dir)}
     deployment = RadarsegService.options(num_replicas=replicas, max_ongoing_requests=2,
                                          ray_actor_options={"num_cpus": 1})
-    serve.run(deployment.bind(settings), name="radarseg", route_prefix="/",
+    serve.run(deployment.bind(settings, create_app), name="radarseg", route_prefix="/",
               logging_config={"log_level": "WARNING", "enable_access_log": False})
     headers = {"content-type": "application/x-npy"}
     try:

@@ -38,7 +38,7 @@ from service.routes import examples, health, metrics, models, open_inference, se
 from service.routes.docs import install_docs
 from service.schemas import ErrorBody
 from service.security_headers import SecurityHeaders
-from service.settings import Settings
+from service.settings import DEPLOYMENT_NAME, Settings  # noqa: F401 (DEPLOYMENT_NAME: deploy/serve.yaml's name)
 from service.stream_history import StreamHistory
 from service.stream_store import StreamStore
 from service.tenants import Authenticator
@@ -160,8 +160,6 @@ def _document_errors_as_sent(app: FastAPI) -> None:
 
     app.openapi = openapi  # type: ignore[method-assign]
 
-DEPLOYMENT_NAME = "radarseg"  # the Ray Serve deployment of the app (service.ray_serve)
-
 
 def build_app(args: dict[str, Any]) -> Any:
     """Ray Serve's application builder (``import_path: service.main:build_app`` in deploy/serve.yaml): the app of
@@ -169,4 +167,4 @@ def build_app(args: dict[str, Any]) -> Any:
     imported only here)."""
     from service.ray_serve import build_app as build
 
-    return build(args)
+    return build(args, create_app)

@@ -24,37 +24,43 @@ not the app, holds the overflow.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from fastapi import FastAPI
 from ray import serve
 from ray.serve import Application
 
-from service.main import DEPLOYMENT_NAME, create_app
-from service.settings import Settings
+from service.settings import DEPLOYMENT_NAME, Settings
+
+AppFactory = Callable[[Settings], FastAPI]
 
 
 @serve.deployment(name=DEPLOYMENT_NAME, max_ongoing_requests=2, ray_actor_options={"num_cpus": 1})
 @serve.ingress()
 class RadarsegService:
-    """One replica: settings from its environment plus ``settings`` overrides; the app is built in the replica."""
+    """One replica: settings from its environment plus ``settings`` overrides; the app is built in the replica by
+    ``factory`` (``service.main.create_app``, handed over by its caller: this module never imports the app's)."""
 
-    def __init__(self, settings: dict[str, Any] | None = None) -> None:
+    def __init__(self, settings: dict[str, Any] | None = None, factory: AppFactory | None = None) -> None:
         self.settings = Settings(**(settings or {}))  # refused here (replica start fails) when invalid
+        if factory is None:
+            raise ValueError("RadarsegService needs the app factory: bind(settings, service.main.create_app)")
+        self.factory = factory
 
     def __serve_build_asgi_app__(self) -> FastAPI:
         """Serve calls this once per replica, after ``__init__``; the app's lifespan then loads the models."""
-        return create_app(self.settings)
+        return self.factory(self.settings)
 
 
-def build_app(args: dict[str, Any]) -> Application:
+def build_app(args: dict[str, Any], factory: AppFactory) -> Application:
     """Application builder (``service.main.build_app``; ``args`` from the Serve config): ``settings`` is a mapping
-    of Settings fields that override the ``RADARSEG_*`` environment."""
+    of Settings fields that override the ``RADARSEG_*`` environment; ``factory`` builds each replica's app."""
     unknown = set(args) - {"settings"}
     if unknown:
         raise ValueError(f"unknown application arguments {sorted(unknown)}; expected only 'settings'")
     settings = args.get("settings") or {}
     if not isinstance(settings, dict):
         raise ValueError(f"'settings' must be a mapping of service settings, got {type(settings).__name__}")
-    return RadarsegService.bind(settings)
+    return RadarsegService.bind(settings, factory)
 

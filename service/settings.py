@@ -28,6 +28,7 @@ TABLE_PREFIX_PATTERN = re.compile(r"^[a-z][a-z0-9_]{0,30}$")
 MIN_KEY_LENGTH = 16
 MAX_BODY_LIMIT = 1 << 30  # never accept more than 1 GiB in one request
 ANONYMOUS_TENANT = "anonymous"
+DEPLOYMENT_NAME = "radarseg"  # the service's Ray Serve deployment (service.ray_serve)
 
 # The shipped checkpoints of the `small` preset (committed under checkpoints/ by the training issue).
 DEFAULT_DETECTOR = "checkpoints/detector.pt"

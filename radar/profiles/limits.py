@@ -10,8 +10,9 @@ bound here, in one place, with one line naming the key, the value and the bound:
 - the raw tables (:func:`check_tables`, before the profile is derived): element counts, samples, chirps, pads, angle
   bins, objects per frame, track life, and the cube and ADC frame they make together;
 - the derived profile (:func:`check_profile`, from ``RadarProfile.__post_init__``): the same bounds on the bins,
-  every float finite, and the tracker's configuration built and checked (a bad ``[tracking]`` table refuses the
-  radar where it is loaded, never a frame at a time).
+  every float finite, and the tracker's settings as its configuration takes them (a bad ``[tracking]`` table
+  refuses the radar where it is loaded, never a frame at a time; the service also builds the configuration at
+  start-up).
 
 New profile keys need nothing here to be finite; a key that sizes an array adds its bound to :data:`TABLE_BOUNDS`.
 """
@@ -180,18 +181,18 @@ def check_profile(profile: Any) -> None:
         raise _refuse(source, "objects_per_frame", profile.objects_per_frame,
                       f"at most {MAX_OBJECTS_PER_FRAME} objects")
     check_finite({"tracking": dict(profile.tracking), "region_growing": dict(profile.region_growing)}, source)
-    for key, value in profile.tracking:
-        if ("tracking", key) in TABLE_BOUNDS and value > TABLE_BOUNDS[("tracking", key)]:
-            raise _refuse(source, f"[tracking] {key}", value, f"at most {TABLE_BOUNDS[('tracking', key)]} frames")
-    check_tracker(profile, source)
+    check_tracking(dict(profile.tracking), source)
 
 
-def check_tracker(profile: Any, source: str) -> None:
-    """Build the radar's tracker configuration now (radar.tracking.TrackerConfig.for_profile), so that a bad
-    ``[tracking]`` table refuses the radar where it is loaded."""
-    from radar.tracking import TrackerConfig  # radar.tracking reads profiles: imported when first checked
-
-    try:
-        TrackerConfig.for_profile(profile)
-    except (ValueError, TypeError) as exc:
-        raise LimitError(f"{source}: [tracking] {exc}") from None
+def check_tracking(tracking: dict[str, Any], source: str) -> None:
+    """The ``[tracking]`` values as radar.tracking.TrackerConfig takes them (which radar.profiles cannot import:
+    it reads profiles): numbers finite and > 0, ``confirm_hits`` at least 1, every count within its bound. The
+    service builds the configuration itself at start-up too (service.radar_check)."""
+    for key, value in tracking.items():
+        bound = TABLE_BOUNDS.get(("tracking", key))
+        if bound is None:
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise _refuse(source, f"[tracking] {key}", value, "a finite number > 0")
+        elif not (isinstance(value, int) and (1 if key == "confirm_hits" else 0) <= value <= bound):
+            raise _refuse(source, f"[tracking] {key}", value,
+                          f"a whole number of frames in [{1 if key == 'confirm_hits' else 0}, {bound}]")
