@@ -194,6 +194,8 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        if "profile" in data and "recipe" not in data:  # a run saved before the recipe had its name
+            data = {("recipe" if key == "profile" else key): value for key, value in data.items()}
         unknown = set(data) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"unknown training config keys {sorted(unknown)}")

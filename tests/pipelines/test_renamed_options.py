@@ -25,3 +25,11 @@ def test_recipe_reaches_the_training_config():
     cfg = parse_config(job_module("pipelines.training.train"), ["detector", "--store", "s.zarr", "--out", "o",
                                                                  "--recipe", "paper"], "radarseg train")
     assert cfg.recipe == "paper" and cfg.hyper().epochs == 300
+
+
+def test_a_run_saved_with_profile_resumes_with_its_recipe():
+    from pipelines.training.config import TrainConfig
+
+    saved = {**TrainConfig(stage="detector", store="s.zarr", out="o", recipe="paper").to_dict()}
+    saved["profile"] = saved.pop("recipe")
+    assert TrainConfig.from_dict(saved).recipe == "paper"
