@@ -34,6 +34,7 @@ from models.erasenet.engines import load_erasenet
 from models.export.export_cache import exported_dir
 from models.export.quantize import METHODS
 from pipelines.datasets.calibration import store_calibration
+from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.store import frames_of_split, open_store
 from radar.input_kind import InputKind
 
@@ -95,8 +96,19 @@ def pair_engines(pair: str, cache: Path, calibration_store: str, calibration_fra
     return float_dir, int8_dir, nets
 
 
-def timing(nets: dict, cubes: list[np.ndarray], repeats: int) -> dict[str, object]:
-    """Median over frames of each frame's best end-to-end time per engine (interleaved), and segment MACs."""
+def store_history(store: str, slots: np.ndarray, history_frames: int) -> list[list[np.ndarray | None] | None]:
+    """Each slot's earlier frames in ``store`` (what a detector that reads ``history_frames`` gets; None: none)."""
+    if not history_frames:
+        return [None] * len(slots)
+    root = open_store(store)
+    earlier = earlier_slots(root, history_frames)
+    return [earlier_frames(root["input"], earlier[int(slot)]) for slot in slots]
+
+
+def timing(nets: dict, cubes: list[np.ndarray], repeats: int,
+           histories: list[list[np.ndarray | None] | None] | None = None) -> dict[str, object]:
+    """Median over frames of each frame's best end-to-end time per engine (interleaved), and segment MACs;
+    ``histories``: each frame's earlier frames, given to every engine (they all read them)."""
     best: dict[str, list[float]] = {name: [] for name in nets}
     macs: list[int] = []
     for index, cube in enumerate(cubes):
@@ -105,7 +117,8 @@ def timing(nets: dict, cubes: list[np.ndarray], repeats: int) -> dict[str, objec
             order = list(nets) if (index + repeat) % 2 == 0 else list(nets)[::-1]
             for name in order:
                 started = time.perf_counter()
-                result = nets[name].segment(cube, kind=InputKind.log_power)
+                result = nets[name].segment(cube, kind=InputKind.log_power,
+                                            history=None if histories is None else histories[index])
                 times[name].append(time.perf_counter() - started)
                 if name == "onnx" and repeat == 0:
                     macs.append(result.compute.segment_macs)
@@ -169,7 +182,9 @@ def main() -> None:
             "operator_precision": {stage: manifests["int8"][stage]["operator_precision"]
                                    for stage in ("detector", "segmenter")},
         }
-        entry["timing"] = timing(nets, cubes, args.repeats)
+        histories = store_history(args.store, chosen, nets["torch"].history_frames)
+        entry["timing"] = timing(nets, cubes, args.repeats, histories)
+        entry["timing"]["history_frames"] = nets["torch"].history_frames
         entry["timing"]["frames"] = [int(s) for s in chosen]
         print(pair, json.dumps(entry["timing"], indent=1), flush=True)
         entry["accuracy"] = {precision: accuracy(detector, segmenter, args.store, engine, directory, args.eval_frames)

@@ -120,8 +120,14 @@ def operator_profile(path: Path, feeds: list, fold_weights: bool = False) -> dic
     return dict(sorted(by_type.items(), key=lambda item: -item[1]))
 
 
-def detector_feeds(cubes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
-    return [{"log_power": np.ascontiguousarray(cube, dtype=np.float32)} for cube in cubes]
+def detector_feeds(net, cubes: list[np.ndarray]) -> list[dict[str, np.ndarray]]:  # noqa: ANN001
+    """The detector graph's inputs for each cube (a graph that reads earlier frames: the cube before it in the list
+    as its earlier frame; the operators' times do not depend on which frame it is)."""
+    feeds = []
+    for index, cube in enumerate(cubes):
+        history = net._history_input([cubes[index - 1]]) if net.history_frames and index else {}
+        feeds.append(net._run_detector.feed(np.ascontiguousarray(cube, dtype=np.float32), **history))
+    return feeds
 
 
 def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], cache: Path) -> dict:
@@ -135,8 +141,8 @@ def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], c
     operators = {
         "segmenter": {"float": operator_profile(float_dir / "segmenter.onnx", graph_feeds),
                       "int8": operator_profile(int8_dir / "segmenter.onnx", graph_feeds)},
-        "detector": {"float": operator_profile(float_dir / "detector.onnx", detector_feeds(cubes)),
-                     "int8": operator_profile(int8_dir / "detector.onnx", detector_feeds(cubes), fold)},
+        "detector": {"float": operator_profile(float_dir / "detector.onnx", detector_feeds(nets["onnx"], cubes)),
+                     "int8": operator_profile(int8_dir / "detector.onnx", detector_feeds(nets["onnx"], cubes), fold)},
     }
     int8_products = sum(ms for op, ms in operators["segmenter"]["int8"].items() if op in PRODUCTS)
     int8_products += sum(ms for op, ms in operators["detector"]["int8"].items() if op in ("QLinearConv", "Conv"))
