@@ -1,5 +1,6 @@
-"""The own-radar guide (docs/guides/own-radar.md) runs as written, from a profile file to a served model and its
-ONNX graphs, and the radar travels under its own name: in the store, both checkpoints, the ONNX manifest and the service.
+"""The own-radar guide (docs/guides/own-radar.md) runs as written, from a profile file to a served model and
+its ONNX graphs, and the radar travels under its own name: in the store, both checkpoints, the ONNX manifest and
+the service.
 
 The page's first block runs in order, in smoke mode, in a directory laid out like a clone (the runner of
 tests/test_documented_commands.py, which leaves this path to this test); then what each step left is checked.

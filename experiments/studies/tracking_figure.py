@@ -1,5 +1,6 @@
-"""The picture of experiments/reports/tracking.md: tracks over one sequence drawn on its last frame's RA view (max log power
-over Doppler, in Cartesian metres). Left: the tracker over the shipped pair's objects; right: over the true centres.
+"""The picture of experiments/reports/tracking.md: tracks over one sequence drawn on its last frame's RA view
+(max log power over Doppler, in Cartesian metres). Left: the tracker over the shipped pair's objects; right: over the
+true centres.
 Each track is a polyline of its objects' positions with its id and a velocity arrow (its last estimate, 1 s long);
 the simulator's true tracks (labelled centres) are dashed white with their true velocity in a thin arrow.
 

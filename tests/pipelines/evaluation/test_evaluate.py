@@ -126,7 +126,8 @@ def test_shipped_model_reaches_its_report(tmp_path):
     assert metrics["detection"]["mAP"] >= shipped["detection"]["mAP"] - 0.12
     assert metrics["region_growing"]["predicted_seeds"]["recall"] >= shipped["region_growing"]["predicted_seeds"][
         "recall"] - 0.05
-    # 24 frames of 2 sequences: the shipped detector (experiments/reports/stage1.md) scored RD 58.3 here against 68.8 on 240 frames
+    # 24 frames of 2 sequences: the shipped detector (experiments/reports/stage1.md) scored RD 58.3 here against 68.8
+    # on 240 frames
     for view in ("RA", "RD"):
         assert metrics["segmentation"][view]["mIoU"] >= shipped["segmentation"][view]["mIoU"] - 0.12, view
 
