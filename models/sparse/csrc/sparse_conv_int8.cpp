@@ -43,6 +43,7 @@ namespace {
 constexpr int64_t kLanes = 8;
 constexpr int64_t kBlockRows = 64;
 constexpr int kMaxChunkVectors = 3;
+constexpr int64_t kMaxColumns = 4096;  // output channels of one layer, at most
 
 #if defined(__AVX512F__) && defined(__AVX512VNNI__) && defined(__AVX512VL__)
 #define RADARSEG_INT8_VNNI512 1
@@ -193,20 +194,41 @@ struct Epilogue {
   bool relu = false;
   float out_scale = 0.0f;  // > 0: uint8 out
 
+  // Each step a plain loop over the row's columns (vectorised by the compiler), the uint8 store explicitly.
   inline void write(void* out, int64_t row, const int32_t* acc, int64_t D) const {
-    const float inverse = out_scale > 0.0f ? 1.0f / out_scale : 0.0f;
-    for (int64_t d = 0; d < D; ++d) {
-      float v = static_cast<float>(acc[d]) * scale[d];
-      if (bias) v += bias[d];
-      if (residual_u8) v += static_cast<float>(residual_u8[row * D + d]) * residual_scale[d];
-      if (residual_f32) v += residual_f32[row * D + d];
-      if (relu) v = std::max(v, 0.0f);
-      if (out_scale > 0.0f) {
-        const float q = std::nearbyint(v * inverse);
-        static_cast<uint8_t*>(out)[row * D + d] = static_cast<uint8_t>(std::min(std::max(q, 0.0f), 255.0f));
-      } else {
-        static_cast<float*>(out)[row * D + d] = v;
+    float v[kMaxColumns];
+    for (int64_t d = 0; d < D; ++d) v[d] = static_cast<float>(acc[d]) * scale[d];
+    if (bias)
+      for (int64_t d = 0; d < D; ++d) v[d] += bias[d];
+    if (residual_u8) {
+      const uint8_t* res = residual_u8 + row * D;
+      for (int64_t d = 0; d < D; ++d) v[d] += static_cast<float>(res[d]) * residual_scale[d];
+    }
+    if (residual_f32) {
+      const float* res = residual_f32 + row * D;
+      for (int64_t d = 0; d < D; ++d) v[d] += res[d];
+    }
+    if (relu)
+      for (int64_t d = 0; d < D; ++d) v[d] = std::max(v[d], 0.0f);
+    if (out_scale > 0.0f) {
+      const float inverse = 1.0f / out_scale;
+      uint8_t* dst = static_cast<uint8_t*>(out) + row * D;
+      int64_t d = 0;
+#if defined(__AVX2__)
+      // 8 columns at a time (a uint8 loop left to the compiler runs scalar below 64 columns): scale, clamp to
+      // [0, 255], round to nearest even (the default MXCSR mode), pack to bytes
+      const __m256 inv = _mm256_set1_ps(inverse), lo = _mm256_setzero_ps(), hi = _mm256_set1_ps(255.0f);
+      for (; d + 8 <= D; d += 8) {
+        const __m256 x = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_loadu_ps(v + d), inv), lo), hi);
+        const __m256i i = _mm256_cvtps_epi32(x);
+        const __m128i words = _mm_packus_epi32(_mm256_castsi256_si128(i), _mm256_extracti128_si256(i, 1));
+        _mm_storel_epi64(reinterpret_cast<__m128i*>(dst + d), _mm_packus_epi16(words, words));
       }
+#endif
+      for (; d < D; ++d)
+        dst[d] = static_cast<uint8_t>(std::nearbyint(std::min(std::max(v[d] * inverse, 0.0f), 255.0f)));
+    } else {
+      std::memcpy(static_cast<float*>(out) + row * D, v, D * sizeof(float));
     }
   }
 };
@@ -214,10 +236,15 @@ struct Epilogue {
 struct Layer {
   const uint8_t* feats;
   int64_t N, C, M, K, D, Dp;
-  const int64_t* nbr;
+  const void* nbr;  // int64 or int32 (M, K)
+  bool nbr32;
   const packed_t* w;
   int64_t zero_point;
   const int32_t* weight_sums;  // (K, D) or null
+
+  inline int64_t neighbour(int64_t i) const {
+    return nbr32 ? static_cast<const int32_t*>(nbr)[i] : static_cast<const int64_t*>(nbr)[i];
+  }
 };
 
 Layer make_layer(const at::Tensor& src, const at::Tensor& neighbours, const at::Tensor& packed, int64_t D,
@@ -227,8 +254,9 @@ Layer make_layer(const at::Tensor& src, const at::Tensor& neighbours, const at::
   TORCH_CHECK(src.scalar_type() == at::kByte && src.dim() == 2 && src.is_contiguous(), what,
               ": contiguous uint8 features (N, C) expected, got ", src.scalar_type());
   TORCH_CHECK(src.size(1) % 4 == 0, what, ": input channels must be a multiple of 4, got ", src.size(1));
-  TORCH_CHECK(neighbours.scalar_type() == at::kLong && neighbours.dim() == 2 && neighbours.is_contiguous(), what,
-              ": contiguous int64 neighbours (M, K) expected");
+  TORCH_CHECK((neighbours.scalar_type() == at::kLong || neighbours.scalar_type() == at::kInt) &&
+                  neighbours.dim() == 2 && neighbours.is_contiguous(),
+              what, ": contiguous int64 or int32 neighbours (M, K) expected");
   const int64_t K = neighbours.size(1), C = src.size(1), Dp = padded(D);
   TORCH_CHECK(packed.is_contiguous() && packed.element_size() == sizeof(packed_t) && packed.dim() == 4 &&
                   packed.size(0) == K && packed.size(1) == C / kGroup && packed.size(2) == Dp &&
@@ -244,7 +272,7 @@ Layer make_layer(const at::Tensor& src, const at::Tensor& neighbours, const at::
     sums = weight_sums->data_ptr<int32_t>();
   }
   return Layer{src.data_ptr<uint8_t>(), src.size(0), C, neighbours.size(0), K, D, Dp,
-               neighbours.data_ptr<int64_t>(), reinterpret_cast<const packed_t*>(packed.data_ptr()), zero_point,
+               neighbours.data_ptr(), neighbours.scalar_type() == at::kInt, reinterpret_cast<const packed_t*>(packed.data_ptr()), zero_point,
                sums};
 }
 
@@ -276,6 +304,7 @@ Epilogue make_epilogue(const at::Tensor& scale, const c10::optional<at::Tensor>&
       e.residual_f32 = residual->data_ptr<float>();
     }
   }
+  TORCH_CHECK(D <= kMaxColumns, what, ": at most ", kMaxColumns, " output channels");
   TORCH_CHECK(std::isfinite(out_scale) && out_scale >= 0.0, what, ": out_scale must be finite and >= 0");
   e.relu = relu;
   e.out_scale = static_cast<float>(out_scale);
@@ -294,7 +323,7 @@ void neighbour_block(const Layer& L, int64_t j0, int64_t rows, int32_t* acc) {
   for (int64_t k = 0; k < L.K; ++k) {
     int count = 0;
     for (int64_t r = 0; r < rows; ++r) {  // branch-free listing of the rows with a neighbour at offset k
-      const int64_t n = L.nbr[(j0 + r) * L.K + k];
+      const int64_t n = L.neighbour((j0 + r) * L.K + k);
       srcs[count] = L.feats + (n < L.N ? n : 0) * L.C;
       dsts[count] = acc + r * L.Dp;
       count += n < L.N;
@@ -379,7 +408,7 @@ at::Tensor scatter_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor p
       for (int64_t k = 0; k < L.K; ++k) {
         int count = 0;
         for (int64_t r = 0; r < rows; ++r) {
-          const int64_t n = L.nbr[(j0 + r) * L.K + k];
+          const int64_t n = L.neighbour((j0 + r) * L.K + k);
           srcs[count] = L.feats + (j0 + r) * L.C;
           targets[count] = n;
           count += n >= 0 && n < num_out;

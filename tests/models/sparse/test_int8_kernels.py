@@ -43,7 +43,8 @@ CASES = [(4, 8), (8, 8), (24, 24), (32, 40), (12, 56), (64, 64), (96, 96)]
 
 @pytest.mark.parametrize(("c_in", "c_out"), CASES)
 @pytest.mark.parametrize("zero_point", [0, 128])
-def test_int32_accumulators_equal_the_integer_reference(kernels, c_in, c_out, zero_point):
+@pytest.mark.parametrize("index_dtype", [torch.int64, torch.int32])
+def test_int32_accumulators_equal_the_integer_reference(kernels, c_in, c_out, zero_point, index_dtype):
     generator = torch.Generator().manual_seed(c_in * 100 + c_out + zero_point)
     n, k = 700, 27
     src = torch.randint(0, 256, (n, c_in), generator=generator, dtype=torch.uint8)
@@ -53,7 +54,7 @@ def test_int32_accumulators_equal_the_integer_reference(kernels, c_in, c_out, ze
     table = random_table(generator, n, k, n, missing=0.5)
     table[:10, 0] = torch.arange(10)
     sums = weight.sum(dim=1, dtype=torch.int32).contiguous()
-    got = kernels.neighbour_conv_int8_raw(src, table, kernels.pack_weight(weight), c_out, zero_point,
+    got = kernels.neighbour_conv_int8_raw(src, table.to(index_dtype), kernels.pack_weight(weight), c_out, zero_point,
                                           sums if zero_point else None)
     assert got.dtype == torch.int32
     assert torch.equal(got.long(), reference(src, table, weight, zero_point))
