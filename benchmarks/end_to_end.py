@@ -21,7 +21,7 @@ import torch
 
 from models.erasenet.model import STEPS, EraseNet
 from models.registry import create_model
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.simulate import simulate_sequence
 
 

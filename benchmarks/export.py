@@ -40,7 +40,7 @@ from models.export.onnx_engine import OnnxEraseNet
 from models.registry import create_model
 from models.sparse import SparseTensor
 from radar import transforms
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.profiles import get_profile
 from radar.roi import roi_points
 from radar.simulate import simulate_sequence

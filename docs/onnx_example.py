@@ -5,7 +5,7 @@
 ``ONNX_DIR`` is what ``radarseg export onnx`` wrote; ``CUBE.npy`` a complex RAD cube (R, A, D) of the export's
 preset; ``EARLIER.npy`` the complex cubes of the frames before it in its sequence, the latest first, for a detector
 that reads them (the manifest's ``detector.history_frames``; a frame not given counts as absent, as at the start of
-a sequence). Writes the label cube (R, A, D) uint8 and prints the seeds. The steps are those of
+a sequence). Writes the label cube (R, A, D) uint8 and prints the centres. The steps are those of
 ``models.erasenet.model.EraseNet.segment``: log power -> detector graph -> centres -> Doppler refinement -> region
 growing -> ROI features and kernel maps -> segmenter graph -> labels. ``radar/`` (numpy, scipy, scikit-image)
 does the radar steps; ``models/export/kernel_maps_numpy.py`` and ``centres_numpy.py`` (numpy only) are loaded by
@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))  # for radar/ only: a deployment copies it (it imports nothing else of ours)
 
 from radar import transforms  # noqa: E402
-from radar.detections import Centres  # noqa: E402
+from radar.centres import Centres  # noqa: E402
 from radar.doppler import DOPPLER_REFINEMENT, refine_doppler  # noqa: E402
 from radar.profiles import resolve_profile  # noqa: E402
 from radar.region_growing import RegionGrowingConfig, grow_regions  # noqa: E402
@@ -89,7 +89,7 @@ def segment(onnx_dir: Path, cube: np.ndarray, earlier: list[np.ndarray] = (), *,
     _, voxel_labels = segmenter.run(None, feeds)
     labels[tuple(regions.voxels.T)] = voxel_labels[points.inverse]
     for score, r, a, d in zip(centres.score, centres.range_bin, centres.angle_bin, centres.doppler_bin, strict=True):
-        print(f"seed score {score:.2f} at range bin {r:.1f}, angle bin {a:.1f}, Doppler bin {d:.1f}")
+        print(f"centre score {score:.2f} at range bin {r:.1f}, angle bin {a:.1f}, Doppler bin {d:.1f}")
     return labels
 
 

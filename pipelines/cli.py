@@ -11,7 +11,7 @@ from typing import Any
 
 from models.erasenet.engines import ENGINES
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
-from radar.detections import SCORE_THRESHOLD
+from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
 from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS

@@ -1,4 +1,6 @@
-"""Object centres found in a frame: the common output of the learned detector and of CFAR."""
+"""Centres: a frame's scored object centres, the one output of every detector (the learned one, CFAR, the ground
+truth). Region growing grows a region from each centre (its seed: the centre's voxel, moved to the brightest voxel
+near it); the pipeline's final output is the segmented objects."""
 
 from __future__ import annotations
 
@@ -7,10 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# The seed defaults, one home for every caller (EraseNet, evaluation, segment, segment-batch, the service, the
+# The centre defaults, one home for every caller (EraseNet, evaluation, segment, segment-batch, the service, the
 # ONNX graphs' numpy decoding, the stores' object tables):
 SCORE_THRESHOLD = 0.3
-"""A decoded centre is a seed when its heatmap score is at least this."""
+"""A decoded centre is kept when its heatmap score is at least this."""
 MAX_OBJECTS = 32
 """Centres decoded per frame (top-k), and the rows of every per-frame object table."""
 
@@ -34,7 +36,7 @@ class Centres:
 
     @property
     def bins(self) -> np.ndarray:
-        """(N, 3) float64 (range, angle, Doppler) bins: the seeds of region growing."""
+        """(N, 3) float64 (range, angle, Doppler) bins: where region growing starts."""
         return np.stack([self.range_bin, self.angle_bin, self.doppler_bin], axis=1).astype(np.float64).reshape(-1, 3)
 
     @classmethod

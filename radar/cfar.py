@@ -3,7 +3,7 @@
 CFAR runs on the RD view (power averaged over the array), where the array gain lifts objects out of
 the noise; 3-D CFAR on the RAD cube drowns in angle sidelobes. Each RD detection then takes the
 angle of its strongest bin, detections of one object are merged, and the result has the detector's
-output type (:class:`radar.detections.Centres`, score = SNR in dB over the CFAR noise estimate).
+output type (:class:`radar.centres.Centres`, score = SNR in dB over the CFAR noise estimate).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.profiles import RadarProfile
 
 

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.region_growing import noise_level_db
 
 

@@ -60,7 +60,7 @@ from scipy import ndimage
 from skimage.morphology._flood_fill_cy import _flood_fill_equal  # flood's compiled fill (scikit-image pinned)
 from skimage.segmentation import flood
 
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.profiles import RadarProfile, get_profile
 
 logger = logging.getLogger(__name__)

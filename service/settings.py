@@ -20,7 +20,7 @@ from typing import Annotated, Literal
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
+from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")

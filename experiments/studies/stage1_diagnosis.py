@@ -66,7 +66,7 @@ from pipelines.datasets.spread import spread
 from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, frames_of_split, open_store
 from pipelines.evaluation.evaluate import AP_SCORE_THRESHOLD
 from pipelines.evaluation.scoring import DetectionScorer
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.input_kind import InputKind
 from radar.metrics import match_frame
 from radar.region_growing import grow_regions

@@ -25,7 +25,7 @@ from typing import NotRequired, TypedDict
 import numpy as np
 import torch
 
-from radar.detections import MAX_OBJECTS
+from radar.centres import MAX_OBJECTS
 
 OUTPUT_STRIDE = 4
 GAUSSIAN_RADIUS = 1  # cells

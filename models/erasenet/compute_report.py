@@ -23,7 +23,7 @@ STEPS = ("transform", "detect", "grow", "segment", "project")
 class FrameCompute:
     """One frame's cost. MACs per frame (correct convention, :mod:`models.compute`); seconds wall clock."""
 
-    detect_macs: int  # 0 when the seeds were given (the detector did not run)
+    detect_macs: int  # 0 when the centres were given (the detector did not run)
     segment_macs: int  # useful MACs of the sparse segmenter on this ROI
     segment_executed_macs: int  # what its kernels ran (the GEMM path also multiplies missing neighbours' zeros)
     detector_params: int
@@ -31,7 +31,7 @@ class FrameCompute:
     seconds: dict[str, float] = field(default_factory=dict)  # stage -> seconds, in pipeline order
     roi_voxels: int = 0
     visited_points: int = 0  # voxels region growing looked at
-    detections: int = 0  # seeds the ROI grew from
+    detections: int = 0  # centres the ROI grew from (the API's compute.detections)
     engine: str = "torch"  # what ran the networks: "torch" (this package's PyTorch engine) or "onnx" (ONNX Runtime)
 
     # ----- totals

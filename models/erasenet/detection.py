@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from radar.detections import MAX_OBJECTS, Centres
+from radar.centres import MAX_OBJECTS, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
 
 

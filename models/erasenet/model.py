@@ -27,7 +27,7 @@ from models.erasenet.compute_report import STEPS, FrameCompute
 from models.erasenet.detection import decode_centres, normalise_log_power
 from models.segmenter.fused import FusedMinkUNet, fusable
 from radar import transforms
-from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD, Centres
+from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
 from radar.input_kind import SCHEMA_CONTENT, InputKind, resolve_kind
@@ -110,7 +110,7 @@ class EraseNet:
         (seed 25291) it put 56 % of the true objects within 2 m of an object against 40 % (median error, cyclists
         0.85 m against 2.87 m), and its radial velocity RMSE was 0.52 m/s against 1.77 (the voxel mean has a heavy
         tail), which took tracking from the objects from MOTA 0.04 to 0.36 (reports/tracking.md).
-        ``detector`` None: the seeds always come from the caller (``segment(..., centres=...)``, e.g. CFAR); the
+        ``detector`` None: the centres always come from the caller (``segment(..., centres=...)``, e.g. CFAR); the
         detector then counts 0 parameters."""
         self.profile = get_profile(profile)
         self.class_names = tuple(class_names or self.profile.all_class_names)
@@ -184,7 +184,7 @@ class EraseNet:
         radar.input_kind), whose dtype must fit that kind.
 
         ``centres`` (optional) replaces the detector (which then does not run and costs nothing): for
-        evaluating stage 2 from ground-truth seeds, or a non-learned detector such as CFAR.
+        evaluating stage 2 from the true centres, or a non-learned detector such as CFAR.
         ``schema`` (optional) is the cube's own description; a mismatch with the model's raises
         :class:`radar.schema.SchemaMismatch` naming every difference. ``views``: also return the input's RA and
         RD views in dB (``SegmentationResult.views``), from the frame's log power, inside the timed work.
@@ -195,7 +195,7 @@ class EraseNet:
         if schema is not None:
             check_schema(self.schema(SCHEMA_CONTENT[kind]), schema)
         if centres is None and self._run_detector is None:
-            raise ValueError("this EraseNet has no detector: give the seeds as centres=")
+            raise ValueError("this EraseNet has no detector: give the centres as centres=")
         kind = resolve_kind(cube.dtype, kind, flag="kind={}")
         if cube.shape != self.profile.shape:
             raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "

@@ -42,7 +42,7 @@ from models.detector.targets import OUTPUT_STRIDE, output_grid, render_heatmap
 from pipelines.datasets.history import earlier_slots
 from pipelines.datasets.sharded_store import Sharded, create_sharded_store, done_shards, open_sharded_store
 from radar import transforms
-from radar.detections import MAX_OBJECTS
+from radar.centres import MAX_OBJECTS
 from radar.frame import RadarFrame
 from radar.io.errors import DataError
 from radar.io.npy import check_array

@@ -142,7 +142,7 @@ class CompareConfig:
     split: str | None = "test"  # None: every frame of the store
     max_frames: int = smoke(0, cap(2, fill=True))  # 0 = every usable frame of the split
     pictures: int = smoke(3, cap(1))
-    score_threshold: float | None = None  # ERASE-Net seed threshold (None = EraseNet's default)
+    score_threshold: float | None = None  # ERASE-Net centre score threshold (None = EraseNet's default)
     threads: int = smoke(1, always(1))
     device: str = "cpu"
     progress: bool = True
@@ -480,7 +480,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=defaults.max_frames,
                         help="score this many frames, evenly spread (0: all)")
     parser.add_argument("--pictures", type=int, default=defaults.pictures, help="frames in compare_frames.png")
-    parser.add_argument("--score-threshold", type=float, help="ERASE-Net seed score threshold")
+    parser.add_argument("--score-threshold", type=float, help="ERASE-Net centre score threshold")
     parser.add_argument("--threads", type=int, default=defaults.threads,
                         help="torch threads (timings are taken with these)")
     parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")

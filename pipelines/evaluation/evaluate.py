@@ -11,7 +11,7 @@ split and writes ``DIR/metrics.json``, ``DIR/report.md`` (:mod:`pipelines.evalua
   split) and visited points from the predicted seeds and from the ground-truth centres, plus a
   D_thresh sweep for both on up to ``--sweep-frames`` frames;
 - segmentation: one RA and one RD confusion matrix over the split (background included), IoU per
-  class and mIoU; the same with ground-truth seeds (stage 2 alone, "oracle seeds");
+  class and mIoU; the same with true centres (stage 2 alone, "oracle seeds");
 - cost: parameters and MACs per stage (mean per frame), seconds per stage (mean per frame);
 - tracking: the tracker (radar.tracking) per sequence over the predicted objects and over the true centres,
   CLEAR MOT / identity metrics and velocity errors against the simulator's tracks
@@ -55,7 +55,7 @@ from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
 from pipelines.evaluation.tracking import TrackingTally
 from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from pipelines.progress import progress
-from radar.detections import SCORE_THRESHOLD, Centres
+from radar.centres import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT
 from radar.errors import UserError
 from radar.input_kind import InputKind
@@ -80,7 +80,7 @@ class EvaluateConfig:
     sweep: tuple[float, ...] = D_THRESH_SWEEP_M
     sweep_frames: int = smoke(48, cap(2))
     score_threshold: float | None = None  # operating threshold (None = EraseNet's default)
-    oracle: bool = True  # also segment from ground-truth seeds
+    oracle: bool = True  # also segment from true centres
     doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
     device: str = "cpu"  # the torch runtime's device
     engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.erasenet.engines)
@@ -325,7 +325,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sweep-frames", type=int, default=defaults.sweep_frames,
                         help="frames of the region-growing D_thresh sweep")
     parser.add_argument("--score-threshold", type=float, help=f"detector score threshold (default: {SCORE_THRESHOLD})")
-    parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from ground-truth seeds")
+    parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from true centres")
     parser.add_argument("--no-doppler-refinement", action="store_true",
                         help="keep the detector's own Doppler (no refinement from the cube)")
     parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")

@@ -44,7 +44,7 @@ def _summary(metrics: dict[str, Any]) -> list[str]:
         "",
         f"Store `{metrics['store']}`, split `{metrics['split']}`, {metrics['frames']} frames. Detector "
         f"`{metrics['detector']}` ({metrics['models']['detector']}), segmenter `{metrics['segmenter']}` "
-        f"({metrics['models']['segmenter']}), seed score threshold {metrics['score_threshold']}.",
+        f"({metrics['models']['segmenter']}), centre score threshold {metrics['score_threshold']}.",
         "",
         "## Summary (paper's form: mIoU %, background included; MACs in G per frame, segmenter + detector)",
         "",

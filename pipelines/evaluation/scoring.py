@@ -20,7 +20,7 @@ from models.erasenet.detection import detect_centres
 from pipelines.datasets.spread import subset
 from pipelines.datasets.store import CENTRE_COLUMNS, OBJECT_COLUMN, StoreDataset
 from pipelines.datasets.views import ViewDataset, collate_views, masks_of, model_inputs
-from radar.detections import SCORE_THRESHOLD, Centres
+from radar.centres import SCORE_THRESHOLD, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.metrics import DetectionEvaluator, confusion_matrix, iou_per_class, matched_truths, mean_iou
 from radar.profiles import RadarProfile
@@ -69,16 +69,16 @@ class DetectionScorer:
         truth_xy = table[:, [OBJECT_COLUMN["x"], OBJECT_COLUMN["y"]]]
         truth_doppler = table[:, OBJECT_COLUMN["doppler_bin"]]
         self.evaluator.add(pred_xy, centres.doppler_bin, centres.score, truth_xy, truth_doppler)
-        seeds = centres.score >= SCORE_THRESHOLD  # the seeds EraseNet grows from
-        matched = matched_truths(pred_xy[seeds], centres.doppler_bin[seeds], centres.score[seeds], truth_xy,
+        kept = centres.score >= SCORE_THRESHOLD  # the centres EraseNet grows regions from
+        matched = matched_truths(pred_xy[kept], centres.doppler_bin[kept], centres.score[kept], truth_xy,
                                  truth_doppler, self.recall_distance_m, self.RECALL_DISTANCE)
         classes = table[:, OBJECT_COLUMN["class_id"]].astype(np.int64)
         np.add.at(self.truths, classes, 1)
         np.add.at(self.found, classes[matched], 1)
 
     def recall_by_class(self) -> dict[str, float]:
-        """``recall_<class>``: the share of each class's true objects matched (3 m) by a seed at the operating
-        score threshold (:data:`radar.detections.SCORE_THRESHOLD`); NaN for a class with no object."""
+        """``recall_<class>``: the share of each class's true objects matched (3 m) by a centre at the operating
+        score threshold (:data:`radar.centres.SCORE_THRESHOLD`); NaN for a class with no object."""
         return {f"recall_{name}": float(self.found[i] / self.truths[i]) if self.truths[i] else float("nan")
                 for i, name in enumerate(self.profile.class_names, 1)}
 

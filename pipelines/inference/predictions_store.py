@@ -29,7 +29,7 @@ import numpy as np
 import zarr
 
 from pipelines.datasets.sharded_store import Sharded, create_sharded_store, open_sharded_store
-from radar.detections import MAX_OBJECTS
+from radar.centres import MAX_OBJECTS
 from radar.profiles import RadarProfile, resolve_profile
 
 FORMAT = "radarseg.predictions"

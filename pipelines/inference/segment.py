@@ -9,7 +9,7 @@ import numpy as np
 
 from models.checkpoint import load_pair
 from models.erasenet.engines import load_erasenet
-from radar.detections import SCORE_THRESHOLD
+from radar.centres import SCORE_THRESHOLD
 from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
 from radar.io.errors import DataError
 from radar.io.npy import load_npy

@@ -62,7 +62,7 @@ from pipelines.inference.predictions_store import (
 )
 from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from radar import transforms
-from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
+from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
 from radar.input_kind import InputKind
 from radar.io.errors import DataError

@@ -6,7 +6,7 @@ Each class's own heatmap channel is decoded alone (3x3 peaks, Doppler refined fr
 decodes), its peaks matched one to one to that class's true objects (:func:`radar.metrics.match_frame`, 3 m and 3
 Doppler bins, as the per-class recall of :class:`pipelines.evaluation.scoring.DetectionScorer`), and the threshold
 with the best F1 over :data:`THRESHOLDS` is the class's. The detector keeps one operating threshold
-(:data:`radar.detections.SCORE_THRESHOLD`): a class's gain is that threshold divided by its own
+(:data:`radar.centres.SCORE_THRESHOLD`): a class's gain is that threshold divided by its own
 (:class:`models.detector.centernet.CentreNetHead` merges ``min(1, gain_c p_c)``), so the copy written needs no
 other change anywhere the detector runs. Greedy matching in score order gives the peaks above any threshold the
 same matches as at the lowest one, so one decoding per frame scores every threshold.
@@ -27,7 +27,7 @@ from models.erasenet.detection import decode_centres, normalise_log_power
 from pipelines.datasets.spread import subset
 from pipelines.datasets.store import OBJECT_COLUMN, StoreDataset
 from pipelines.datasets.store_info import StoreInfo
-from radar.detections import MAX_OBJECTS, SCORE_THRESHOLD
+from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
 from radar.metrics import match_frame
 

@@ -1,4 +1,4 @@
-"""An offset per class on a segmenter's logits, chosen on a store's frames from a detector's seeds::
+"""An offset per class on a segmenter's logits, chosen on a store's frames from a detector's centres::
 
     radarseg train class-offsets SEGMENTER TUNED.pt --store STORE.zarr [--store ...] --detector DETECTOR [--split val]
         [--frames N]
@@ -8,7 +8,7 @@ counts about 13 background ones), which moves its decision boundary towards the 
 pedestrian and cyclist voxels than there are, and one stray voxel on a line of sight makes its whole RA or RD cell
 that class (the projection keeps any foreground voxel, docs/design.md section 8). An offset ``b_c`` added to class
 ``c``'s logit before the argmax moves the boundary back (docs/design.md section 7, "Class offsets"). It is chosen
-where the product is scored: every frame of the split through the product's own path (the detector's seeds at its
+where the product is scored: every frame of the split through the product's own path (the detector's centres at its
 operating threshold, its earlier frames from the store if it reads them, region growing, the segmenter), the
 objective being the mean of the RA and RD mIoU of whole frames as ``radarseg evaluate`` scores them.
 
@@ -153,7 +153,7 @@ def write_class_offsets(source: str | Path, target: str | Path, *, detector: str
         "total": {name: earlier.get(name, 0.0) + float(o) for name, o in zip(checkpoint.class_names, offsets,
                                                                               strict=True)},
         "stores": [str(store) for store in stores], "split": split, "frames": len(frames), "detector": str(detector),
-        "objective": "mean of RA and RD mIoU of whole frames, the detector's seeds",
+        "objective": "mean of RA and RD mIoU of whole frames, the detector's centres",
         "before": _figures(before, checkpoint.class_names), "after": _figures(after, checkpoint.class_names),
         "moves": moves,
     }

@@ -17,7 +17,7 @@ from pipelines.datasets.spread import subset
 from pipelines.datasets.store import StoreDataset
 from pipelines.evaluation.scoring import frame_centres
 from pipelines.training.config import DEFAULT_JITTER_STD
-from radar.detections import SCORE_THRESHOLD
+from radar.centres import SCORE_THRESHOLD
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement
 from radar.errors import UserError
 
@@ -89,7 +89,7 @@ def measure_detector_errors(detector_path: str | Path, store: str | Path, split:
     for start in range(0, len(indices), 8):
         samples = [dataset[i] for i in indices[start:start + 8]]
         log_power = torch.stack([s["input"] for s in samples])  # (B, D, R, A) dB
-        # the seeds EraseNet grows from, Doppler refined as it refines them
+        # the centres EraseNet grows regions from, Doppler refined as it refines them
         frames = detect_centres(detector, log_power, mean_db=mean_db, std_db=std_db, score_threshold=score_threshold,
                                 doppler_refinement=doppler_refinement, device=device)[1]
         for sample, centres in zip(samples, frames, strict=True):

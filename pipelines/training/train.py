@@ -99,7 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gains.add_argument("--frames", type=int, default=gains_defaults.frames,
                        help="frames of the split, evenly spread (0: all)")
     offsets = stages.add_parser("class-offsets", help="a segmenter's offset per class on its logits (best mean RA/RD "
-                                                      "mIoU on a store's frames from a detector's seeds), written "
+                                                      "mIoU on a store's frames from a detector's centres), written "
                                                       "into a copy of the checkpoint")
     offsets.add_argument("source", help="segmenter checkpoint")
     offsets.add_argument("target", help="the copy to write, the offsets in its classifier's bias")

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.doppler import DopplerRefinement, refine_doppler
 from radar.profiles import SMALL
 from radar.simulate import point_target_cube, simulate_sequence

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.profiles import SMALL
 from radar.region_growing import RegionGrowingConfig, grow_regions, noise_level_db
 from radar.simulate import simulate_sequence

@@ -110,7 +110,7 @@ def test_checkpoints_say_what_they_are_and_roles_are_checked(tmp_path):
 
 
 def test_given_centres_replace_the_detector(frame):
-    from radar.detections import Centres
+    from radar.centres import Centres
 
     seeds = Centres.from_bins(np.array([[o.centre_range_bin, o.centre_angle_bin, o.doppler_bin]
                                         for o in frame.objects if o.n_voxels]))

@@ -238,7 +238,7 @@ def test_sparsity_training_drives_scales_toward_zero():
 def test_pruned_checkpoints_serve_through_erasenet_with_fewer_macs(tmp_path):
     """The service's path: EraseNet.from_checkpoints on pruned checkpoints, compute report included."""
     from models.erasenet.model import EraseNet
-    from radar.detections import Centres
+    from radar.centres import Centres
     from radar.simulate import simulate_sequence
 
     frame = next(iter(simulate_sequence("small", 1, seed=3)))

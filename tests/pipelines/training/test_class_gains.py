@@ -14,7 +14,7 @@ from pipelines.cli import main as cli
 from pipelines.datasets.store import OBJECT_COLUMN, StoreDataset
 from pipelines.datasets.store_info import StoreInfo
 from pipelines.training.class_gains import THRESHOLDS, ClassCounts, choose_gains, count_class_matches
-from radar.detections import SCORE_THRESHOLD
+from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
 
 

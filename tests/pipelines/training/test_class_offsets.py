@@ -15,7 +15,7 @@ from pipelines.cli import main as cli
 from pipelines.datasets.store import CENTRE_COLUMNS, open_store
 from pipelines.training.class_offsets import CLASSIFIER_BIAS, FrameLogits, choose_offsets, objective, score
 from radar import transforms
-from radar.detections import Centres
+from radar.centres import Centres
 from radar.input_kind import InputKind
 
 REPO = Path(__file__).resolve().parents[3]
