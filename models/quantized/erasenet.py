@@ -21,17 +21,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-PRECISIONS = ("float", "int8")
-"""float: the compiled float32 kernels; int8: the segmenter's convolutions in the int8 kernels."""
-
-
-def check_precision(precision: str) -> str:
-    """``precision`` if it is one of :data:`PRECISIONS`, else a ValueError naming them."""
-    if precision not in PRECISIONS:
-        raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
-    return precision
-
-
 def int8_segmenter(net: EraseNet, calibration: Int8Calibration | None = None, *,
                    method: str = "max") -> Int8MinkUNet:
     """The int8 form of ``net``'s fused segmenter, calibrated on ``calibration``'s frames (default: simulated frames
