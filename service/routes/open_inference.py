@@ -134,16 +134,26 @@ async def _read_body(request: Request, state: ServiceState, tenant: str) -> byte
     """The whole body, within the upload gate's bounds and the body pace (408 for a stalled upload)."""
     declared = request.headers.get("content-length")
     length = int(declared) if declared is not None and declared.isascii() and declared.isdigit() else None
-    chunks = bytearray()
+    body = bytearray(length or 0)  # a declared length is filled in place (no copy as the body grows)
+    received = 0
     with state.uploads.admit(tenant, length) as ticket:
         try:
             async for chunk in paced(request.stream(), state.settings):
-                chunks += chunk
-                if length is None and len(chunks) > ticket.bytes:
-                    ticket.charge(len(chunks))
+                end = received + len(chunk)
+                if length is None:
+                    body += chunk
+                    if end > ticket.bytes:
+                        ticket.charge(end)
+                elif end > length:
+                    raise ApiError(400, f"the body is longer than its Content-Length of {length} bytes")
+                else:
+                    body[received:end] = chunk
+                received = end
         except ClientDisconnect:
             raise ApiError(400, "client disconnected before sending the whole body") from None
-    return chunks  # not copied again: the tensors are views of it
+    if received != len(body):
+        raise ApiError(400, f"the body ended after {received} of its Content-Length of {length} bytes")
+    return body  # not copied again: the tensors are views of it
 
 
 def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndarray]:
