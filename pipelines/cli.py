@@ -9,7 +9,7 @@ import sys
 import time
 from typing import Any
 
-from models.erasenet.engines import ENGINES
+from models.erasenet.engines import ENGINES, PRECISIONS
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
 from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
@@ -151,7 +151,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
                           input_kind=args.input, png=args.png, score_threshold=args.score_threshold,
-                          engine=args.engine, warm_up=args.warm_up)
+                          engine=args.engine, warm_up=args.warm_up, precision=args.precision)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -163,7 +163,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
           f"(detect {compute['macs']['detect'] / 1e9:.3f}, segment {compute['macs']['segment'] / 1e9:.3f})  "
           f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms"
           f"{' (after a warm-up run)' if result['timed_after_warm_up'] else ' (first run: includes warm-up)'}  "
-          f"engine: {compute['engine']}")
+          f"engine: {compute['engine']} ({result['precision']})")
     if result["png"]:
         print(f"picture: {result['png']}")
     return 0
@@ -411,6 +411,9 @@ def _add_frame_commands(sub: Any) -> None:
                      help="torch, or onnx: the exported graphs in onnxruntime, exported on first use "
                           "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx); onnx-int8: the same graphs "
                           "quantised, calibrated on simulated frames of the checkpoints' preset")
+    seg.add_argument("--precision", choices=PRECISIONS, default="float",
+                     help="float, or int8: the torch engine's segmenter in the int8 sparse kernels (AVX-512 VNNI or "
+                          "AVX2), calibrated on simulated frames of the checkpoints' preset (docs/guides/int8.md)")
     seg.add_argument("--no-warm-up", dest="warm_up", action="store_false",
                      help="report the first run's time (by default the cube is segmented once before the timed run, "
                           "so the time is a steady frame's)")

@@ -37,7 +37,9 @@ def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Che
     if precision not in PRECISIONS:
         raise ValueError(f"precision must be one of {PRECISIONS}, got {precision!r}")
     if precision == "int8" and engine != "torch":
-        raise ValueError(f"precision int8 runs on the torch engine, not {engine!r} (the ONNX engine's int8 is "
+        from radar.errors import UserError
+
+        raise UserError(f"precision int8 runs on the torch engine, not {engine!r} (the ONNX engine's int8 is "
                          f"onnx-int8)")
     from models.checkpoint import load_pair
 
