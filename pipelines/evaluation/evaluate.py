@@ -38,7 +38,7 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
-from models.erasenet.engines import ENGINES, load_erasenet
+from models.erasenet.engines import ENGINES, PRECISIONS, load_erasenet
 from models.erasenet.model import EraseNet
 from models.heap import freeze_loaded_heap
 from pipelines.datasets.history import earlier_frames, earlier_slots
@@ -84,6 +84,7 @@ class EvaluateConfig:
     doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
     device: str = "cpu"  # the torch runtime's device
     engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.erasenet.engines)
+    precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
     onnx_dir: str | None = None  # the ONNX runtimes: this export instead of the cached one
     threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default); per-stage seconds with these
     progress: bool = True
@@ -96,6 +97,18 @@ class EvaluateConfig:
             raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
+
+
+def _int8_calibration(store: str, profile: Any) -> Any:
+    """Calibration frames of the int8 segmenter: the store's train split, or simulated frames where it has none."""
+    from models.export.export_cache import Int8Calibration
+    from pipelines.datasets.calibration import store_calibration
+
+    try:
+        return store_calibration(store, profile)
+    except ValueError as error:
+        log.warning("int8 calibration on simulated frames: %s", error)
+        return Int8Calibration.simulated(profile)
 
 
 class _RecallCounter:
@@ -153,7 +166,9 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         kwargs["device"] = cfg.device
     elif cfg.onnx_dir is not None:
         kwargs["onnx_dir"] = cfg.onnx_dir
-    net = load_erasenet(det_ckpt, seg_ckpt, engine=cfg.engine, **kwargs)
+    if cfg.precision == "int8":  # calibrated on the store's train split, as the int8 export is given one
+        kwargs["calibration"] = _int8_calibration(cfg.store, det_ckpt.profile)
+    net = load_erasenet(det_ckpt, seg_ckpt, engine=cfg.engine, precision=cfg.precision, **kwargs)
     freeze_loaded_heap()  # no full garbage collection over torch and the models every few frames
     root, frames = store_frames(cfg.store, net.profile, cfg.split, cfg.max_frames)
     split_name = cfg.split or "all"
@@ -331,6 +346,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")
     parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
                         help="the runtime scored (onnx, onnx-int8: the export cached on first use)")
+    parser.add_argument("--precision", choices=PRECISIONS, default=defaults.precision,
+                        help="float, or int8: the torch engine's segmenter in the int8 sparse kernels, calibrated on "
+                             "the store's train split (simulated frames of the preset if it has none)")
     parser.add_argument("--threads", type=int, default=defaults.threads,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -345,6 +363,7 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
                           score_threshold=args.score_threshold, oracle=not args.no_oracle,
                           doppler_refinement=not args.no_doppler_refinement, device=args.device, engine=args.engine,
+                          precision=args.precision,
                           threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube)
 
 

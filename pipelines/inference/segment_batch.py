@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from models.erasenet.engines import ENGINES
+from models.erasenet.engines import ENGINES, PRECISIONS
 from models.heap import freeze_loaded_heap
 from pipelines.datasets import shard_frames, sharded_job
 from pipelines.datasets.history import earlier_frames, earlier_slots
@@ -94,6 +94,7 @@ class SegmentBatchConfig:
     progress: bool = True
     in_process: bool = smoke(False, always(True))  # every shard in this process (one ShardSegmenter), no Ray
     engine: str = "torch"  # models.erasenet.engines: torch, or onnx (the exported graphs in onnxruntime)
+    precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -147,6 +148,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
                         help="torch (default), or onnx: the exported graphs in onnxruntime (exported once into "
                              "each node's $RADARSEG_ONNX_CACHE, default ~/.cache/radarseg/onnx)")
+    parser.add_argument("--precision", choices=PRECISIONS, default=defaults.precision,
+                        help="float (default), or int8: the torch engine's segmenter in the int8 sparse kernels, "
+                             "calibrated in each actor on simulated frames of the preset (docs/guides/int8.md)")
     sharded_job.add_execution_arguments(parser)
 
 
@@ -157,7 +161,7 @@ def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
         split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
         address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
         torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
-        in_process=args.in_process, engine=args.engine,
+        in_process=args.in_process, engine=args.engine, precision=args.precision,
     )
 
 
@@ -278,15 +282,16 @@ class ShardSegmenter:
     """
 
     def __init__(self, detector: str, segmenter: str, *, score_threshold: float = SCORE_THRESHOLD,
-                 max_objects: int = MAX_OBJECTS, torch_threads: int = 1, engine: str = "torch") -> None:
+                 max_objects: int = MAX_OBJECTS, torch_threads: int = 1, engine: str = "torch",
+                 precision: str = "float") -> None:
         import torch
 
         from models.erasenet.engines import load_erasenet
 
         torch.set_num_threads(torch_threads)  # the ONNX engine takes its thread count from torch's too
         started = time.perf_counter()
-        self.net = load_erasenet(detector, segmenter, engine=engine, score_threshold=score_threshold,
-                                 max_objects=max_objects)
+        self.net = load_erasenet(detector, segmenter, engine=engine, precision=precision,
+                                 score_threshold=score_threshold, max_objects=max_objects)
         # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
         # not count against the first shard.
         self.net.segment(np.zeros(self.net.profile.shape, np.float32), kind=InputKind.log_power)
@@ -356,7 +361,8 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
                                  stage_args=(cfg.detector, cfg.segmenter),
                                  stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
-                                               "torch_threads": cfg.torch_threads, "engine": cfg.engine},
+                                               "torch_threads": cfg.torch_threads, "engine": cfg.engine,
+                                               "precision": cfg.precision},
                                  reduce=reduce_summaries, finish=partial(finish_predictions, plan))
     execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
                                       cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment")
