@@ -6,7 +6,8 @@
 #   radarseg-test/postgres:15         + Debian's postgresql (15), with the official image's POSTGRES_* variables
 # Each image also trusts this machine's CA bundle (/etc/ssl/certs/ca-certificates.crt, copied in as
 # /etc/ssl/certs/host-ca-bundle.crt), so that pip inside a build reaches the package index the host reaches.
-# An image that already exists is kept (build once, reuse); --rebuild builds all three again.
+# The debootstrap image is kept once made (build once, reuse; --rebuild makes it again); the other two are
+# built every time, from Docker's layer cache when their folders did not change (seconds).
 # Needs: root, docker (a running engine), debootstrap, and a Debian mirror (DEBIAN_MIRROR) on the network.
 #   deploy/offline/build-base-images.sh            # then: deploy/offline/README.md for the build with them
 set -euo pipefail
@@ -46,10 +47,6 @@ fi
 
 for spec in "python:$PYTHON_IMAGE" "postgres:$POSTGRES_IMAGE"; do
     folder="${spec%%:*}" image="${spec#*:}"
-    if have "$image"; then
-        echo "kept $image"
-    else
-        docker build -q --build-arg BASE_IMAGE="$DEBIAN_IMAGE" -t "$image" "$folder"
-    fi
+    docker build -q --build-arg BASE_IMAGE="$DEBIAN_IMAGE" -t "$image" "$folder" >/dev/null
 done
 docker image ls --format '{{.Repository}}:{{.Tag}} {{.Size}}' | grep '^radarseg-test/'

@@ -30,7 +30,8 @@ if [ ! -s "$PGDATA/PG_VERSION" ]; then
     pwfile="$(mktemp)"
     printf '%s' "${POSTGRES_PASSWORD:-}" >"$pwfile"
     # shellcheck disable=SC2086  # POSTGRES_INITDB_ARGS holds several arguments, as in the official image
-    initdb --username="$POSTGRES_USER" --pwfile="$pwfile" --auth-local=trust \
+    # UTF8 as the official image (its LANG en_US.utf8); Debian's minimal system has the C.UTF-8 locale
+    initdb --username="$POSTGRES_USER" --pwfile="$pwfile" --auth-local=trust --encoding=UTF8 --locale=C.UTF-8 \
         --auth-host="$POSTGRES_HOST_AUTH_METHOD" ${POSTGRES_INITDB_ARGS:-} >/dev/null
     rm -f "$pwfile"
     echo "host all all all $POSTGRES_HOST_AUTH_METHOD" >>"$PGDATA/pg_hba.conf"
