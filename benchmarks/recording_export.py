@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
 import statistics
 import sys
@@ -28,18 +27,10 @@ RESULTS = Path(__file__).resolve().parent / "results" / "recording_export.json"
 
 
 def machine() -> dict[str, object]:
-    """The CPU's model, its SIMD flags, the cores this process may use and the load average."""
-    model, flags = platform.processor(), set()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.is_file():
-        for line in cpuinfo.read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags") and not flags:
-                flags = set(line.split(":", 1)[1].split())
-    simd = [f for f in ("sse4_2", "avx2", "fma", "avx512f", "avx512_vnni", "amx_int8") if f in flags]
-    return {"cpu": model, "flags": simd, "cores_used": len(os.sched_getaffinity(0)), "cores": os.cpu_count(),
-            "load_average": os.getloadavg(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
+    """The machine as the harness describes it (CPU model, flags, cores), with the load average and the time."""
+    from benchmarks.harness import machine as harness_machine
+
+    return {**harness_machine(), "load_average": os.getloadavg(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
 
 
 def run(sequences: int, frames: int, repeats: int) -> dict:
