@@ -212,6 +212,22 @@ def _cmd_export_recording(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_export_recording(export_sub: Any) -> None:
+    """``radarseg export recording``."""
+    recording = export_sub.add_parser("recording", help="a predictions store as recordings: MCAP for Foxglove, "
+                                                        ".rrd for Rerun, MCAP of ROS 2 messages")
+    recording.add_argument("predictions", help="predictions store (segment-batch --out)")
+    recording.add_argument("--mcap", help="MCAP with Foxglove's schemas (points, objects, RA/RD label maps)")
+    recording.add_argument("--rrd", help="Rerun recording")
+    recording.add_argument("--ros2", help="MCAP of ROS 2 messages (radar_msgs/RadarTracks, sensor_msgs/PointCloud2)")
+    recording.add_argument("--sequence", help="that sequence only (default: every sequence, one after the other)")
+    recording.add_argument("--limit", type=int, help="the first LIMIT frames only")
+    recording.add_argument("--no-log-power", dest="log_power", action="store_false",
+                           help="do not read the predictions' source for log power (points and maps without it)")
+    recording.add_argument("--overwrite", action="store_true", help="replace existing output files")
+    recording.set_defaults(func=_cmd_export_recording)
+
+
 def _cmd_models_summary(args: argparse.Namespace) -> int:
     import json
 
@@ -439,18 +455,7 @@ def _add_frame_commands(sub: Any) -> None:
                       default=["MinMax", "Entropy", "Percentile"],
                       help="--int8: methods tried; the best ROI label agreement with float is kept (default: all)")
     onnx.set_defaults(func=_cmd_export_onnx)
-    recording = export_sub.add_parser("recording", help="a predictions store as recordings: MCAP for Foxglove, "
-                                                        ".rrd for Rerun, MCAP of ROS 2 messages")
-    recording.add_argument("predictions", help="predictions store (segment-batch --out)")
-    recording.add_argument("--mcap", help="MCAP with Foxglove's schemas (points, objects, RA/RD label maps)")
-    recording.add_argument("--rrd", help="Rerun recording")
-    recording.add_argument("--ros2", help="MCAP of ROS 2 messages (radar_msgs/RadarTracks, sensor_msgs/PointCloud2)")
-    recording.add_argument("--sequence", help="that sequence only (default: every sequence, one after the other)")
-    recording.add_argument("--limit", type=int, help="the first LIMIT frames only")
-    recording.add_argument("--no-log-power", dest="log_power", action="store_false",
-                           help="do not read the predictions' source for log power (points and maps without it)")
-    recording.add_argument("--overwrite", action="store_true", help="replace existing output files")
-    recording.set_defaults(func=_cmd_export_recording)
+    _add_export_recording(export_sub)
 
     radar_cmd = sub.add_parser("radar", help="radar profiles")
     radar_sub = radar_cmd.add_subparsers(dest="radar_command", required=True)
