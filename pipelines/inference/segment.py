@@ -22,8 +22,9 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
     """Segment a .npy cube and return objects and compute. ``input_kind`` says what the cube holds
     (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
     say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake.
-    ``engine``: "torch" or "onnx" (``models.erasenet.engines``); ``precision``: "float", or "int8" (the torch engine's
-    segmenter in the int8 sparse kernels, calibrated on simulated frames of the preset). With ``warm_up`` the cube is segmented once
+    ``engine``: "torch" or "onnx" (``models.erasenet.engines``); ``precision``: "float", or "int8" (the torch
+    engine's segmenter in the int8 sparse kernels, calibrated on simulated frames of the preset). With ``warm_up`` the
+    cube is segmented once
     before the run whose compute is reported, so its seconds are a steady frame's, not the process's first
     (which pays one-off costs: the first call of every kernel, allocator growth)."""
     declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
