@@ -59,6 +59,16 @@ class ModelSpec(BaseModel):
     # (models.erasenet.engines), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx);
     # onnx-int8: those graphs quantised, calibrated on simulated frames of the model's preset (models.export.quantize)
     engine: Literal["torch", "onnx", "onnx-int8"] = "torch"
+    # float, or int8: the torch engine's segmenter in the int8 sparse kernels (models.quantized), each replica
+    # calibrated at load on simulated frames of the model's preset (docs/guides/int8.md)
+    precision: Literal["float", "int8"] = "float"
+
+    @model_validator(mode="after")
+    def _int8_on_torch(self) -> ModelSpec:
+        if self.precision == "int8" and self.engine != "torch":
+            raise ValueError(f"precision int8 runs on the torch engine, not {self.engine!r} (the ONNX engine's "
+                             f"int8 is engine onnx-int8)")
+        return self
 
 
 class Settings(BaseSettings):
