@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import time
 from pathlib import Path
@@ -90,10 +91,8 @@ def _job_status(stack: Stack, job_id: str) -> str:
     env = ray_env(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=stack.env["RAY_AUTH_TOKEN"])
     proc = subprocess.run([str(BIN / "ray"), "job", "status", "--address", stack.dashboard_url, job_id], cwd=REPO,
                           env=env, capture_output=True, text=True, timeout=60)
-    for status in ("SUCCEEDED", "FAILED", "STOPPED", "RUNNING", "PENDING"):
-        if f"status: {status}" in proc.stdout + proc.stderr or f"'{status}'" in proc.stdout + proc.stderr:
-            return status
-    return "UNKNOWN"
+    found = re.findall(r"\b(PENDING|RUNNING|SUCCEEDED|FAILED|STOPPED)\b", proc.stdout + proc.stderr)
+    return found[-1] if found else "UNKNOWN"
 
 
 def _store_arrays(path: Path) -> dict[str, np.ndarray]:
@@ -186,7 +185,9 @@ def test_both_replicas_bill_one_ledger_and_a_quota_holds_across_them(stack):
 def test_a_killed_ray_worker_does_not_lose_the_store(stack):
     out = "/data/stores/killed.zarr"
     log = _submit(stack, *PREPROCESS, "--out", out, wait=False)
-    job_id = next(word for word in log.split() if word.startswith("raysubmit_"))
+    found = re.search(r"raysubmit_\w+", log)
+    assert found, log[-2000:]
+    job_id = found.group(0)
     deadline = time.monotonic() + 300
     while _job_status(stack, job_id) != "RUNNING":
         assert time.monotonic() < deadline, f"job {job_id} not running within 300 s"

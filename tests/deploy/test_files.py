@@ -204,7 +204,8 @@ def test_compose_environment_is_valid_service_settings(monkeypatch):
         for name in (n for n in source if n.startswith("RADARSEG_")):
             assert name.removeprefix("RADARSEG_").lower() in Settings.model_fields, name
     for name, value in api["environment"].items():
-        monkeypatch.setenv(name, _interpolate(str(value), SECRETS))
+        if value is not None:  # a name alone passes the shell's value through, or nothing
+            monkeypatch.setenv(name, _interpolate(str(value), SECRETS))
     monkeypatch.setenv("RADARSEG_HOST", "0.0.0.0")  # what `--host 0.0.0.0` sets in `radarseg serve`
     settings = Settings()
     assert settings.ledger_url.startswith("postgresql+psycopg://radarseg:")
