@@ -39,9 +39,11 @@ def _log_frame(rec: rr.RecordingStream, frame: PredictionFrame, info: RecordingI
     rec.set_time("time", duration=frame.time_ns * 1e-9)
     points = frame.points
     positions = np.column_stack([points["x"], points["y"], points["z"]])
-    rec.log("radar/points", rr.Points3D(positions, class_ids=points["class_id"], radii=0.15),
-            rr.AnyValues(velocity=points["velocity"], log_power=points["log_power"],
-                         instance=points["instance"].astype(np.uint32), track_id=points["track_id"]))
+    # Rerun takes no empty batch of extra fields: a frame without points or objects logs the archetype alone
+    point_fields = [rr.AnyValues(velocity=points["velocity"], log_power=points["log_power"],
+                                 instance=points["instance"].astype(np.uint32),
+                                 track_id=points["track_id"])] if len(points) else []
+    rec.log("radar/points", rr.Points3D(positions, class_ids=points["class_id"], radii=0.15), *point_fields)
     objects = frame.objects
     centres = np.array([(o.x, o.y, 0.0) for o in objects], np.float32).reshape(-1, 3)
     half_sizes = np.array([(o.size_x / 2, o.size_y / 2, 0.5) for o in objects], np.float32).reshape(-1, 3)

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.decoder import DecoderFactory
 from mcap.reader import make_reader
@@ -62,6 +63,10 @@ def _check_points(points: np.ndarray, frame, x, y) -> None:
 
 
 def test_foxglove_mcap_decodes_with_its_schemas_and_equals_the_store(exported):
+    check_foxglove(exported)
+
+
+def check_foxglove(exported) -> None:
     frames, class_names = expected_frames(exported["store"])
     topics = _decoded(exported["mcap"], ProtobufDecoderFactory())
     assert sorted(topics) == ["/radar/objects", "/radar/points", "/radar/ra_image", "/radar/rd_image"]
@@ -98,6 +103,10 @@ def test_foxglove_mcap_carries_the_class_names(exported):
 
 
 def test_ros2_mcap_decodes_with_mcap_ros2_and_equals_the_store(exported):
+    check_ros2(exported)
+
+
+def check_ros2(exported) -> None:
     frames, _ = expected_frames(exported["store"])
     with open(exported["ros2"], "rb") as f:
         reader = make_reader(f, decoder_factories=[Ros2DecoderFactory()])
@@ -127,11 +136,17 @@ def _rerun_columns(path: Path, entity: str, *names: str) -> list[tuple]:
     for chunk in RrdReader(path).stream().to_chunks():
         if chunk.entity_path == entity and not chunk.is_static:
             batch = chunk.to_record_batch()
-            rows += list(zip(*(batch.column(name).to_pylist() for name in ("frame", *names)), strict=True))
+            empty = [[] for _ in range(batch.num_rows)]  # a frame without points or objects has no extra fields
+            rows += list(zip(*(batch.column(name).to_pylist() if name in batch.schema.names else empty
+                               for name in ("frame", *names)), strict=True))
     return sorted(rows, key=lambda row: row[0])
 
 
 def test_rerun_recording_reads_back_with_rerun_and_equals_the_store(exported):
+    check_rerun(exported)
+
+
+def check_rerun(exported) -> None:
     frames, class_names = expected_frames(exported["store"])
     period_ns = frames[1].time_ns - frames[0].time_ns
     points = _rerun_columns(exported["rrd"], "/radar/points", "Points3D:positions", "Points3D:class_ids", "track_id")
@@ -141,7 +156,7 @@ def test_rerun_recording_reads_back_with_rerun_and_equals_the_store(exported):
     for frame, (tick, positions, class_ids, _), (_, centres, object_classes, tracks), (_, (buffer,)) in zip(
             frames, points, objects, ra, strict=True):
         assert tick * period_ns == frame.time_ns
-        positions = np.array(positions)
+        positions = np.array(positions, np.float64).reshape(-1, 3)
         np.testing.assert_allclose(positions[:, 0], frame.x, **FLOAT32)
         np.testing.assert_allclose(positions[:, 1], frame.y, **FLOAT32)
         np.testing.assert_array_equal(class_ids, frame.class_id)
@@ -165,3 +180,11 @@ def test_rerun_command_line_verifies_the_recording(exported):
                           timeout=120)
     assert done.returncode == 0, done.stderr
     assert "verified without error" in done.stdout + done.stderr
+
+
+@pytest.mark.slow
+def test_a_segment_batch_stores_recordings_equal_it(segmented):
+    """The same checks on what segment-batch wrote (a tiny model's predictions of a simulated recording, tracked)."""
+    check_foxglove(segmented)
+    check_ros2(segmented)
+    check_rerun(segmented)
