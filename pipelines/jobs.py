@@ -17,13 +17,13 @@ import dataclasses
 import importlib
 import json
 import logging
-import os
 import shlex
 import sys
 from collections.abc import Callable, Sequence
 from types import ModuleType, SimpleNamespace
 from typing import Any
 
+from models.environment import environment
 from radar.errors import UserError
 from radar.profiles import UnknownPresetError
 
@@ -117,7 +117,6 @@ def config_of(module: ModuleType, args: argparse.Namespace) -> Any:
 # Smoke mode (RADARSEG_SMOKE=1): every job runs its command on tiny sizes, so that the documented commands run
 # as written in seconds (tests/test_documented_commands.py). Each config declares the rule beside the field it
 # applies to (``sequences: int | None = smoke(None, cap(4))``): renaming the field keeps its rule.
-SMOKE_ENV = "RADARSEG_SMOKE"
 SMOKE = "smoke"  # the field metadata key of a field's smoke rule: its value -> its value in smoke mode
 
 
@@ -144,7 +143,7 @@ def first(values: Sequence[Any]) -> tuple[Any, ...]:
 
 def smoke_mode() -> bool:
     """Whether ``RADARSEG_SMOKE`` asks for tiny sizes."""
-    return os.environ.get(SMOKE_ENV, "") not in ("", "0")
+    return environment().smoke
 
 
 def smoke_config(cfg: Any) -> Any:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 import os
 
+from models.environment import environment
+
 OBJECT_STORE_BYTES = 256 * 2**20  # embedded Ray: results are small summaries, the data goes to disk
 
 
@@ -21,7 +23,7 @@ def init_ray(address: str | None = None, *, num_cpus: int | None = None,
 
     if ray.is_initialized():
         return False
-    if address is None and not os.environ.get("RAY_ADDRESS"):
+    if address is None and not environment().ray_address:
         os.environ.setdefault("RAY_AUTH_MODE", "disabled")
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
         ray.init(address="local", num_cpus=num_cpus, object_store_memory=object_store_bytes,

@@ -49,6 +49,7 @@ def test_the_cli_reference_has_every_command_and_option(site):
 
 @pytest.mark.slow
 def test_the_http_reference_has_every_route_the_settings_and_profile_keys(site):
+    from models.environment import Environment
     from radar.profiles.files import _SCHEMA
     from service.main import create_app
     from service.settings import Settings
@@ -60,6 +61,8 @@ def test_the_http_reference_has_every_route_the_settings_and_profile_keys(site):
     settings = _text(site, "reference/settings")
     for name in Settings.model_fields:
         assert f"RADARSEG_{name.upper()}" in settings, f"RADARSEG_{name.upper()} is not in the settings reference"
+    for variable in Environment.variables().values():
+        assert variable in settings, f"{variable} (models.environment) is not in the settings reference"
     profile = _text(site, "reference/radar-profile")
     for table, keys in _SCHEMA.items():
         for key in keys:

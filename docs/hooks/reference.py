@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import dataclasses
 import inspect
 import json
 import os
@@ -168,7 +169,21 @@ def settings_page() -> str:
         bounds = ", ".join(str(m) for m in field.metadata)
         lines.append(f"| `{prefix}{name.upper()}` | `{_cell(_type_name(field.annotation))}` | `{_cell(shown)}` | "
                      f"{_cell(bounds)} | {_cell(comments.get(name, ''))} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _environment_rows()) + "\n"
+
+
+def _environment_rows() -> list[str]:
+    """The variables the jobs, models and benchmarks read (``models.environment.Environment``)."""
+    from models.environment import Environment
+
+    rows = ["", "## Jobs and models", "",
+            "What the command line's jobs, the models and the benchmarks read from the environment "
+            "(`models/environment.py`, `Environment`; the service gives the models' ones from its settings above).",
+            "", "| variable | default | what |", "|---|---|---|"]
+    for field in dataclasses.fields(Environment):
+        rows.append(f"| `{field.metadata['variable']}` | `{_cell(json.dumps(field.default, default=str))}` | "
+                    f"{_cell(field.metadata['what'])} |")
+    return rows
 
 
 # -- radar profile files -------------------------------------------------------------------------------------------

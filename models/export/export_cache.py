@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from models.checkpoint import Checkpoint
+from models.environment import environment
 from models.export import quantize
 from models.export.onnx_engine import OnnxEraseNet
 from models.export.onnx_export import FORMAT, VERSION, checkpoint_digest, export_onnx
@@ -41,7 +42,7 @@ def cache_secret() -> bytes:
     ``~/.config/radarseg/onnx-cache.key`` (32 random bytes, made on first use, readable by the user only). It lives
     outside the cache, so whoever can write to a shared cache can neither predict an export's folder nor seal a
     graph of their own."""
-    path = Path(os.environ.get(KEY_FILE_ENV) or Path.home() / ".config" / "radarseg" / "onnx-cache.key").expanduser()
+    path = environment().onnx_cache_key_file or Path.home() / ".config" / "radarseg" / "onnx-cache.key"
     if not path.is_file():
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
@@ -95,8 +96,7 @@ def seal_problem(directory: Path, key: str, secret: bytes) -> str | None:
 
 def cache_root() -> Path:
     """Where exports are cached: ``$RADARSEG_ONNX_CACHE``, else ``~/.cache/radarseg/onnx``."""
-    configured = os.environ.get(CACHE_ENV)
-    return Path(configured).expanduser() if configured else Path.home() / ".cache" / "radarseg" / "onnx"
+    return environment().onnx_cache or Path.home() / ".cache" / "radarseg" / "onnx"
 
 
 def exported_dir(detector: Checkpoint, segmenter: Checkpoint,

@@ -40,6 +40,8 @@ from types import ModuleType
 import torch
 from torch import Tensor
 
+from models.environment import environment
+
 logger = logging.getLogger(__name__)
 
 KERNELS = ("auto", "compiled", "reference")
@@ -75,12 +77,12 @@ def get_kernels() -> str:
     (`RADARSEG_SPARSE_ENGINE`, its earlier name, is refused naming it)."""
     global _kernels
     if _kernels is None:
-        if OLD_KERNELS_ENV in os.environ:
+        settings = environment()
+        if settings.sparse_engine is not None:
             raise ValueError(f"{OLD_KERNELS_ENV} is now {KERNELS_ENV} (the sparse kernels: {', '.join(KERNELS)}; "
                              f"'engine' names the runtime, --engine torch|onnx|onnx-int8)")
-        value = os.environ.get(KERNELS_ENV, "auto").strip().lower() or "auto"
         try:
-            _kernels = check_kernels(value)
+            _kernels = check_kernels(settings.sparse_kernels)
         except ValueError as error:
             raise ValueError(f"{KERNELS_ENV}: {error}") from None
     return _kernels
@@ -127,8 +129,7 @@ def build_key(instruction_set: str = "native") -> str:
 
 def build_root() -> Path:
     """Where built extensions are cached."""
-    base = os.environ.get("TORCH_EXTENSIONS_DIR")
-    return Path(base) if base else Path.home() / ".cache" / "radarseg" / "extensions"
+    return environment().torch_extensions_dir or Path.home() / ".cache" / "radarseg" / "extensions"
 
 
 def _ensure_ninja_on_path() -> None:
