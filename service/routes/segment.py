@@ -52,7 +52,9 @@ REQUEST_BODY = {
         "required": True,
         "description": "A .npy file: the complex RAD cube (R, A, D) of the model's preset (complex64/complex128), "
                        "its linear magnitude with ?input=magnitude or its log power in dB with ?input=log_power "
-                       "(float16/32/64), or raw ADC samples with ?input=adc. Pickled arrays are refused.",
+                       "(float16/32/64), or raw ADC samples with ?input=adc (one frame, complex or int16 with I/Q "
+                       "on a trailing axis of 2, layout ti or sck; or with ?format=dca1000 a DCA1000 capture's "
+                       "bytes). Pickled arrays are refused.",
         "content": {content_type: _BINARY for content_type in CONTENT_TYPES},
     }
 }

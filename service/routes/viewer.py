@@ -34,10 +34,12 @@ def _asset(name: str) -> bytes:
 
 @router.get("/viewer", response_class=HTMLResponse, summary="The viewer page")
 def viewer_page() -> HTMLResponse:
-    """An HTML page: drop or pick a `.npy` cube (complex RAD or log power), choose a model and see the RA and RD
+    """An HTML page: drop or pick a `.npy` cube (complex RAD or log power), an ADC frame (`.npy`) or a DCA1000
+    capture (`.bin`, a frame chosen by index; read with the model's radar profile), choose a model and see the RA and RD
     views with the predicted masks, the objects (hover a row to find it on both views), MACs and latency per
     stage and the tenant's usage. `?example=N` segments example N on open, `?model=NAME` chooses the model,
-    `?cube=URL` fetches a cube from this origin (or a `data:` URL) and segments it. An API key, when the service
+    `?cube=URL` fetches a cube from this origin (or a `data:` URL) and segments it (a capture's frame K with
+    `&frame=K`). An API key, when the service
     asks for one, is typed into the page and kept there only (never stored)."""
     return HTMLResponse(_asset("index.html"), headers=HEADERS)
 

@@ -46,10 +46,10 @@ def client(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def frames() -> list[np.ndarray]:
-    """Three distinct whole-number frames in the "ti" layout: the recorded one, its samples reversed, its chirps
-    rolled."""
+    """Three whole-number frames in the "ti" layout: the recorded one, its chirps rolled, its samples reversed (its
+    ranges mirrored: unlike the first)."""
     ti = as_complex(ti_frame_iq())
-    return [ti, ti[..., ::-1].copy(), np.roll(ti, 2, axis=0)]
+    return [ti, np.roll(ti, 2, axis=0), ti[..., ::-1].copy()]
 
 
 @pytest.fixture(scope="module")

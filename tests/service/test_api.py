@@ -71,7 +71,7 @@ def _pickled() -> bytes:
     ("unknown_model", 422, "served models: ['tiny']"),
     ("bad_outputs", 422, "unknown outputs"),
     ("bad_input_kind", 422, "input"),
-    ("unknown_parameter", 422, "takes encoding, input, model, outputs, tdm_compensation"),
+    ("unknown_parameter", 422, "takes encoding, format, frame, input, layout, model, outputs, tdm_compensation"),
     ("float_without_kind", 422, "?input=magnitude or ?input=log_power"),
     ("linear_as_log_power", 422, "linear magnitude or power?"),
     ("log_power_as_magnitude", 422, "looks like log power"),

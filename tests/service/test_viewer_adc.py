@@ -138,13 +138,13 @@ def drawn_like(page: Dom, answer: dict) -> None:
 
 @pytest.fixture
 def radar_files(tmp_path) -> dict[str, Path]:
-    """The recorded frame as an ADC .npy, a 3-frame DCA1000 capture (the frame, its samples reversed, its chirps
-    rolled), the same capture cut short, and the frame's undecoded words."""
+    """The recorded frame as an ADC .npy, a 3-frame DCA1000 capture (the frame, its chirps rolled, its samples
+    reversed: ranges mirrored), the same capture cut short, and the frame's undecoded words."""
     ti = as_complex(ti_frame_iq())
     files = {"adc": tmp_path / "doppler_example_1_ti.npy", "capture": tmp_path / "adc_data.bin",
              "cut": tmp_path / "cut_adc_data.bin", "words": tmp_path / "undecoded_words.npy"}
     np.save(files["adc"], ti_frame_iq())
-    write_dca1000(files["capture"], [ti, ti[..., ::-1].copy(), np.roll(ti, 2, axis=0)],
+    write_dca1000(files["capture"], [ti, np.roll(ti, 2, axis=0), ti[..., ::-1].copy()],
                   CaptureFormat.of_profile(openradar_profile()))
     files["cut"].write_bytes(files["capture"].read_bytes()[:-1000])
     np.save(files["words"], undecoded_words())
