@@ -15,6 +15,7 @@ replacing each other's figures, in the spirit of asv and pytest-benchmark. One-o
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import json
 import os
@@ -22,6 +23,7 @@ import platform
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -92,6 +94,20 @@ def commit() -> dict[str, Any]:
 
 def _snapshot(results: Path) -> dict[Path, int]:
     return {path: path.stat().st_mtime_ns for path in results.glob("*.json")}
+
+
+def int_options_main(results: Path, run: Callable[..., dict], doc: str | None, argv: list[str] | None,
+                     **defaults: int) -> int:
+    """A benchmark's command line: an integer option ``--NAME`` per keyword of ``run`` (``defaults``: their
+    defaults), ``run``'s figures written to ``results`` as JSON and printed. ``doc``: the module's docstring."""
+    parser = argparse.ArgumentParser(description=(doc or "").strip().splitlines()[0] if doc else None)
+    for name, default in defaults.items():
+        parser.add_argument(f"--{name.replace('_', '-')}", type=int, default=default)
+    result = run(**vars(parser.parse_args(argv)))
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text(json.dumps(result, indent=2))
+    print(json.dumps(result, indent=2))
+    return 0
 
 
 def run(name: str, argv: list[str]) -> int:

@@ -13,8 +13,6 @@ benchmarks/results/recording_export.json with the CPU, its flags and the load av
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import shutil
 import statistics
@@ -22,6 +20,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from benchmarks.harness import int_options_main
 
 RESULTS = Path(__file__).resolve().parent / "results" / "recording_export.json"
 
@@ -64,16 +64,7 @@ def run(sequences: int, frames: int, repeats: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sequences", type=int, default=5)
-    parser.add_argument("--frames", type=int, default=20)
-    parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args(argv)
-    result = run(args.sequences, args.frames, args.repeats)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
-    return 0
+    return int_options_main(RESULTS, run, __doc__, argv, sequences=5, frames=20, repeats=3)
 
 
 if __name__ == "__main__":

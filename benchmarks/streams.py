@@ -10,9 +10,7 @@ frame's median within 1.1x of /v1/segment's), the server's own ``track`` stage (
 
 from __future__ import annotations
 
-import argparse
 import io
-import json
 import os
 import platform
 import sys
@@ -23,6 +21,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.harness import int_options_main
 from pipelines.demo.serve_process import free_port, stop_process, wait_ready
 from radar.simulate import simulate_sequence
 from service.http_server import server_command
@@ -97,16 +96,7 @@ def run(sequences: int, frames: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--sequences", type=int, default=3)
-    parser.add_argument("--frames", type=int, default=20)
-    parser.add_argument("--seed", type=int, default=25401)
-    args = parser.parse_args(argv)
-    result = run(args.sequences, args.frames, args.seed)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
-    return 0
+    return int_options_main(RESULTS, run, __doc__, argv, sequences=3, frames=20, seed=25401)
 
 
 if __name__ == "__main__":

@@ -34,3 +34,15 @@ def test_a_failed_run_records_nothing(tmp_path):
     code = harness.recorded("fake", [sys.executable, "-c", "raise SystemExit(3)"], [], results=tmp_path,
                             history=tmp_path / "history")
     assert code == 3 and not (tmp_path / "history").exists()
+
+
+def test_a_benchmark_command_line_of_integer_options_writes_and_prints_its_figures(tmp_path, capsys):
+    out = tmp_path / "results" / "fake.json"
+
+    def run(frames: int, json_requests: int) -> dict:
+        return {"frames": frames, "json_requests": json_requests}
+
+    assert harness.int_options_main(out, run, "Fake.\n\nMore.", ["--json-requests", "7"], frames=3,
+                                    json_requests=1) == 0
+    assert json.loads(out.read_text()) == {"frames": 3, "json_requests": 7}
+    assert json.loads(capsys.readouterr().out) == {"frames": 3, "json_requests": 7}
