@@ -17,8 +17,6 @@ from __future__ import annotations
 import argparse
 import io
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -28,7 +26,7 @@ import httpx
 import numpy as np
 
 from benchmarks.recording_export import machine
-from pipelines.demo.serve_process import free_port, stop_process, wait_ready
+from pipelines.demo.serve_process import serving
 from radar.simulate import simulate_sequence
 from radar.transforms import log_power
 from service.http_server import server_command
@@ -76,27 +74,18 @@ def run(frames: int, json_requests: int, seed: int) -> dict:
     import tritonclient.http as triton
 
     data_dir = Path(tempfile.mkdtemp(prefix="radarseg-v2-bench-"))
-    port = free_port()
-    log = data_dir / "server.log"
-    env = {**os.environ, "RADARSEG_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    with log.open("w") as out:
-        proc = subprocess.Popen(server_command(port, "warning"), stdout=out, stderr=subprocess.STDOUT, env=env)
-    url = f"http://127.0.0.1:{port}"
     cubes = [frame.cube for frame in simulate_sequence("small", frames + 1, seed=seed)]
-    try:
-        wait_ready(url, proc, log, timeout_s=400, poll_s=0.3)
+    with serving(data_dir, timeout_s=400, command=server_command) as (url, port), \
+            httpx.Client(timeout=120) as http, \
+            triton.InferenceServerClient(f"127.0.0.1:{port}", network_timeout=300) as client:
         before = machine()
-        with httpx.Client(timeout=120) as http, triton.InferenceServerClient(f"127.0.0.1:{port}",
-                                                                            network_timeout=300) as client:
-            times = _time_routes(url, http, client, cubes)
-            json_times = []
-            for cube in cubes[:json_requests]:
-                inputs, outputs = _v2_request(log_power(cube).astype(np.float32), binary=False, kind="log_power")
-                start = time.perf_counter()
-                client.infer(MODEL, inputs, outputs=outputs)
-                json_times.append(time.perf_counter() - start)
-    finally:
-        stop_process(proc)
+        times = _time_routes(url, http, client, cubes)
+        json_times = []
+        for cube in cubes[:json_requests]:
+            inputs, outputs = _v2_request(log_power(cube).astype(np.float32), binary=False, kind="log_power")
+            start = time.perf_counter()
+            client.infer(MODEL, inputs, outputs=outputs)
+            json_times.append(time.perf_counter() - start)
     median = {route: float(np.median(v)) for route, v in times.items()}
     return {
         "frames_per_route": len(times["segment"]), "seed": seed, "preset": "small", "concurrency": 1,

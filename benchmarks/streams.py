@@ -22,7 +22,7 @@ import httpx
 import numpy as np
 
 from benchmarks.harness import int_options_main
-from pipelines.demo.serve_process import free_port, stop_process, wait_ready
+from pipelines.demo.serve_process import serving
 from radar.simulate import simulate_sequence
 from service.http_server import server_command
 
@@ -54,32 +54,21 @@ def _timed(http: httpx.Client, url: str, body: bytes) -> tuple[float, httpx.Resp
 
 def run(sequences: int, frames: int, seed: int) -> dict:
     data_dir = Path(tempfile.mkdtemp(prefix="radarseg-streams-bench-"))
-    port = free_port()
-    log = data_dir / "server.log"
-    env = {**os.environ, "RADARSEG_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
-    with log.open("w") as out:
-        import subprocess
-
-        proc = subprocess.Popen(server_command(port, "warning"), stdout=out, stderr=subprocess.STDOUT, env=env)
-    url = f"http://127.0.0.1:{port}"
     times: dict[str, list[float]] = {"segment": [], "stream": []}
-    try:
-        wait_ready(url, proc, log, timeout_s=180, poll_s=0.3)
-        with httpx.Client(base_url=url, timeout=120) as http:
-            for s in range(sequences):
-                cubes = [_npy(f.cube) for f in simulate_sequence("small", frames, seed=seed + s)]
-                stream = http.post("/v1/streams").json()["id"]
-                for k, body in enumerate(cubes):
-                    order = ("segment", "stream") if k % 2 == 0 else ("stream", "segment")
-                    for route in order:
-                        path = (f"/v1/streams/{stream}/frames?seq={k}" if route == "stream" else "/v1/segment")
-                        elapsed, response = _timed(http, path, body)
-                        if s or k:  # the very first frame of each route warms up
-                            times[route].append(elapsed)
-                http.delete(f"/v1/streams/{stream}")
-            metrics = http.get("/metrics").text
-    finally:
-        stop_process(proc)
+    with serving(data_dir, timeout_s=180, command=server_command) as (url, _), \
+            httpx.Client(base_url=url, timeout=120) as http:
+        for s in range(sequences):
+            cubes = [_npy(f.cube) for f in simulate_sequence("small", frames, seed=seed + s)]
+            stream = http.post("/v1/streams").json()["id"]
+            for k, body in enumerate(cubes):
+                order = ("segment", "stream") if k % 2 == 0 else ("stream", "segment")
+                for route in order:
+                    path = (f"/v1/streams/{stream}/frames?seq={k}" if route == "stream" else "/v1/segment")
+                    elapsed, response = _timed(http, path, body)
+                    if s or k:  # the very first frame of each route warms up
+                        times[route].append(elapsed)
+            http.delete(f"/v1/streams/{stream}")
+        metrics = http.get("/metrics").text
     track = {}  # the server's own "track" stage: sum (s) and count of its histogram
     for line in metrics.splitlines():
         for kind in ("sum", "count"):

@@ -3,11 +3,14 @@ the command, waiting for ``/readyz``, and stopping it by its process id (SIGTERM
 
 from __future__ import annotations
 
+import os
 import signal
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -50,3 +53,23 @@ def stop_process(proc: subprocess.Popen, *, grace_s: float = 20.0) -> None:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(timeout=10)
+
+
+@contextmanager
+def serving(data_dir: Path, *, timeout_s: float, command: Callable[[int], list[str]] = serve_command,
+            env: dict[str, str] | None = None) -> Iterator[tuple[str, int]]:
+    """A service process on a free loopback port, ready: ``(url, port)``; stopped on leaving. It keeps its data
+    under ``data_dir`` (its log: ``data_dir/server.log``), runs one OpenMP thread, and gets ``env`` on top of
+    this process's environment; ``command(port)``: the command line (default ``radarseg serve``)."""
+    port = free_port()
+    log = data_dir / "server.log"
+    child_env = {**os.environ, "RADARSEG_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1",
+                 **(env or {})}
+    with log.open("w") as out:
+        proc = subprocess.Popen(command(port), stdout=out, stderr=subprocess.STDOUT, env=child_env)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        wait_ready(url, proc, log, timeout_s=timeout_s, poll_s=0.3)
+        yield url, port
+    finally:
+        stop_process(proc)
