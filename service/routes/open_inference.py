@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from fastapi import APIRouter, Path, Request, Response
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel
 from starlette.requests import ClientDisconnect
 
 from models.erasenet.model import SegmentedObject
@@ -42,6 +43,7 @@ from service.open_inference import (
     encode_response,
     parse_request,
 )
+from service.routes.errors_doc import error_responses
 from service.routes.segment import Admitted, run_billed
 from service.schemas import InputKind, MaskEncoding
 from service.tenants import Principal
@@ -55,6 +57,25 @@ _DATATYPES = {InputKind.complex: ("FP32", "FP64"), InputKind.adc: ("FP32", "FP64
               InputKind.magnitude: ("FP16", "FP32", "FP64"), InputKind.log_power: ("FP16", "FP32", "FP64")}
 _COMPLEX = {np.dtype("<f4"): np.complex64, np.dtype("<f8"): np.complex128}
 ModelName = Path(max_length=64, description="a served model's name (GET /v1/models)")
+
+
+class ProtocolErrorBody(BaseModel):
+    """The Open Inference Protocol's error answer."""
+
+    error: str
+
+
+_WHY = {400: "not an inference request the model takes: JSON, inputs, shapes, datatypes, binary sizes",
+        404: "no served model of that name", 408: "the body fell behind the upload pace",
+        422: "NaN/Inf or values impossible for the input kind", 429: "the tenant's daily MAC quota",
+        503: "not ready, every slot taken, uploads saturated or the ledger down (Retry-After)"}
+
+
+def protocol_errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI descriptions of the errors a route answers in the protocol's shape (the service's own for failures
+    before the route runs: 401 keys, 413 body limit, 422 unknown query parameters)."""
+    return {**error_responses(401, 413, 422),
+            **{code: {"model": ProtocolErrorBody, "description": _WHY[code]} for code in codes}}
 
 
 def protocol_error(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
@@ -91,15 +112,17 @@ def live() -> dict[str, bool]:
     return {"live": True}
 
 
-@router.get("/v2/health/ready", summary="Readiness (Open Inference Protocol)")
+@router.get("/v2/health/ready", summary="Readiness (Open Inference Protocol)",
+            responses={503: {"description": "not ready"}})
 def ready(state: State) -> JSONResponse:
     """200 when every model is loaded and the usage ledger is reachable, else 503."""
     is_ready = state.pool.ready and state.ledger_error is None
     return JSONResponse({"ready": is_ready}, status_code=200 if is_ready else 503)
 
 
-@router.get("/v2/models/{name}/ready", summary="A model's readiness (Open Inference Protocol)")
-def model_ready(state: State, name: str = ModelName) -> JSONResponse:
+@router.get("/v2/models/{name}/ready", summary="A model's readiness (Open Inference Protocol)",
+            responses=protocol_errors(404, 503))
+def model_ready(state: State, caller: Caller, name: str = ModelName) -> JSONResponse:
     try:
         served = _served(state, name, ready=False)
     except ApiError as exc:
@@ -107,8 +130,9 @@ def model_ready(state: State, name: str = ModelName) -> JSONResponse:
     return JSONResponse({"name": name, "ready": served.ready}, status_code=200 if served.ready else 503)
 
 
-@router.get("/v2/models/{name}", summary="A model's metadata (Open Inference Protocol)")
-def model_metadata(state: State, name: str = ModelName) -> JSONResponse:
+@router.get("/v2/models/{name}", summary="A model's metadata (Open Inference Protocol)",
+            responses=protocol_errors(404, 503))
+def model_metadata(state: State, caller: Caller, name: str = ModelName) -> JSONResponse:
     """Its inputs (one per input kind; send one) and outputs, with shapes and datatypes."""
     try:
         served = _served(state, name)
@@ -181,7 +205,8 @@ def _tensors(billed: Any, name: str) -> tuple[dict[str, np.ndarray], dict[str, d
     return tensors, {"objects": {"columns": ",".join(OBJECT_COLUMNS)}}
 
 
-@router.post("/v2/models/{name}/infer", summary="Segment one cube (Open Inference Protocol)")
+@router.post("/v2/models/{name}/infer", summary="Segment one cube (Open Inference Protocol)",
+             responses=protocol_errors(400, 404, 408, 422, 429, 503))
 async def infer(request: Request, state: State, caller: Caller, name: str = ModelName) -> Response:
     """Billed and limited as ``POST /v1/segment``: the model ready and the ledger up, the tenant's quota checked
     before the body is read, the upload gate, the cube's values, a model slot (503 when saturated)."""
