@@ -9,8 +9,9 @@
   ``sum_c q_x[c] q_w[c, o]`` times one float per output channel is the float convolution.
 - Every convolution runs in :mod:`models.sparse.int8`'s kernels with the epilogue fused: the int32 sums scaled,
   bias, the residual sum (the block's input as uint8 with its scales, or the 1x1 shortcut's float output, itself an
-  int8 kernel with a one-row table), ReLU and requantisation in the loop that writes the rows. The classifier runs
-  in float on the dequantised last features (N x 24 x classes MACs).
+  int8 kernel with a one-row table), ReLU and requantisation in the loop that writes the rows. The last convolution
+  writes float32 (no requantisation before the classifier), and the classifier runs in float (N x 24 x classes MACs).
+- Scales are given per channel (a calibration per tensor gives each channel the tensor's scale).
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ class QuantConv:
     scale: Tensor
     bias: Tensor
     correction: Tensor | None
-    out_scale: float
+    out_scale: Tensor | None
     channels: int
 
 
@@ -80,7 +81,7 @@ def quantise_weight(weight: Tensor, in_scale: Tensor) -> tuple[Tensor, Tensor]:
     return quantised.contiguous(), scale.float().contiguous()
 
 
-def quantise_conv(conv: FoldedConv, x: QTensor, out_scale: float) -> QuantConv:
+def quantise_conv(conv: FoldedConv, x: QTensor, out_scale: Tensor | None) -> QuantConv:
     """``conv`` on inputs quantised as ``x`` (its scales and zero points), output requantised to ``out_scale``."""
     weight, scale = quantise_weight(conv.weight, x.scale)
     correction = None
@@ -112,20 +113,22 @@ class _Run:
 class Int8MinkUNet:
     """``int8(x) -> (logits (N, num_classes) float32, MacTally)``, as :class:`FusedMinkUNet` is called.
 
-    ``activation_scales``: one uint8 scale per requantised activation, in the order :meth:`__call__` produces them
+    ``activation_scales``: each requantised activation's uint8 scale per channel (C,), in the order :meth:`__call__`
+    produces them
     (:func:`models.quantized.calibration.calibrate` measures them on frames); ``input_range``: the input features'.
     The int8 layers are built on first use from their input's scales (constants: the same at every call)."""
 
     precision = "int8"
 
-    def __init__(self, fused: FusedMinkUNet, input_range: InputRange, activation_scales: list[float]) -> None:
+    def __init__(self, fused: FusedMinkUNet, input_range: InputRange, activation_scales: list[Tensor]) -> None:
         if not isinstance(fused, FusedMinkUNet):
             raise TypeError(f"Int8MinkUNet takes a FusedMinkUNet, got {type(fused).__name__}")
-        if not all(s > 0 for s in activation_scales):
-            raise ValueError("activation scales must be > 0")
+        self.activation_scales = [torch.as_tensor(s, dtype=torch.float32).reshape(-1).contiguous()
+                                  for s in activation_scales]
+        if not all(bool((s > 0).all()) and bool(torch.isfinite(s).all()) for s in self.activation_scales):
+            raise ValueError("activation scales must be finite and > 0")
         self.fused = fused
         self.input_range = input_range
-        self.activation_scales = [float(s) for s in activation_scales]
         self.num_classes = fused.num_classes
         self._layers: dict[tuple[int, str], QuantConv] = {}
         int8.load()  # build the kernels now, not inside the first frame
@@ -133,7 +136,7 @@ class Int8MinkUNet:
     def _layer(self, run: _Run, conv: FoldedConv, x: QTensor, role: str, requantise: bool = True) -> QuantConv:
         key = (run.layer, role)
         if key not in self._layers:
-            out_scale = self.activation_scales[run.layer] if requantise else 0.0
+            out_scale = self._out_scale_vector(run, conv.weight.shape[2]) if requantise else None
             self._layers[key] = quantise_conv(conv, x, out_scale)
         return self._layers[key]
 
@@ -143,11 +146,13 @@ class Int8MinkUNet:
             raise ValueError(f"{len(self.activation_scales)} activation scales for a network with more activations")
 
     def _out_scale_vector(self, run: _Run, width: int) -> Tensor:
-        return torch.full((width,), self.activation_scales[run.layer], dtype=torch.float32)
+        scale = self.activation_scales[run.layer]
+        return scale if len(scale) == width else scale.expand(width).contiguous()
 
     def _submanifold(self, x: QTensor, conv: FoldedConv, run: _Run, residual: QTensor | Tensor | None = None
                      ) -> QTensor:
-        layer = self._layer(run, conv, x, "submanifold")
+        last = run.layer == len(self.activation_scales) - 1  # the classifier's input: kept float
+        layer = self._layer(run, conv, x, "submanifold", requantise=not last)
         kernel_map = x.cache.kernel_map(x.stride, conv.kernel_size, 1)
         run.macs.add(kernel_map.num_pairs, layer.channels)
         neighbours, order = kernel_map.in_coordinate_order
@@ -162,7 +167,7 @@ class Int8MinkUNet:
                                   out_scale=layer.out_scale)
         if order is not None:
             out = torch.empty_like(out).index_copy_(0, order, out)
-        scale = self._out_scale_vector(run, out.shape[1])
+        scale = torch.ones(out.shape[1]) if last else self._out_scale_vector(run, out.shape[1])
         self._next(run)
         return QTensor(out, scale, x.stride, x.cache)
 

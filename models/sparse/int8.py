@@ -107,7 +107,8 @@ def pack_weight(weight: Tensor, module: ModuleType | None = None) -> Tensor:
 
 def neighbour_conv(src: Tensor, neighbours: Tensor, packed: Tensor, scale: Tensor, *, zero_point: int = 0,
                    weight_sums: Tensor | None = None, bias: Tensor | None = None, residual: Tensor | None = None,
-                   residual_scale: Tensor | None = None, relu: bool = False, out_scale: float = 0.0) -> Tensor:
+                   residual_scale: Tensor | None = None, relu: bool = False, out_scale: Tensor | None = None
+                   ) -> Tensor:
     """`epilogue(sum_k (src[neighbours[j, k]] - zero_point) . weight[k])` for each row j of `neighbours`.
 
     Args:
@@ -115,17 +116,17 @@ def neighbour_conv(src: Tensor, neighbours: Tensor, packed: Tensor, scale: Tenso
         scale: (D,) float32, the int32 sums' scale (input scale x weight scale of each output channel).
         zero_point, weight_sums: the inputs' zero point and, where it is not 0, each offset's weight sums (K, D) int32.
         bias: (D,); residual: (M, D) float32, or uint8 with its `residual_scale` (D,); relu.
-        out_scale: > 0: requantised to uint8 with this scale; 0: float32.
+        out_scale: (D,) float32 > 0: requantised to uint8 with each output channel's scale; None: float32 out.
     """
     return load().neighbour_conv_int8(src.contiguous(), neighbours.contiguous(), packed, zero_point, weight_sums,
                                       scale, bias, None if residual is None else residual.contiguous(),
-                                      residual_scale, relu, float(out_scale))
+                                      residual_scale, relu, out_scale)
 
 
 def scatter_conv(src: Tensor, neighbours: Tensor, packed: Tensor, num_out: int, scale: Tensor, *,
                  zero_point: int = 0, weight_sums: Tensor | None = None, bias: Tensor | None = None,
-                 relu: bool = False, out_scale: float = 0.0) -> Tensor:
+                 relu: bool = False, out_scale: Tensor | None = None) -> Tensor:
     """`out[neighbours[j, k]] = epilogue((src[j] - zero_point) . weight[k])` (each output row reached at most once;
     rows never reached: the epilogue of 0). Arguments as :func:`neighbour_conv`."""
     return load().scatter_conv_int8(src.contiguous(), neighbours.contiguous(), packed, num_out, zero_point,
-                                    weight_sums, scale, bias, relu, float(out_scale))
+                                    weight_sums, scale, bias, relu, out_scale)

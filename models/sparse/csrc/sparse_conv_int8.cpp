@@ -11,7 +11,7 @@
 //
 // then the epilogue, in the loop that writes the rows: v = acc * scale[d] + bias[d] + residual[j, d] (a uint8
 // residual times its per-channel scale, or a float one), ReLU, and either float32 out or requantised to uint8
-// (q = clamp(rint(v / out_scale), 0, 255)).
+// (q = clamp(rint(v / out_scale[d]), 0, 255), a scale per output channel).
 //
 // Micro-kernels (R rows x columns of int32 accumulators, the weight chunk kept in registers over the rows):
 // - AVX-512 VNNI: `vpdpbusd` multiplies 4 unsigned activation bytes by 4 signed weight bytes per int32 lane and
@@ -192,7 +192,7 @@ struct Epilogue {
   const float* residual_scale = nullptr;  // (D,)
   const float* residual_f32 = nullptr;
   bool relu = false;
-  float out_scale = 0.0f;  // > 0: uint8 out
+  std::vector<float> inverse;  // (D,) 1 / out_scale: uint8 out; empty: float out
 
   // Each step a plain loop over the row's columns (vectorised by the compiler), the uint8 store explicitly.
   inline void write(void* out, int64_t row, const int32_t* acc, int64_t D) const {
@@ -210,15 +210,15 @@ struct Epilogue {
     }
     if (relu)
       for (int64_t d = 0; d < D; ++d) v[d] = std::max(v[d], 0.0f);
-    if (out_scale > 0.0f) {
-      const float inverse = 1.0f / out_scale;
+    if (!inverse.empty()) {
       uint8_t* dst = static_cast<uint8_t*>(out) + row * D;
       int64_t d = 0;
 #if defined(__AVX2__)
       // 8 columns at a time (a uint8 loop left to the compiler runs scalar below 64 columns): scale, clamp to
       // [0, 255], round to nearest even (the default MXCSR mode), pack to bytes
-      const __m256 inv = _mm256_set1_ps(inverse), lo = _mm256_setzero_ps(), hi = _mm256_set1_ps(255.0f);
+      const __m256 lo = _mm256_setzero_ps(), hi = _mm256_set1_ps(255.0f);
       for (; d + 8 <= D; d += 8) {
+        const __m256 inv = _mm256_loadu_ps(inverse.data() + d);
         const __m256 x = _mm256_min_ps(_mm256_max_ps(_mm256_mul_ps(_mm256_loadu_ps(v + d), inv), lo), hi);
         const __m256i i = _mm256_cvtps_epi32(x);
         const __m128i words = _mm_packus_epi32(_mm256_castsi256_si128(i), _mm256_extracti128_si256(i, 1));
@@ -226,7 +226,7 @@ struct Epilogue {
       }
 #endif
       for (; d < D; ++d)
-        dst[d] = static_cast<uint8_t>(std::nearbyint(std::min(std::max(v[d] * inverse, 0.0f), 255.0f)));
+        dst[d] = static_cast<uint8_t>(std::nearbyint(std::min(std::max(v[d] * inverse[d], 0.0f), 255.0f)));
     } else {
       std::memcpy(static_cast<float*>(out) + row * D, v, D * sizeof(float));
     }
@@ -278,7 +278,8 @@ Layer make_layer(const at::Tensor& src, const at::Tensor& neighbours, const at::
 
 Epilogue make_epilogue(const at::Tensor& scale, const c10::optional<at::Tensor>& bias,
                        const c10::optional<at::Tensor>& residual, const c10::optional<at::Tensor>& residual_scale,
-                       bool relu, double out_scale, int64_t rows, int64_t D, const char* what) {
+                       bool relu, const c10::optional<at::Tensor>& out_scale, int64_t rows, int64_t D,
+                       const char* what) {
   Epilogue e;
   auto check_vector = [&](const at::Tensor& t, const char* name) {
     TORCH_CHECK(t.scalar_type() == at::kFloat && t.is_contiguous() && t.dim() == 1 && t.size(0) == D, what, ": ",
@@ -305,14 +306,20 @@ Epilogue make_epilogue(const at::Tensor& scale, const c10::optional<at::Tensor>&
     }
   }
   TORCH_CHECK(D <= kMaxColumns, what, ": at most ", kMaxColumns, " output channels");
-  TORCH_CHECK(std::isfinite(out_scale) && out_scale >= 0.0, what, ": out_scale must be finite and >= 0");
+  if (out_scale.has_value()) {
+    check_vector(*out_scale, "out_scale");
+    const float* o = out_scale->data_ptr<float>();
+    for (int64_t d = 0; d < D; ++d) {
+      TORCH_CHECK(std::isfinite(o[d]) && o[d] > 0.0f, what, ": out_scale must be finite and > 0");
+      e.inverse.push_back(1.0f / o[d]);
+    }
+  }
   e.relu = relu;
-  e.out_scale = static_cast<float>(out_scale);
   return e;
 }
 
 at::Tensor make_output(int64_t rows, int64_t D, const Epilogue& e) {
-  return at::empty({rows, D}, at::TensorOptions().dtype(e.out_scale > 0.0f ? at::kByte : at::kFloat));
+  return at::empty({rows, D}, at::TensorOptions().dtype(e.inverse.empty() ? at::kFloat : at::kByte));
 }
 
 // `acc` rows (block buffer, row width Dp) of an output block: each row's int32 sums over its present neighbours.
@@ -361,7 +368,7 @@ at::Tensor neighbour_conv_int8_raw(at::Tensor src, at::Tensor neighbours, at::Te
 at::Tensor neighbour_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor packed, int64_t zero_point,
                                c10::optional<at::Tensor> weight_sums, at::Tensor scale, c10::optional<at::Tensor> bias,
                                c10::optional<at::Tensor> residual, c10::optional<at::Tensor> residual_scale, bool relu,
-                               double out_scale) {
+                               c10::optional<at::Tensor> out_scale) {
   const int64_t D = scale.size(0);
   const Layer L = make_layer(src, neighbours, packed, D, zero_point, weight_sums, "neighbour_conv_int8");
   const Epilogue e = make_epilogue(scale, bias, residual, residual_scale, relu, out_scale, L.M, D,
@@ -382,7 +389,7 @@ at::Tensor neighbour_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor
 
 at::Tensor scatter_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor packed, int64_t num_out,
                              int64_t zero_point, c10::optional<at::Tensor> weight_sums, at::Tensor scale,
-                             c10::optional<at::Tensor> bias, bool relu, double out_scale) {
+                             c10::optional<at::Tensor> bias, bool relu, c10::optional<at::Tensor> out_scale) {
   const int64_t D = scale.size(0);
   const Layer L = make_layer(src, neighbours, packed, D, zero_point, weight_sums, "scatter_conv_int8");
   TORCH_CHECK(L.M == L.N, "scatter_conv_int8: one neighbour row per source row expected");

@@ -78,14 +78,14 @@ def epilogue_reference(acc: torch.Tensor, scale, bias, residual, residual_scale,
         value = value + (residual.float() * residual_scale if residual.dtype == torch.uint8 else residual)
     if relu:
         value = value.clamp(min=0)
-    if out_scale == 0:
+    if out_scale is None:
         return value
-    return torch.round(value * (1.0 / torch.tensor(out_scale, dtype=torch.float32))).clamp(0, 255)
+    return torch.round((value * (1.0 / out_scale)).clamp(0, 255))
 
 
 @pytest.mark.parametrize("residual_kind", [None, "uint8", "float"])
-@pytest.mark.parametrize("out_scale", [0.0, 0.05])
-def test_the_fused_epilogue(kernels, residual_kind, out_scale):
+@pytest.mark.parametrize("requantise", [False, True])
+def test_the_fused_epilogue(kernels, residual_kind, requantise):
     generator = torch.Generator().manual_seed(3)
     n, k, c_in, c_out = 300, 27, 16, 24
     src = torch.randint(0, 256, (n, c_in), generator=generator, dtype=torch.uint8)
@@ -99,12 +99,13 @@ def test_the_fused_epilogue(kernels, residual_kind, out_scale):
         residual_scale = torch.rand(c_out, generator=generator) * 0.01
     elif residual_kind == "float":
         residual = torch.randn(n, c_out, generator=generator)
+    out_scale = (0.02 + 0.05 * torch.rand(c_out, generator=generator)) if requantise else None
     packed = kernels.pack_weight(weight)
     got = kernels.neighbour_conv_int8(src, table, packed, 0, None, scale, bias, residual, residual_scale, True,
                                       out_scale)
     acc = kernels.neighbour_conv_int8_raw(src, table, packed, c_out, 0, None)
     expected = epilogue_reference(acc, scale, bias, residual, residual_scale, True, out_scale)
-    if out_scale:
+    if requantise:
         assert got.dtype == torch.uint8
         assert (got.float() - expected).abs().max() <= 1  # one step where float rounding meets a tie
         assert (got.float() != expected).float().mean() < 0.01
@@ -121,7 +122,8 @@ def test_scatter_reaches_each_output_once(kernels):
     src = torch.randint(0, 256, (n, c_in), generator=generator, dtype=torch.uint8)
     weight = torch.randint(-128, 128, (8, c_in, c_out), generator=generator, dtype=torch.int8)
     scale = torch.full((c_out,), 1.0)
-    got = kernels.scatter_conv_int8(src, table, kernels.pack_weight(weight), num_out, 0, None, scale, None, False, 0.0)
+    got = kernels.scatter_conv_int8(src, table, kernels.pack_weight(weight), num_out, 0, None, scale, None, False,
+                                    None)
     expected = torch.zeros(num_out + 1, c_out, dtype=torch.long)
     products = torch.einsum("mc,kcd->mkd", src.long(), weight.long())  # (M, 8, D)
     expected[table.reshape(-1)] = products.reshape(-1, c_out)
@@ -139,6 +141,9 @@ def test_bad_inputs_are_refused_in_one_line(kernels):
         kernels.neighbour_conv_int8_raw(torch.zeros(2, 8, dtype=torch.uint8), table, packed, 8, 0, None)
     with pytest.raises(RuntimeError, match="weight_sums"):
         kernels.neighbour_conv_int8_raw(torch.zeros(2, 4, dtype=torch.uint8), table, packed, 8, 5, None)
+    with pytest.raises(RuntimeError, match="out_scale must be finite and > 0"):
+        kernels.neighbour_conv_int8(torch.zeros(2, 4, dtype=torch.uint8), table, packed, 0, None, torch.ones(8), None,
+                                    None, None, True, torch.zeros(8))
 
 
 def test_this_cpu_runs_vnni_where_it_has_it():
