@@ -91,8 +91,9 @@ def _job_status(stack: Stack, job_id: str) -> str:
     env = ray_env(RAY_AUTH_MODE="token", RAY_AUTH_TOKEN=stack.env["RAY_AUTH_TOKEN"])
     proc = subprocess.run([str(BIN / "ray"), "job", "status", "--address", stack.dashboard_url, job_id], cwd=REPO,
                           env=env, capture_output=True, text=True, timeout=60)
-    found = re.findall(r"\b(PENDING|RUNNING|SUCCEEDED|FAILED|STOPPED)\b", proc.stdout + proc.stderr)
-    return found[-1] if found else "UNKNOWN"
+    # "Status for job '...': RUNNING", "Job '...' succeeded", ...: the last state word said
+    found = re.findall(r"\b(pending|running|succeeded|failed|stopped)\b", proc.stdout + proc.stderr, re.IGNORECASE)
+    return found[-1].upper() if found else "UNKNOWN"
 
 
 def _store_arrays(path: Path) -> dict[str, np.ndarray]:
