@@ -98,6 +98,16 @@ class _Run:
     macs: MacTally = field(default_factory=MacTally)
     layer: int = 0
     tables: dict[int, tuple[Tensor, Tensor]] = field(default_factory=dict)
+    pair_lists: dict[int, tuple[Tensor, tuple[Tensor, Tensor, Tensor]]] = field(default_factory=dict)
+
+    def pairs(self, neighbours: Tensor, num_in: int) -> tuple[Tensor, Tensor, Tensor]:
+        """``neighbours`` as the int8 kernels' compact pairs (:func:`models.sparse.int8.compact_pairs`), built once
+        per forward: a level's map serves about ten convolutions, and the kernels then never visit a missing slot
+        (at 8-24 channels 1.6-2x faster than over the table, which is about half missing slots in an ROI)."""
+        key = id(neighbours)
+        if key not in self.pair_lists:
+            self.pair_lists[key] = (neighbours, int8.compact_pairs(neighbours, num_in))
+        return self.pair_lists[key][1]
 
     def int32(self, neighbours: Tensor) -> Tensor:
         """``neighbours`` as int32, converted once per forward (a level's map serves about ten convolutions; the
@@ -161,10 +171,10 @@ class Int8MinkUNet:
             residual, None)
         if residual_feats is not None and order is not None:
             residual_feats = residual_feats.index_select(0, order)
-        out = int8.neighbour_conv(feats, run.int32(neighbours), layer.packed, layer.scale,
-                                  zero_point=int(layer.correction is not None), weight_sums=layer.correction,
-                                  bias=layer.bias, residual=residual_feats, residual_scale=residual_scale, relu=True,
-                                  out_scale=layer.out_scale)
+        out = int8.neighbour_conv_pairs(feats, run.pairs(neighbours, len(feats)), neighbours.shape, layer.packed,
+                                        layer.scale, zero_point=int(layer.correction is not None),
+                                        weight_sums=layer.correction, bias=layer.bias, residual=residual_feats,
+                                        residual_scale=residual_scale, relu=True, out_scale=layer.out_scale)
         if order is not None:
             out = torch.empty_like(out).index_copy_(0, order, out)
         scale = torch.ones(out.shape[1]) if last else self._out_scale_vector(run, out.shape[1])
@@ -175,8 +185,9 @@ class Int8MinkUNet:
         layer = self._layer(run, conv, x, "strided")
         kernel_map = x.cache.kernel_map(x.stride, 2, 2)
         run.macs.add(kernel_map.num_pairs, layer.channels)
-        out = int8.neighbour_conv(x.feats, run.int32(kernel_map.neighbours), layer.packed, layer.scale, bias=layer.bias,
-                                  relu=True, out_scale=layer.out_scale)
+        pairs = run.pairs(kernel_map.neighbours, len(x.feats))
+        out = int8.neighbour_conv_pairs(x.feats, pairs, kernel_map.neighbours.shape, layer.packed, layer.scale,
+                                        bias=layer.bias, relu=True, out_scale=layer.out_scale)
         scale = self._out_scale_vector(run, out.shape[1])
         self._next(run)
         return QTensor(out, scale, 2 * x.stride, x.cache)

@@ -123,6 +123,25 @@ def neighbour_conv(src: Tensor, neighbours: Tensor, packed: Tensor, scale: Tenso
                                       residual_scale, relu, out_scale)
 
 
+def compact_pairs(neighbours: Tensor, num_in: int) -> tuple[Tensor, Tensor, Tensor]:
+    """A neighbour table (M, K) as the gather kernels visit it: per block of output rows and offset, the rows with a
+    neighbour there and that neighbour (offsets (blocks * K + 1,) int32, rows in block uint8, neighbours int32).
+    A map serves about ten convolutions at a level: built once, the kernels skip missing slots without looking."""
+    offsets, rows, nbrs = load().compact_pairs(neighbours.contiguous(), num_in)
+    return offsets, rows, nbrs
+
+
+def neighbour_conv_pairs(src: Tensor, pairs: tuple[Tensor, Tensor, Tensor], shape: tuple[int, int], packed: Tensor,
+                         scale: Tensor, *, zero_point: int = 0, weight_sums: Tensor | None = None,
+                         bias: Tensor | None = None, residual: Tensor | None = None,
+                         residual_scale: Tensor | None = None, relu: bool = False, out_scale: Tensor | None = None
+                         ) -> Tensor:
+    """:func:`neighbour_conv` over :func:`compact_pairs` of a table of ``shape`` (M, K): the same result."""
+    residual = None if residual is None else residual.contiguous()
+    return load().neighbour_conv_int8_pairs(src.contiguous(), *pairs, shape[0], shape[1], packed, zero_point,
+                                            weight_sums, scale, bias, residual, residual_scale, relu, out_scale)
+
+
 def scatter_conv(src: Tensor, neighbours: Tensor, packed: Tensor, num_out: int, scale: Tensor, *,
                  zero_point: int = 0, weight_sums: Tensor | None = None, bias: Tensor | None = None,
                  relu: bool = False, out_scale: Tensor | None = None) -> Tensor:

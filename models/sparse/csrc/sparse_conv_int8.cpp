@@ -241,6 +241,10 @@ struct Layer {
   const packed_t* w;
   int64_t zero_point;
   const int32_t* weight_sums;  // (K, D) or null
+  // the map as compact pairs (compact_pairs): each (block, offset)'s present pairs, no missing slots to skip
+  const int32_t* pair_offsets = nullptr;  // (blocks * K + 1,)
+  const uint8_t* pair_rows = nullptr;     // (P,) output row within its block
+  const int32_t* pair_nbrs = nullptr;     // (P,) input row
 
   inline int64_t neighbour(int64_t i) const {
     return nbr32 ? static_cast<const int32_t*>(nbr)[i] : static_cast<const int64_t*>(nbr)[i];
@@ -329,7 +333,15 @@ void neighbour_block(const Layer& L, int64_t j0, int64_t rows, int32_t* acc) {
   std::fill(acc, acc + kBlockRows * L.Dp, 0);
   for (int64_t k = 0; k < L.K; ++k) {
     int count = 0;
-    for (int64_t r = 0; r < rows; ++r) {  // branch-free listing of the rows with a neighbour at offset k
+    if (L.pair_offsets) {
+      const int64_t slot = j0 / kBlockRows * L.K + k, begin = L.pair_offsets[slot];
+      count = static_cast<int>(L.pair_offsets[slot + 1] - begin);
+      for (int p = 0; p < count; ++p) {
+        srcs[p] = L.feats + static_cast<int64_t>(L.pair_nbrs[begin + p]) * L.C;
+        dsts[p] = acc + static_cast<int64_t>(L.pair_rows[begin + p]) * L.Dp;
+      }
+    }
+    for (int64_t r = 0; r < (L.pair_offsets ? 0 : rows); ++r) {  // branch-free listing of the rows with a neighbour at offset k
       const int64_t n = L.neighbour((j0 + r) * L.K + k);
       srcs[count] = L.feats + (n < L.N ? n : 0) * L.C;
       dsts[count] = acc + r * L.Dp;
@@ -438,6 +450,90 @@ at::Tensor scatter_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor p
   return out;
 }
 
+// A neighbour table (M, K) as compact pairs, in the order the gather kernels visit them: for each block of
+// kBlockRows output rows and each offset k, the rows of the block with a neighbour at k and that neighbour.
+std::vector<at::Tensor> compact_pairs(at::Tensor neighbours, int64_t num_in) {
+  TORCH_CHECK(neighbours.device().is_cpu() && (neighbours.scalar_type() == at::kLong ||
+                                              neighbours.scalar_type() == at::kInt) &&
+                  neighbours.dim() == 2 && neighbours.is_contiguous(),
+              "compact_pairs: contiguous int64 or int32 neighbours (M, K) expected");
+  TORCH_CHECK(num_in >= 0 && num_in < (int64_t{1} << 31), "compact_pairs: num_in out of range");
+  const int64_t M = neighbours.size(0), K = neighbours.size(1), blocks = (M + kBlockRows - 1) / kBlockRows;
+  const bool is32 = neighbours.scalar_type() == at::kInt;
+  const void* data = neighbours.data_ptr();
+  auto at_ = [&](int64_t i) -> int64_t {
+    return is32 ? static_cast<const int32_t*>(data)[i] : static_cast<const int64_t*>(data)[i];
+  };
+  TORCH_CHECK(M * K < (int64_t{1} << 31), "compact_pairs: too many slots");
+  auto offsets = at::empty({blocks * K + 1}, at::TensorOptions().dtype(at::kInt));
+  auto rows_out = at::empty({M * K}, at::TensorOptions().dtype(at::kByte));  // narrowed to the pairs below
+  auto nbrs_out = at::empty({M * K}, at::TensorOptions().dtype(at::kInt));
+  int32_t* o = offsets.data_ptr<int32_t>();
+  uint8_t* ro = rows_out.data_ptr<uint8_t>();
+  int32_t* no = nbrs_out.data_ptr<int32_t>();
+  int64_t p = 0;
+  o[0] = 0;
+  for (int64_t b = 0; b < blocks; ++b) {
+    const int64_t j0 = b * kBlockRows, rows = std::min(kBlockRows, M - j0);
+    for (int64_t k = 0; k < K; ++k) {
+      for (int64_t r = 0; r < rows; ++r) {  // branch-free: written always, kept where present
+        const int64_t n = at_((j0 + r) * K + k);
+        ro[p] = static_cast<uint8_t>(r);
+        no[p] = static_cast<int32_t>(n);
+        p += n >= 0 && n < num_in;
+      }
+      o[b * K + k + 1] = static_cast<int32_t>(p);
+    }
+  }
+  rows_out = rows_out.narrow(0, 0, p);
+  nbrs_out = nbrs_out.narrow(0, 0, p);
+  return {offsets, rows_out, nbrs_out};
+}
+
+at::Tensor neighbour_conv_int8_pairs(at::Tensor src, at::Tensor offsets, at::Tensor pair_rows, at::Tensor pair_nbrs,
+                                     int64_t M, int64_t K, at::Tensor packed, int64_t zero_point,
+                                     c10::optional<at::Tensor> weight_sums, at::Tensor scale,
+                                     c10::optional<at::Tensor> bias, c10::optional<at::Tensor> residual,
+                                     c10::optional<at::Tensor> residual_scale, bool relu,
+                                     c10::optional<at::Tensor> out_scale) {
+  const char* what = "neighbour_conv_int8_pairs";
+  const int64_t D = scale.size(0), blocks = (M + kBlockRows - 1) / kBlockRows;
+  TORCH_CHECK(M >= 0 && K >= 1, what, ": M >= 0 and K >= 1 expected");
+  TORCH_CHECK(offsets.scalar_type() == at::kInt && offsets.is_contiguous() && offsets.dim() == 1 &&
+                  offsets.size(0) == blocks * K + 1,
+              what, ": compact_pairs' offsets for M = ", M, ", K = ", K, " expected");
+  TORCH_CHECK(pair_rows.scalar_type() == at::kByte && pair_nbrs.scalar_type() == at::kInt &&
+                  pair_rows.is_contiguous() && pair_nbrs.is_contiguous() && pair_rows.dim() == 1 &&
+                  pair_nbrs.dim() == 1 && pair_rows.size(0) == pair_nbrs.size(0) &&
+                  offsets[-1].item<int32_t>() == pair_rows.size(0),
+              what, ": compact_pairs' rows (uint8) and neighbours (int32) expected");
+  // a table's checks on a (0, K) stand-in, then its M rows
+  const at::Tensor no_rows = at::empty({0, K}, at::TensorOptions().dtype(at::kInt));
+  Layer L = make_layer(src, no_rows, packed, D, zero_point, weight_sums, what);
+  L.M = M;
+  L.nbr = nullptr;
+  if (pair_nbrs.numel() > 0) {
+    const auto [lo, hi] = std::minmax_element(pair_nbrs.data_ptr<int32_t>(),
+                                              pair_nbrs.data_ptr<int32_t>() + pair_nbrs.numel());
+    TORCH_CHECK(*lo >= 0 && *hi < L.N, what, ": a neighbour outside the input rows");
+  }
+  L.pair_offsets = offsets.data_ptr<int32_t>();
+  L.pair_rows = pair_rows.data_ptr<uint8_t>();
+  L.pair_nbrs = pair_nbrs.data_ptr<int32_t>();
+  const Epilogue e = make_epilogue(scale, bias, residual, residual_scale, relu, out_scale, M, D, what);
+  auto out = make_output(M, D, e);
+  void* dst = out.data_ptr();
+  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
+    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
+    for (int64_t block = begin; block < end; ++block) {
+      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
+      neighbour_block(L, j0, rows, acc.data());
+      for (int64_t r = 0; r < rows; ++r) e.write(dst, j0 + r, acc.data() + r * L.Dp, D);
+    }
+  });
+  return out;
+}
+
 // (K, C, D) int8 -> this build's packed layout (K, C / kGroup, Dp, kGroup), zero columns past D.
 at::Tensor pack_weight(at::Tensor weight) {
   TORCH_CHECK(weight.scalar_type() == at::kChar && weight.dim() == 3 && weight.is_contiguous(),
@@ -462,6 +558,10 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
         "int32 acc[j] = sum_k (src[nbr[j, k]] - zero_point) . weight[k]");
   m.def("neighbour_conv_int8", &neighbour_conv_int8,
         "the int8 gather convolution with its epilogue (scale, bias, residual, ReLU, float or uint8 out)");
+  m.def("compact_pairs", &compact_pairs,
+        "a neighbour table as each (block, offset)'s present pairs: offsets, rows in block, neighbours");
+  m.def("neighbour_conv_int8_pairs", &neighbour_conv_int8_pairs,
+        "neighbour_conv_int8 over compact_pairs' tables (the same sums, no missing slots visited)");
   m.def("scatter_conv_int8", &scatter_conv_int8,
         "the int8 scatter convolution (each output row reached once) with its epilogue");
 }

@@ -113,6 +113,30 @@ def test_the_fused_epilogue(kernels, residual_kind, requantise):
         torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize(("rows", "c_in", "c_out"), [(700, 24, 24), (64, 8, 8), (1, 4, 40), (0, 8, 16)])
+def test_compact_pairs_give_the_table_s_result(kernels, rows, c_in, c_out):
+    """The gather kernel over compact pairs (each block's present pairs per offset) equals it over the table."""
+    generator = torch.Generator().manual_seed(rows + c_in)
+    src = torch.randint(0, 256, (max(rows, 1), c_in), generator=generator, dtype=torch.uint8)
+    weight = torch.randint(-128, 128, (27, c_in, c_out), generator=generator, dtype=torch.int8)
+    table = random_table(generator, rows, 27, len(src), missing=0.5)
+    packed = kernels.pack_weight(weight)
+    scale, bias = torch.rand(c_out, generator=generator) * 1e-3, torch.randn(c_out, generator=generator)
+    out_scale = torch.full((c_out,), 0.05)
+    residual = torch.randint(0, 256, (rows, c_out), generator=generator, dtype=torch.uint8)
+    pairs = kernels.compact_pairs(table, len(src))
+    assert len(pairs[2]) == int((table < len(src)).sum())
+    for requantise in (None, out_scale):
+        by_table = kernels.neighbour_conv_int8(src, table, packed, 0, None, scale, bias, residual, scale, True,
+                                               requantise)
+        by_pairs = kernels.neighbour_conv_int8_pairs(src, *pairs, rows, 27, packed, 0, None, scale, bias, residual,
+                                                     scale, True, requantise)
+        assert torch.equal(by_table, by_pairs)
+    with pytest.raises(RuntimeError, match="compact_pairs' offsets"):
+        kernels.neighbour_conv_int8_pairs(src, pairs[0][:-1], pairs[1], pairs[2], rows, 27, packed, 0, None, scale,
+                                          None, None, None, False, None)
+
+
 def test_scatter_reaches_each_output_once(kernels):
     generator = torch.Generator().manual_seed(4)
     n, c_in, c_out = 200, 24, 40
