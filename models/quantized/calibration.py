@@ -21,6 +21,7 @@ from torch import Tensor
 from models.quantized.segmenter import QMAX_ACTIVATION, InputRange, Int8MinkUNet
 from models.segmenter.fused import FusedMinkUNet
 from models.sparse import SparseTensor
+from radar.errors import UserError
 from radar.input_kind import InputKind
 
 if TYPE_CHECKING:
@@ -95,7 +96,8 @@ def calibrate(fused: FusedMinkUNet, inputs: Sequence[SparseTensor], method: str 
         raise ValueError(f"calibration method must be one of {METHODS}, got {method!r}")
     inputs = [x for x in inputs if len(x.feats)]
     if not inputs:
-        raise ValueError("no calibration frame has ROI voxels: calibrate on frames with objects")
+        raise UserError("int8 calibration: no calibration frame has ROI voxels (the detector found no centre on any): "
+                        "calibrate on frames with objects")
     observer = _ObservedFused(fused, method, per_channel)
     per_frame: list[list[Tensor]] = []
     low = high = None

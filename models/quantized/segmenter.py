@@ -38,12 +38,31 @@ class QTensor:
     stride: int
     cache: object
     zero_point: Tensor | None = None
+    channels: Tensor | None = None
+    """Where the float network's channels lie among ``feats``' columns (None: the first ones); the kernels take
+    widths in multiples of 4, so each part of a tensor is padded with zero columns."""
+
+    def positions(self) -> Tensor:
+        return torch.arange(self.feats.shape[1]) if self.channels is None else self.channels
 
     def dequantise(self) -> Tensor:
         values = self.feats.float()
         if self.zero_point is not None:
             values = values - self.zero_point
         return values * self.scale
+
+
+def padded(width: int) -> int:
+    """``width`` rounded up to the kernels' multiple of 4 channels."""
+    return -(-width // 4) * 4
+
+
+def pad_vector(values: Tensor, width: int, fill: float) -> Tensor:
+    """``values`` (n,) (or one value for all) as ``width`` values, ``fill`` past the given ones."""
+    values = values.reshape(-1).float()
+    if len(values) == 1:
+        return values.expand(width).contiguous()
+    return torch.cat([values, torch.full((width - len(values),), fill)]).contiguous()
 
 
 @dataclass(frozen=True)
@@ -83,11 +102,14 @@ def quantise_weight(weight: Tensor, in_scale: Tensor) -> tuple[Tensor, Tensor]:
 
 def quantise_conv(conv: FoldedConv, x: QTensor, out_scale: Tensor | None) -> QuantConv:
     """``conv`` on inputs quantised as ``x`` (its scales and zero points), output requantised to ``out_scale``."""
-    weight, scale = quantise_weight(conv.weight, x.scale)
+    k, _, c_out = conv.weight.shape
+    full = torch.zeros(k, x.feats.shape[1], padded(c_out))
+    full[:, x.positions(), :c_out] = conv.weight.float()
+    weight, scale = quantise_weight(full, x.scale)
     correction = None
     if x.zero_point is not None:  # sum_c zp[c] * w[k, c, :], subtracted per present pair (zero point 1 below)
         correction = torch.einsum("c,kcd->kd", x.zero_point.long(), weight.long()).to(torch.int32).contiguous()
-    return QuantConv(int8.pack_weight(weight), scale, conv.bias.float().contiguous(), correction, out_scale,
+    return QuantConv(int8.pack_weight(weight), scale, pad_vector(conv.bias, padded(c_out), 0.0), correction, out_scale,
                      conv.channels)
 
 
@@ -146,7 +168,7 @@ class Int8MinkUNet:
     def _layer(self, run: _Run, conv: FoldedConv, x: QTensor, role: str, requantise: bool = True) -> QuantConv:
         key = (run.layer, role)
         if key not in self._layers:
-            out_scale = self._out_scale_vector(run, conv.weight.shape[2]) if requantise else None
+            out_scale = self._out_scale_vector(run, padded(conv.weight.shape[2])) if requantise else None
             self._layers[key] = quantise_conv(conv, x, out_scale)
         return self._layers[key]
 
@@ -156,8 +178,7 @@ class Int8MinkUNet:
             raise ValueError(f"{len(self.activation_scales)} activation scales for a network with more activations")
 
     def _out_scale_vector(self, run: _Run, width: int) -> Tensor:
-        scale = self.activation_scales[run.layer]
-        return scale if len(scale) == width else scale.expand(width).contiguous()
+        return pad_vector(self.activation_scales[run.layer], width, 1.0)
 
     def _submanifold(self, x: QTensor, conv: FoldedConv, run: _Run, residual: QTensor | Tensor | None = None
                      ) -> QTensor:
@@ -179,7 +200,7 @@ class Int8MinkUNet:
             out = torch.empty_like(out).index_copy_(0, order, out)
         scale = torch.ones(out.shape[1]) if last else self._out_scale_vector(run, out.shape[1])
         self._next(run)
-        return QTensor(out, scale, x.stride, x.cache)
+        return QTensor(out, scale, x.stride, x.cache, channels=torch.arange(conv.weight.shape[2]))
 
     def _strided(self, x: QTensor, conv: FoldedConv, run: _Run) -> QTensor:
         layer = self._layer(run, conv, x, "strided")
@@ -190,7 +211,7 @@ class Int8MinkUNet:
                                         bias=layer.bias, relu=True, out_scale=layer.out_scale)
         scale = self._out_scale_vector(run, out.shape[1])
         self._next(run)
-        return QTensor(out, scale, 2 * x.stride, x.cache)
+        return QTensor(out, scale, 2 * x.stride, x.cache, channels=torch.arange(conv.weight.shape[2]))
 
     def _transposed(self, x: QTensor, conv: FoldedConv, run: _Run) -> QTensor:
         layer = self._layer(run, conv, x, "transposed")
@@ -201,7 +222,7 @@ class Int8MinkUNet:
                                 bias=layer.bias, relu=True, out_scale=layer.out_scale)
         scale = self._out_scale_vector(run, out.shape[1])
         self._next(run)
-        return QTensor(out, scale, fine, x.cache)
+        return QTensor(out, scale, fine, x.cache, channels=torch.arange(conv.weight.shape[2]))
 
     def _residual(self, x: QTensor, block: FoldedResidual, run: _Run) -> QTensor:
         hidden = self._submanifold(x, block.first, run)
@@ -218,7 +239,11 @@ class Int8MinkUNet:
         """The input features (N, C) float as uint8 with their per-feature scale and zero point."""
         scale, zero_point = self.input_range.quantisation()
         quantised = torch.round(feats / scale + zero_point).clamp(0, QMAX_ACTIVATION).to(torch.uint8)
-        return QTensor(quantised.contiguous(), scale, stride, cache, zero_point)
+        width = padded(feats.shape[1])
+        if width != feats.shape[1]:
+            quantised = torch.cat([quantised, quantised.new_zeros(len(quantised), width - feats.shape[1])], dim=1)
+        return QTensor(quantised.contiguous(), pad_vector(scale, width, 1.0), stride, cache,
+                       pad_vector(zero_point, width, 0.0), torch.arange(feats.shape[1]))
 
     @torch.no_grad()
     def __call__(self, x: SparseTensor) -> tuple[Tensor, MacTally]:
@@ -238,13 +263,14 @@ class Int8MinkUNet:
         y = skips.pop()
         for (up, stack), skip in zip(fused.decoder, reversed(skips), strict=True):
             up_out = self._transposed(y, up, run)
+            positions = torch.cat([up_out.positions(), skip.positions() + up_out.feats.shape[1]])
             y = QTensor(torch.cat([up_out.feats, skip.feats], dim=1), torch.cat([up_out.scale, skip.scale]),
-                        skip.stride, skip.cache)
+                        skip.stride, skip.cache, channels=positions)
             for block in stack:
                 y = self._residual(y, block, run)
         if run.layer != len(self.activation_scales):
             raise ValueError(f"{len(self.activation_scales)} activation scales for {run.layer} activations")
-        logits = y.dequantise() @ fused.classifier_weight
+        logits = y.dequantise()[:, y.positions()] @ fused.classifier_weight
         if fused.classifier_bias is not None:
             logits += fused.classifier_bias
         run.macs.add(len(y.feats), fused.classifier_weight.numel())

@@ -30,9 +30,9 @@ def blob(generator: torch.Generator, voxels: int) -> SparseTensor:
     return SparseTensor(coords[order], torch.randn(voxels, 4, generator=generator))
 
 
-def random_segmenter(seed: int) -> FusedMinkUNet:
+def random_segmenter(seed: int, ratio: float = 0.25) -> FusedMinkUNet:
     torch.manual_seed(seed)
-    model = MinkUNet.from_ratio(0.25, num_classes=4)
+    model = MinkUNet.from_ratio(ratio, num_classes=4)
     for module in model.modules():  # trained-looking BatchNorm statistics
         if isinstance(module, torch.nn.BatchNorm1d):
             module.running_mean.uniform_(-0.2, 0.2)
@@ -40,8 +40,9 @@ def random_segmenter(seed: int) -> FusedMinkUNet:
     return FusedMinkUNet(model.eval())
 
 
-def test_a_random_network_in_int8_gives_the_float_labels():
-    fused = random_segmenter(3)
+@pytest.mark.parametrize("ratio", [0.25, 0.1])  # widths 8-64, and 3-25 (padded to multiples of 4 inside)
+def test_a_random_network_in_int8_gives_the_float_labels(ratio):
+    fused = random_segmenter(3, ratio)
     generator = torch.Generator().manual_seed(4)
     calibration = [blob(generator, 1500) for _ in range(3)]
     int8 = calibrate(fused, calibration, "max")
