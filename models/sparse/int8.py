@@ -2,9 +2,10 @@
 
 Unsigned 8-bit activation rows times signed 8-bit weights, accumulated exactly in int32 over a kernel map's
 neighbour table, with the float kernels' fused epilogue (a per-output-channel scale, bias, residual, ReLU) and the
-result written as float32 or requantised to uint8. On a CPU with AVX-512 VNNI the micro-kernels use `vpdpbusd`;
-elsewhere AVX2's `vpmaddwd` on operands widened to int16 (exact: no int16 saturation as `vpmaddubsw` would have).
-`path()` says which one this build runs.
+result written as float32 or requantised to uint8. On a CPU with AVX-512 VNNI the micro-kernels use `vpdpbusd`
+(16 lanes), with AVX-VNNI and no AVX-512 the same instruction on 8 lanes (built, not run on our machines: none has
+it), elsewhere AVX2's `vpmaddwd` on operands widened to int16 (exact: no int16 saturation as `vpmaddubsw` would
+have). `path()` says which one this build runs.
 
 A separate extension from the float one (`models.sparse.compiled`), cached beside it under the same rules: a folder
 named by a hash of the source, the flags, torch's and Python's versions and the CPU's instruction-set flags

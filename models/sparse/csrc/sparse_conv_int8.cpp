@@ -17,6 +17,7 @@
 // - AVX-512 VNNI: `vpdpbusd` multiplies 4 unsigned activation bytes by 4 signed weight bytes per int32 lane and
 //   adds them exactly (no intermediate saturation); 8 rows x up to 3 vectors of 16 lanes (+ one 8-lane vector
 //   through AVX512VL). Weights packed (K, C/4, Dp, 4) int8.
+// - AVX-VNNI (no AVX-512): the same `vpdpbusd` on 8-lane vectors, 4 rows x up to 3 vectors; VNNI layout.
 // - AVX2: `vpmaddwd` on activations and weights widened to int16: pairs of u8 x s8 products summed into int32,
 //   exact (|255 * 127 * 2| fits int16 x int16 -> int32; `vpmaddubsw` would saturate its int16 pair sums);
 //   4 rows x up to 3 vectors of 8 lanes. Weights packed (K, C/2, Dp, 2) int16.
@@ -51,6 +52,13 @@ constexpr const char* kPath = "avx512-vnni";
 constexpr int64_t kWide = 16;
 constexpr int kMaxRows = 8;
 constexpr int kGroup = 4;  // input channels per packed weight group
+typedef int8_t packed_t;
+#elif defined(__AVXVNNI__)
+#define RADARSEG_INT8_AVXVNNI 1  // AVX-VNNI without AVX-512 (e.g. Alder Lake): vpdpbusd on 8-lane vectors
+constexpr const char* kPath = "avx-vnni";
+constexpr int64_t kWide = 8;
+constexpr int kMaxRows = 4;
+constexpr int kGroup = 4;
 typedef int8_t packed_t;
 #elif defined(__AVX2__)
 #define RADARSEG_INT8_AVX2 1
@@ -105,6 +113,22 @@ inline void rows_times_weight_chunk(const uint8_t* const* src, const packed_t* w
     for (int v = 0; v < NW; ++v) _mm512_storeu_si512(dst[r] + d0 + v * kWide, acc[r][v]);
     if (NH) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + NW * kWide), tail[r]);
   }
+#elif defined(RADARSEG_INT8_AVXVNNI)
+  static_assert(NH == 0, "AVX-VNNI chunks are whole 8-lane vectors");
+  __m256i acc[R][NW > 0 ? NW : 1];
+  for (int r = 0; r < R; ++r)
+    for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(dst[r] + d0 + v * 8));
+  for (int64_t c = 0; c < C; c += 4) {
+    const packed_t* wc = w + (c / 4 * Dp + d0) * 4;
+    __m256i wv[NW > 0 ? NW : 1];
+    for (int v = 0; v < NW; ++v) wv[v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(wc + v * 32));
+    for (int r = 0; r < R; ++r) {
+      const __m256i xv = _mm256_set1_epi32(load_u32(src[r] + c));
+      for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_dpbusd_avx_epi32(acc[r][v], xv, wv[v]);
+    }
+  }
+  for (int r = 0; r < R; ++r)
+    for (int v = 0; v < NW; ++v) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + v * 8), acc[r][v]);
 #elif defined(RADARSEG_INT8_AVX2)
   static_assert(NH == 0, "AVX2 chunks are whole 8-lane vectors");
   __m256i acc[R][NW > 0 ? NW : 1];
