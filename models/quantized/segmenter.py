@@ -270,7 +270,10 @@ class Int8MinkUNet:
                 y = self._residual(y, block, run)
         if run.layer != len(self.activation_scales):
             raise ValueError(f"{len(self.activation_scales)} activation scales for {run.layer} activations")
-        logits = y.dequantise()[:, y.positions()] @ fused.classifier_weight
+        feats = y.feats if y.feats.dtype == torch.float32 else y.dequantise()  # the last convolution's: float
+        if feats.shape[1] != fused.classifier_weight.shape[0]:
+            feats = feats[:, y.positions()]
+        logits = feats @ fused.classifier_weight
         if fused.classifier_bias is not None:
             logits += fused.classifier_bias
         run.macs.add(len(y.feats), fused.classifier_weight.numel())
