@@ -107,7 +107,7 @@ class Checkpoint:
                                   f"{self.model_name}: {type(exc).__name__}: {exc}") from None
         except Exception:  # noqa: BLE001 (an operation the meta device lacks: the real build decides)
             return
-        built = sum(t.numel() for t in probe.parameters()) + sum(t.numel() for t in probe.buffers())
+        built = sum(t.numel() for t in probe.state_dict().values())  # counted as the file counts (no transient buffers)
         if built > 2 * held + 1024:
             raise CheckpointError(f"{self.source or 'checkpoint'}: its config builds a {self.model_name} of {built} "
                                   f"weights but the file holds {held}: refused before allocating it")
