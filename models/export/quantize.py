@@ -186,6 +186,7 @@ def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndar
     op_types = None
     if not_quantised:
         op_types = sorted({node.op_type for node in onnx.load(str(source)).graph.node} - set(not_quantised))
+    source, target = Path(source).absolute(), Path(target).absolute()  # the working directory changes below
     with tempfile.TemporaryDirectory(prefix="calibrate-") as scratch:
         cwd = os.getcwd()
         os.chdir(scratch)  # the calibrator writes its augmented model into the working directory
