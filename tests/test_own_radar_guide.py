@@ -34,6 +34,7 @@ def test_the_section_takes_a_profile_file_through_train_evaluate_export_and_serv
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("ray")  # serves on port 8000 as the documented commands do: on their worker, one at a time
 def test_the_own_radar_path_runs_as_written_and_keeps_the_radars_name(tmp_path):
     root = tmp_path / "clone"
     root.mkdir()
