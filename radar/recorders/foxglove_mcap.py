@@ -25,7 +25,7 @@ from typing import IO
 import foxglove.messages as fm
 from mcap.writer import CompressionType, Writer
 
-from radar.recorders.frames import POINT_DTYPE, PredictionFrame, RecordedObject, RecordingInfo
+from radar.recorders.frames import POINT_DTYPE, PredictionFrame, RecordedObject, RecordingInfo, binary_output
 from radar.recorders.palette import class_rgb, label_image
 
 TOPICS = {"points": "/radar/points", "objects": "/radar/objects", "ra_image": "/radar/ra_image",
@@ -107,8 +107,7 @@ def map_image(frame: PredictionFrame, info: RecordingInfo, which: str) -> fm.Raw
 
 def write_foxglove_mcap(frames: Iterable[PredictionFrame], info: RecordingInfo, out: str | Path | IO[bytes]) -> int:
     """Write the frames to ``out`` (a path or a binary file object); returns the number of frames."""
-    stream = open(out, "wb") if isinstance(out, str | Path) else out  # noqa: SIM115 (closed below when ours)
-    try:
+    with binary_output(out) as stream:
         writer = Writer(stream, compression=CompressionType.ZSTD)
         writer.start(profile="", library="radarseg")
         channels = {}
@@ -127,9 +126,6 @@ def write_foxglove_mcap(frames: Iterable[PredictionFrame], info: RecordingInfo, 
             n += 1
         writer.add_metadata("radarseg", recording_metadata(info))
         writer.finish()
-    finally:
-        if stream is not out:
-            stream.close()
     return n
 
 

@@ -12,7 +12,11 @@ no object) and that object's track id (0 when none).
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -144,3 +148,13 @@ def build_frame(profile: RadarProfile, *, tick: int, sequence: str, frame_index:
     return PredictionFrame(tick, time_ns, sequence, frame_index, points, with_extents(objects, points),
                            np.ascontiguousarray(ra_labels, np.uint8), np.ascontiguousarray(rd_labels, np.uint8),
                            ra_db, rd_db)
+
+
+@contextlib.contextmanager
+def binary_output(out: str | Path | IO[bytes]) -> Iterator[IO[bytes]]:
+    """``out`` as a binary file object: a path opened for writing (and closed at the end), a file object as given."""
+    if not isinstance(out, str | Path):
+        yield out
+        return
+    with open(out, "wb") as stream:
+        yield stream

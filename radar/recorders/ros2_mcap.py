@@ -22,7 +22,7 @@ import numpy as np
 from mcap_ros2.writer import Writer
 
 from radar.recorders.foxglove_mcap import recording_metadata, velocity_vector
-from radar.recorders.frames import POINT_DTYPE, PredictionFrame, RecordingInfo
+from radar.recorders.frames import POINT_DTYPE, PredictionFrame, RecordingInfo, binary_output
 
 UUID_PREFIX = b"radarseg"
 VENDOR_CLASSIFICATION = 32000  # radar_msgs: vendor-specific classifications start here
@@ -140,8 +140,7 @@ def point_cloud2(frame: PredictionFrame, info: RecordingInfo) -> dict:
 
 def write_ros2_mcap(frames: Iterable[PredictionFrame], info: RecordingInfo, out: str | Path | IO[bytes]) -> int:
     """Write the frames to ``out`` (a path or a binary file object); returns the number of frames."""
-    stream = open(out, "wb") if isinstance(out, str | Path) else out  # noqa: SIM115 (closed below when ours)
-    try:
+    with binary_output(out) as stream:
         writer = Writer(stream)
         tracks_schema = writer.register_msgdef("radar_msgs/msg/RadarTracks", RADAR_TRACKS)
         points_schema = writer.register_msgdef("sensor_msgs/msg/PointCloud2", POINT_CLOUD2)
@@ -154,7 +153,4 @@ def write_ros2_mcap(frames: Iterable[PredictionFrame], info: RecordingInfo, out:
             n += 1
         writer.add_metadata("radarseg", recording_metadata(info))
         writer.finish()
-    finally:
-        if stream is not out:
-            stream.close()
     return n
