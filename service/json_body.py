@@ -20,7 +20,7 @@ from service.errors import ApiError
 from service.upload import paced
 
 M = TypeVar("M", bound=BaseModel)
-MAX_LENGTH_DIGITS = 19
+MAX_LENGTH_DIGITS = 19  # a Content-Length beyond 2**63 is no length any client sends
 
 
 def declared_length(request: Request) -> int | None:

@@ -26,6 +26,7 @@ from service.encoding import encode_array
 from service.errors import ApiError
 from service.inference import NotReady, Saturated, ServedModel
 from service.input_views import input_views
+from service.json_body import declared_length
 from service.json_header import load_json_header
 from service.routes.errors_doc import error_responses
 from service.schemas import (
@@ -44,7 +45,6 @@ from service.upload import ExpectedCube, check_declared_length, paced, read_cube
 router = APIRouter(tags=["segmentation"])
 
 CONTENT_TYPES = ("application/x-npy", "application/octet-stream")
-MAX_LENGTH_DIGITS = 19  # a Content-Length beyond 2**63 is no length any client sends
 OUTPUTS = ("objects", "masks", "voxels", "views")
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 REQUEST_BODY = {
@@ -88,15 +88,6 @@ def _served_model(state: ServiceState, name: str | None) -> ServedModel:
         raise ApiError(503, f"usage ledger unavailable ({state.ledger_error}); the request was not billed",
                        error="ledger_unavailable", headers=retry)
     return served
-
-
-def _content_length(request: Request) -> int | None:
-    value = request.headers.get("content-length")
-    if value is None:
-        return None
-    if not (value.isascii() and value.isdigit()) or len(value) > MAX_LENGTH_DIGITS:
-        raise ApiError(400, f"invalid Content-Length {value[:32]!r}: expected at most {MAX_LENGTH_DIGITS} digits")
-    return int(value)
 
 
 def _compute(report: FrameCompute) -> Compute:
@@ -286,7 +277,7 @@ async def admit(request: Request, state: ServiceState, caller: Principal, model:
                             f"?input=adc, not ?input={input_kind.value}", error="invalid_parameters")
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
-    content_length = _content_length(request)
+    content_length = declared_length(request)
     served = _served_model(state, model)
     if cube_schema is not None:
         _check_cube_schema(cube_schema, served, input_kind, state.settings.max_json_depth)
