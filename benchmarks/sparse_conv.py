@@ -154,14 +154,14 @@ def timed(fn: Callable[[], object], repeats: int, device: torch.device) -> list[
 def interleaved(fn: Callable[[], object], repeats: int, device: torch.device) -> dict[str, list[float]]:
     """Wall seconds of `repeats` calls per engine, the engines taking turns (one warm-up call each)."""
     times: dict[str, list[float]] = {engine: [] for engine in ENGINES}
-    for round_ in range(repeats + 1):
+    for repeat in range(repeats + 1):
         for engine in ENGINES:
             with compiled.using_kernels(SPARSE_ENGINE[engine]):
                 start = time.perf_counter()
                 fn()
                 if device.type == "cuda":
                     torch.cuda.synchronize(device)
-                if round_:  # round 0 warms up
+                if repeat:  # the first call of each engine warms it up
                     times[engine].append(time.perf_counter() - start)
     return times
 
