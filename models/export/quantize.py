@@ -60,6 +60,7 @@ import numpy as np
 from models.checkpoint import Checkpoint
 from models.export.compact import int8_weights, short_names
 from models.export.onnx_engine import INT8_WEIGHTS
+from models.quantized.calibration import roi_label_agreement  # float against int8 ROI labels
 from radar.input_kind import InputKind
 
 log = logging.getLogger(__name__)
@@ -254,16 +255,6 @@ def time_graphs(paths: dict[str, Path], feeds: Sequence[dict[str, np.ndarray]],
                 sessions[name].run(None, feed)
                 best[name][index] = min(best[name][index], time.perf_counter() - started)
     return {name: round(1e3 * float(np.median(values)), 3) for name, values in best.items()}
-
-
-def roi_label_agreement(float_labels: Sequence[np.ndarray], int8_labels: Sequence[np.ndarray]) -> float:
-    """Share of the float pipeline's ROI voxels (non-background in either) where both pipelines give one label."""
-    same = total = 0
-    for reference, got in zip(float_labels, int8_labels, strict=True):
-        voxels = (reference > 0) | (got > 0)
-        same += int(np.count_nonzero(reference[voxels] == got[voxels]))
-        total += int(np.count_nonzero(voxels))
-    return same / total if total else 1.0
 
 
 def export_int8(detector: Checkpoint, segmenter: Checkpoint, out: str | Path, *,
