@@ -7,7 +7,10 @@ and ``.venv`` linked, the shipped checkpoints copied, since some commands overwr
 its own: a page that needs what another page makes says so and runs the (smoke-sized) commands itself.
 Sizes are tiny through the documented
 smoke mode (``RADARSEG_SMOKE=1``: every job caps its sequences, frames, epochs, steps and frames scored) and the
-service's documented ``RADARSEG_WARMUP=false``; the command lines themselves are never edited. ``radarseg`` and
+service's documented ``RADARSEG_WARMUP=false``; the command lines are never edited but for one thing: a page's
+loopback ports (8000, ``--port 8080``) are this machine's, which parallel tests share, so each page's runner maps
+every documented port to a free one of its own, in the commands and in ``RADARSEG_PORT`` for a server started
+without ``--port`` (the documented default, 8000). ``radarseg`` and
 ``python -m pipelines.*`` commands run in this process (one torch import for all); the others as processes.
 
 Only the commands matched by :data:`SKIPS` are not run, each with its reason, which the run prints; a rule that
@@ -140,6 +143,10 @@ def _free(port: int) -> bool:
         return sock.connect_ex(("127.0.0.1", port)) != 0
 
 
+DEFAULT_PORT = 8000  # `radarseg serve` without --port, as the service guide documents
+LOOPBACK_PORT = re.compile(r"(?<![\w.])(127\.0\.0\.1:|localhost:|--port[ =])(\d{2,5})\b")
+
+
 class Runner:
     """Runs the commands of the documents in order in ``root``. A server (``radarseg serve``, ``python -m
     service``) stays up, on its port, until the end of its block or the next server on that port."""
@@ -148,6 +155,7 @@ class Runner:
         self.root = root
         self.servers: dict[int, subprocess.Popen] = {}
         self.block: tuple[str, int] | None = None
+        self.ports: dict[int, int] = {}  # documented port -> this runner's free port
         self.env = {**os.environ, **SMOKE_ENV, "PATH": f"{root / '.venv' / 'bin'}{os.pathsep}{os.environ['PATH']}"}
 
     def run(self, command: Command) -> str | None:
@@ -155,7 +163,7 @@ class Runner:
         if (command.document, command.block) != self.block:
             self.stop()
             self.block = (command.document, command.block)
-        words = list(command.words)
+        words = self._mapped(list(command.words))
         program = Path(words[0]).name
         if words[1:2] == ["serve"] and program == "radarseg" or words[1:3] == ["-m", "service"]:
             return self._serve(words)
@@ -193,17 +201,38 @@ class Runner:
                     os.environ[k] = v
         return None if code == 0 else f"exit {code}"
 
+    def port(self, documented: int) -> int:
+        """The free loopback port this runner uses where the page says ``documented``."""
+        from pipelines.demo.serve_process import free_port
+
+        if documented not in self.ports:
+            self.ports[documented] = free_port()
+        return self.ports[documented]
+
+    def url(self, documented: int = DEFAULT_PORT) -> str:
+        return f"http://127.0.0.1:{self.port(documented)}"
+
+    def _mapped(self, words: list[str]) -> list[str]:
+        """``words`` with every documented loopback port (``127.0.0.1:N``, ``localhost:N``, ``--port N``) mapped,
+        in a script's text too."""
+        mapped = [LOOPBACK_PORT.sub(lambda m: f"{m[1]}{self.port(int(m[2]))}", word) for word in words]
+        for i, word in enumerate(mapped[:-1]):
+            if word == "--port" and mapped[i + 1].isdigit():
+                mapped[i + 1] = str(self.port(int(mapped[i + 1])))
+        return mapped
+
     def _serve(self, words: list[str]) -> str | None:
         from pipelines.demo.serve_process import wait_ready
 
-        port = int(words[words.index("--port") + 1]) if "--port" in words else 8000
+        port = int(words[words.index("--port") + 1]) if "--port" in words else self.port(DEFAULT_PORT)
         self._stop(port)
         if not _free(port):
-            return f"port {port} is taken on this machine: the server cannot bind it as documented"
+            return f"port {port} (a free one a moment ago) is taken: another process bound it"
         log_path = self.root / f"server-{port}-{len(words)}.log"
         with log_path.open("w") as log:
             program = self.root / ".venv" / "bin" / Path(words[0]).name
-            self.servers[port] = subprocess.Popen([str(program), *words[1:]], cwd=self.root, env=self.env,
+            self.servers[port] = subprocess.Popen([str(program), *words[1:]], cwd=self.root,
+                                                  env={**self.env, "RADARSEG_PORT": str(port)},
                                                   stdout=log, stderr=subprocess.STDOUT)
         try:
             wait_ready(f"http://127.0.0.1:{port}", self.servers[port], log_path, timeout_s=240)
@@ -246,11 +275,18 @@ def make_clone(root: Path) -> Path:
 
 
 DOCUMENTS_WITH_COMMANDS = tuple(d for d in DOCUMENTS if documented_commands((d,)))
+# The jobs that start an embedded Ray (preprocess, segment-batch, training, the demo): a page running one is a Ray
+# test (one Ray at a time, on one worker); the others spread over the workers (their ports are their own).
+STARTS_RAY = re.compile(r"\b(preprocess|segment-batch|train|train-baseline|slim-sweep|demo|ray job)\b")
+
+
+def _page(document: str):  # noqa: ANN202 (a pytest parameter)
+    runs_ray = any(STARTS_RAY.search(c.text) for c in documented_commands((document,)) if skip_reason(c) is None)
+    return pytest.param(document, marks=pytest.mark.ray) if runs_ray else document
 
 
 @pytest.mark.slow
-@pytest.mark.ray
-@pytest.mark.parametrize("document", DOCUMENTS_WITH_COMMANDS)
+@pytest.mark.parametrize("document", [_page(d) for d in DOCUMENTS_WITH_COMMANDS])
 def test_every_documented_command_runs_as_written(document, tmp_path):
     runner = Runner(make_clone(tmp_path / "clone"))
     failures, ran, started = [], 0, time.perf_counter()

@@ -34,7 +34,6 @@ def test_the_section_takes_a_profile_file_through_train_evaluate_export_and_serv
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("ray")  # serves on port 8000 as the documented commands do: on their worker, one at a time
 def test_the_own_radar_path_runs_as_written_and_keeps_the_radars_name(tmp_path):
     root = tmp_path / "clone"
     root.mkdir()
@@ -47,7 +46,7 @@ def test_the_own_radar_path_runs_as_written_and_keeps_the_radars_name(tmp_path):
             problem = runner.run(command)
             assert problem is None, f"{command}\n    {problem}"
             if command.words[1:2] == ("serve",):
-                with urllib.request.urlopen("http://127.0.0.1:8000/v1/models", timeout=30) as answer:
+                with urllib.request.urlopen(f"{runner.url()}/v1/models", timeout=30) as answer:
                     served = json.loads(answer.read())
     finally:
         runner.stop()
