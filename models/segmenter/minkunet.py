@@ -105,6 +105,13 @@ class MinkUNet(nn.Module):
             for c_in, c_skip, c_out in zip(decoder_in, skip_widths, decoder_widths, strict=True)
         )
         self.classifier = PointwiseConv(decoder_widths[-1], num_classes, bias=True)
+        self.add_branches(widths)
+
+    def add_branches(self, widths: tuple[int, ...]) -> None:
+        """Modules a subclass adds beside the U-Net, built last from the 9 checked stage widths; none here.
+
+        `SPVCNN` adds its point MLPs here, so both networks share this constructor and its checks.
+        """
 
     @classmethod
     def from_ratio(cls, ratio: float, *, in_channels: int = 4, num_classes: int = 5, blocks_per_stage: int = 2) -> Self:

@@ -14,7 +14,6 @@ tensor stride `s` voxel `c` covers `[s*c, s*(c + 1))`. RAD bins given as points 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -22,7 +21,7 @@ import torch
 from torch import Tensor, nn
 
 from models.segmenter.blocks import PointMLP
-from models.segmenter.minkunet import BASE_WIDTHS, MinkUNet
+from models.segmenter.minkunet import MinkUNet
 from models.sparse import SparseTensor
 from models.sparse.kernel_map import check_coords, lookup, pack_keys, unpack_keys
 
@@ -131,19 +130,8 @@ class SPVCNN(MinkUNet):
         """Points at the voxel centres of ``coords`` (N, 4) int64 (batch, range, angle, Doppler bins)."""
         return PointTensor(coords[:, 0].contiguous(), coords[:, 1:].to(feats.dtype) + 0.5, feats)
 
-    def __init__(
-        self,
-        *,
-        in_channels: int,
-        num_classes: int,
-        widths: Sequence[int] = BASE_WIDTHS,
-        blocks_per_stage: int = 2,
-    ) -> None:
-        """Same arguments as `MinkUNet`; the point MLPs take their widths from stages 0, 4, 6 and 8."""
-        super().__init__(
-            in_channels=in_channels, num_classes=num_classes, widths=widths, blocks_per_stage=blocks_per_stage
-        )
-        widths = self.config["widths"]
+    def add_branches(self, widths: tuple[int, ...]) -> None:
+        """The point MLPs, their widths from stages 0, 4, 6 and 8 (the constructor is `MinkUNet`'s)."""
         stem, bottleneck, decoder_2, decoder_4 = widths[0], widths[4], widths[6], widths[8]
         self.point_mlps = nn.ModuleList(
             [PointMLP(stem, bottleneck), PointMLP(bottleneck, decoder_2), PointMLP(decoder_2, decoder_4)]
