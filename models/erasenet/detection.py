@@ -18,9 +18,11 @@ from radar.centres import MAX_OBJECTS, Centres
 from radar.doppler import DOPPLER_REFINEMENT, DopplerRefinement, refine_doppler
 
 
-def normalise_log_power(log_power_db: torch.Tensor, mean_db: float, std_db: float) -> torch.Tensor:
-    """The detector's input: ``(log power - mean) / std`` in one pass (any shape; (B, D, R, A) for the detector)."""
-    return (log_power_db - mean_db) * (1.0 / std_db)
+def normalise_log_power(log_power_db: torch.Tensor, mean_db: float, std_db: float, *,
+                        out: torch.Tensor | None = None) -> torch.Tensor:
+    """The detector's input: ``(log power - mean) * (1 / std)`` (any shape; (B, D, R, A) for the detector), written
+    into ``out`` (``log_power_db`` itself normalises in place) or one new tensor: no temporary the input's size."""
+    return torch.sub(log_power_db, mean_db, out=out).mul_(1.0 / std_db)
 
 
 def decode_centres(detector: nn.Module, outputs: dict[str, torch.Tensor], log_power_rad: Sequence[np.ndarray], *,

@@ -92,6 +92,9 @@ class EraseNet:
     engine = "torch"
     """What runs the networks, reported in the compute report (``models.export.onnx_engine``: "onnx")."""
 
+    normalises_detector_input = True
+    """The detector's input is normalised here (an exported graph that normalises its own input: False)."""
+
     def __init__(self, detector: nn.Module | None, segmenter: nn.Module, profile: RadarProfile | str, *,
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
                  score_threshold: float = SCORE_THRESHOLD, max_objects: int = MAX_OBJECTS,
@@ -201,15 +204,24 @@ class EraseNet:
             raise ValueError(f"cube must have shape {self.profile.shape} for preset {self.profile.name!r}, "
                              f"got {cube.shape}")
         seconds: dict[str, float] = {}
+        # Log power that is not float32 is converted into a new buffer: the detector's input is normalised in that
+        # buffer and the log power converted into it again after detection (one float32 cube at a time, not two).
+        one_buffer = (centres is None and self.normalises_detector_input and kind is InputKind.log_power
+                      and cube.dtype != np.float32)
         with _stage(seconds, "transform"):
             log_power = transforms.to_log_power(cube, kind)
-            x = self._detector_input(log_power)
-        with _stage(seconds, "detect"):
-            if centres is None:
-                centres = self._centres(x, log_power, self.score_threshold, history)
+            x = self._detector_input(log_power, in_place=one_buffer) if centres is None else None
+        detect_macs = 0
+        if centres is None:
+            with _stage(seconds, "detect"):
+                outputs = self._detector_outputs(x, history)
+                del x
+            if one_buffer:
+                with _stage(seconds, "transform"):
+                    np.copyto(log_power, cube)
+            with _stage(seconds, "detect"):
+                centres = self._decode(outputs, log_power, self.score_threshold)
                 detect_macs = self.detector_macs()
-            else:
-                detect_macs = 0
         with _stage(seconds, "grow"):
             regions = grow_regions(log_power, centres, self.profile, self.region_config)
         with _stage(seconds, "segment"):
@@ -248,7 +260,14 @@ class EraseNet:
                  history: Sequence[np.ndarray | None] | None = None) -> Centres:
         """The detector on its input ``x`` (and the earlier frames, if any), decoded down to ``score_threshold``,
         Doppler refined from ``log_power``."""
-        outputs = self._run_detector(x) if history is None else self._run_detector(x, **self._history_input(history))
+        return self._decode(self._detector_outputs(x, history), log_power, score_threshold)
+
+    def _detector_outputs(self, x: Any, history: Sequence[np.ndarray | None] | None = None) -> Any:
+        """The detector's outputs on its input ``x`` and the earlier frames, if any."""
+        return self._run_detector(x) if history is None else self._run_detector(x, **self._history_input(history))
+
+    def _decode(self, outputs: Any, log_power: np.ndarray, score_threshold: float) -> Centres:
+        """The centres of the detector's ``outputs`` down to ``score_threshold``, Doppler refined from ``log_power``."""
         return decode_centres(self._run_detector, outputs, [log_power], k=self.max_objects,
                               score_threshold=score_threshold, doppler_refinement=self.doppler_refinement)[0]
 
@@ -270,11 +289,13 @@ class EraseNet:
         present = torch.tensor([[frame is not None for frame in frames]], device=self.device)
         return {"history": torch.stack(earlier)[None], "history_present": present}
 
-    def _detector_input(self, log_power: np.ndarray) -> torch.Tensor:
-        """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB."""
+    def _detector_input(self, log_power: np.ndarray, *, in_place: bool = False) -> torch.Tensor:
+        """The detector's input (1, D, R, A), normalised, from log power (R, A, D) dB; ``in_place``: normalised in
+        ``log_power``'s own buffer (on the CPU), which then no longer holds the log power."""
         # (1, R, A, D) seen as (1, D, R, A) is channels_last: no transposing copy; one normalising pass.
         cube_view = torch.from_numpy(log_power).to(self.device)[None].permute(0, 3, 1, 2)
-        return normalise_log_power(cube_view, self.mean_db, self.std_db)
+        return normalise_log_power(cube_view, self.mean_db, self.std_db,
+                                   out=cube_view if in_place else torch.empty_like(cube_view))
 
     def _segment_voxels(self, regions: Regions, log_power: np.ndarray) -> tuple[np.ndarray, int, int]:
         """Class of every ROI voxel (N,) uint8 and the segmenter's useful and executed MACs."""

@@ -147,7 +147,9 @@ class OnnxEraseNet(EraseNet):
                              "were asked for")
         return net
 
-    def _detector_input(self, log_power: np.ndarray) -> np.ndarray:
+    normalises_detector_input = False  # the graph normalises
+
+    def _detector_input(self, log_power: np.ndarray, *, in_place: bool = False) -> np.ndarray:
         return np.ascontiguousarray(log_power, dtype=np.float32)  # the graph normalises
 
     def _history_input(self, history: Sequence[np.ndarray | None]) -> dict[str, np.ndarray]:

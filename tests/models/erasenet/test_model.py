@@ -4,6 +4,7 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from models.erasenet.detection import normalise_log_power
 from models.erasenet.model import EraseNet
 from models.registry import create_model
 from radar import transforms
@@ -50,6 +51,29 @@ def test_log_power_input_gives_the_same_answer(frame):
     a = net.segment(frame.cube)
     b = net.segment(transforms.log_power(frame.cube), kind=InputKind.log_power)
     assert np.array_equal(a.labels, b.labels)
+
+
+def test_float16_log_power_answers_as_its_float32_values(frame):
+    # float16 log power is normalised in the one float32 buffer it is converted into, then converted again
+    net = _net(score_threshold=0.0, max_objects=3)
+    half = transforms.log_power(frame.cube).astype(np.float16)
+    sent = half.copy()
+    a = net.segment(half.astype(np.float32), kind=InputKind.log_power, keep_log_power=True, views=True)
+    b = net.segment(half, kind=InputKind.log_power, keep_log_power=True, views=True)
+    assert np.array_equal(half, sent)  # the caller's cube is left as it was
+    assert np.array_equal(b.log_power, half.astype(np.float32)) and b.log_power.dtype == np.float32
+    assert np.array_equal(a.labels, b.labels) and len(b.regions) > 0
+    assert np.array_equal(a.centres.score, b.centres.score)
+    assert all(np.array_equal(u, v) for u, v in zip(a.views, b.views, strict=True))
+    assert list(b.compute.seconds) == ["transform", "detect", "grow", "segment", "project"]
+
+
+def test_normalising_in_place_equals_the_formula(frame):
+    log_power = torch.from_numpy(transforms.log_power(frame.cube))
+    expected = (log_power - 60.0) * (1.0 / 8.0)
+    assert torch.equal(normalise_log_power(log_power, 60.0, 8.0), expected)
+    normalised = normalise_log_power(log_power, 60.0, 8.0, out=log_power)
+    assert normalised.data_ptr() == log_power.data_ptr() and torch.equal(log_power, expected)
 
 
 def test_no_detection_gives_an_all_background_answer(frame):
