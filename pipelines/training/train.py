@@ -34,31 +34,34 @@ from radar.errors import UserError
 
 
 @dataclass(frozen=True)
-class ExportConfig:
-    """``radarseg train export SOURCE TARGET``: a shippable copy of a checkpoint."""
+class CheckpointCopy:
+    """A command that writes a copy of the checkpoint ``source`` to ``target``; what the copy changes is the
+    subclass's."""
 
     source: str
     target: str
+
+
+@dataclass(frozen=True)
+class ExportConfig(CheckpointCopy):
+    """``radarseg train export SOURCE TARGET``: a shippable copy of a checkpoint."""
+
     float16: bool = True
 
 
 @dataclass(frozen=True)
-class ClassGainsConfig:
+class ClassGainsConfig(CheckpointCopy):
     """``radarseg train class-gains SOURCE TARGET --store STORE``: a threshold per class, chosen on a split."""
 
-    source: str
-    target: str
     store: str
     split: str = "val"
     frames: int = smoke(0, cap(6))
 
 
 @dataclass(frozen=True)
-class ClassOffsetsConfig:
+class ClassOffsetsConfig(CheckpointCopy):
     """``radarseg train class-offsets SOURCE TARGET --store STORE --detector DET``: the segmenter's logit offsets."""
 
-    source: str
-    target: str
     stores: tuple[str, ...]
     detector: str
     split: str | None = "val"
