@@ -60,8 +60,12 @@ def cpu_flags() -> dict[str, object]:
             "vnni": "avx512_vnni" in flags or "avx_vnni" in flags, "cores": os.cpu_count()}
 
 
-def add_engine_arguments(parser: argparse.ArgumentParser, *, methods: list[str], pairs: list[str]) -> None:
-    """The options of :func:`pair_engines` and the timing repeats (``edge`` and ``onnx_profile`` share them)."""
+def engine_parser(doc: str, *, store_help: str, methods: list[str], pairs: list[str],
+                  results: str) -> argparse.ArgumentParser:
+    """The command line ``edge`` and ``onnx_profile`` share: ``--store``, the options of :func:`pair_engines`, the
+    timing repeats and ``--out`` (default ``benchmarks/results/RESULTS``); each adds its frame counts."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--store", required=True, help=store_help)
     parser.add_argument("--calibration", required=True, help="calibration store (its train split)")
     parser.add_argument("--calibration-frames", type=int, default=6)
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=methods,
@@ -69,6 +73,22 @@ def add_engine_arguments(parser: argparse.ArgumentParser, *, methods: list[str],
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--pairs", nargs="+", choices=sorted(PAIRS), default=pairs)
     parser.add_argument("--cache", default=None, help="export cache (default: a temporary directory)")
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / results))
+    return parser
+
+
+def one_thread_results(args: argparse.Namespace) -> dict[str, object]:
+    """Sets torch to one thread; the figures' opening entries: CPU, load average before, threads, both stores."""
+    torch.set_num_threads(1)
+    return {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1, "store": args.store,
+            "calibration_store": args.calibration}
+
+
+def write_with_load(results: dict[str, object], out: str) -> None:
+    """The figures, with the load average after, written to ``out``."""
+    results["load_average_after"] = os.getloadavg()
+    Path(out).write_text(json.dumps(results, indent=2))
+    print(f"wrote {out}")
 
 
 def spread_frames(store: str, frames: int) -> tuple[np.ndarray, list[np.ndarray]]:
@@ -148,19 +168,13 @@ def accuracy(detector: str, segmenter: str, store: str, engine: str, onnx_dir: P
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--store", required=True, help="evaluation store (a fresh seed), every frame scored")
-    add_engine_arguments(parser, methods=list(METHODS), pairs=list(PAIRS))
+    parser = engine_parser(__doc__, store_help="evaluation store (a fresh seed), every frame scored",
+                           methods=list(METHODS), pairs=list(PAIRS), results="edge.json")
     parser.add_argument("--eval-frames", type=int, default=0, help="0: every frame of --store")
     parser.add_argument("--timing-frames", type=int, default=8)
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "edge.json"))
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    results: dict[str, object] = {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1,
-                                  "store": args.store, "calibration_store": args.calibration,
-                                  "calibration_frames": args.calibration_frames, "methods": args.methods,
-                                  "mAP_from": "the engine scored (EraseNet.detect: ONNX detector graph on ONNX)",
-                                  "pairs": {}}
+    results = {**one_thread_results(args), "calibration_frames": args.calibration_frames, "methods": args.methods,
+               "mAP_from": "the engine scored (EraseNet.detect: ONNX detector graph on ONNX)", "pairs": {}}
     cache = Path(args.cache or tempfile.mkdtemp(prefix="edge-onnx-"))
     chosen, cubes = spread_frames(args.store, args.timing_frames)
     for pair in args.pairs:
@@ -192,9 +206,7 @@ def main() -> None:
                                                                   ("int8", "onnx-int8", int8_dir))}
         print(pair, json.dumps(entry["accuracy"], indent=1), flush=True)
         results["pairs"][pair] = entry
-    results["load_average_after"] = os.getloadavg()
-    Path(args.out).write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out}")
+    write_with_load(results, args.out)
 
 
 if __name__ == "__main__":

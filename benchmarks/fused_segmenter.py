@@ -11,8 +11,6 @@ benchmarks/results/fused_segmenter.json with the CPU model and flags and the loa
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import time
@@ -21,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.harness import int_options_main, print_load
 from models.erasenet.model import EraseNet
 from models.heap import freeze_loaded_heap
 from models.sparse import compiled
@@ -67,27 +66,28 @@ def compare(pair: tuple[str, str], cubes: list[np.ndarray]) -> dict:
                                  for stage in ("segment", "end_to_end")}}
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=24)
-    parser.add_argument("--seed", type=int, default=41)
-    args = parser.parse_args(argv)
+def run(frames: int, seed: int) -> dict:
+    """Both pairs in both forms over ``frames`` simulated frames of scene ``seed`` (after the warm-up frames)."""
     torch.set_num_threads(1)
-    cubes = [frame.cube for frame in simulate_sequence("small", args.frames + WARM_UP, seed=args.seed)]
+    cubes = [frame.cube for frame in simulate_sequence("small", frames + WARM_UP, seed=seed)]
     load_before = os.getloadavg()
-    result = {"pairs": {name: compare(pair, cubes) for name, pair in PAIRS.items()}, "threads": 1,
-              "load_average_before": load_before, "load_average_after": os.getloadavg(), "cpu": _cpu(),
-              "engine": compiled.get_kernels(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
+    return {"pairs": {name: compare(pair, cubes) for name, pair in PAIRS.items()}, "threads": 1,
+            "load_average_before": load_before, "load_average_after": os.getloadavg(), "cpu": _cpu(),
+            "engine": compiled.get_kernels(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+def report(result: dict) -> None:
     for name, figures in result["pairs"].items():
         ms = figures["ms_median"]
         print(f"{name}: segment {ms['eager']['segment']:.1f} -> {ms['fused']['segment']:.1f} ms, end to end "
               f"{ms['eager']['end_to_end']:.1f} -> {ms['fused']['end_to_end']:.1f} ms "
               f"(x{figures['fused_over_eager']['end_to_end']:.2f}); labels equal on "
               f"{figures['labels_equal_frames']}/{figures['frames_compared']} frames")
-    print(f"load average {result['load_average_before']} -> {result['load_average_after']}; {result['cpu']}")
-    return 0
+    print_load(result)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return int_options_main(RESULTS, run, __doc__, argv, report=report, frames=24, seed=41)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ import datetime
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -96,17 +97,64 @@ def _snapshot(results: Path) -> dict[Path, int]:
     return {path: path.stat().st_mtime_ns for path in results.glob("*.json")}
 
 
-def int_options_main(results: Path, run: Callable[..., dict], doc: str | None, argv: list[str] | None,
+@dataclass(frozen=True)
+class Table:
+    """A fixed-width text table the benchmarks print: ``columns`` of (title, format spec of the values), joined by
+    ``separator``. A column whose spec is a bare width (``"8"``) holds text, title left-aligned like its values;
+    a spec with an alignment (``"<28"``, ``">7"``) aligns the title the same way; any other spec (``"8.3f"``,
+    ``"6.1%"``) holds numbers under a right-aligned title."""
+
+    columns: tuple[tuple[str, str], ...]
+    separator: str = " "
+
+    def header(self) -> str:
+        return self.separator.join(format(title, _title_spec(spec)) for title, spec in self.columns)
+
+    def row(self, *values: object) -> str:
+        if len(values) != len(self.columns):
+            raise ValueError(f"a row of {len(self.columns)} values expected, got {len(values)}")
+        return self.separator.join(format(value, spec) for value, (_, spec) in zip(values, self.columns, strict=True))
+
+
+def _title_spec(spec: str) -> str:
+    align, width, rest = re.fullmatch(r"([<>^]?)(\d*)(.*)", spec).groups()
+    return (align or ("<" if not rest else ">")) + width
+
+
+def write_results(path: Path, result: dict) -> None:
+    """``result`` as indented JSON at ``path`` (its folder made if missing)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=2))
+
+
+def print_json(result: dict) -> None:
+    """The figures as indented JSON on stdout: the report of a benchmark without a table of its own."""
+    print(json.dumps(result, indent=2))
+
+
+def print_load(result: dict) -> None:
+    """The line ending a one-thread comparison: the load average before and after, and its ``cpu`` entry."""
+    print(f"load average {result['load_average_before']} -> {result['load_average_after']}; {result['cpu']}")
+
+
+def int_options_main(results: Path, run: Callable[..., dict], doc: str | None, argv: list[str] | None, *,
+                     report: Callable[[dict], None] = print_json, positive: tuple[str, ...] = (),
                      **defaults: int) -> int:
     """A benchmark's command line: an integer option ``--NAME`` per keyword of ``run`` (``defaults``: their
-    defaults), ``run``'s figures written to ``results`` as JSON and printed. ``doc``: the module's docstring."""
+    defaults; ``positive``: those that must be >= 1) and ``--out`` (default ``results``); ``run``'s figures written
+    there as JSON, then given to ``report`` (default: printed as JSON). ``doc``: the module's docstring."""
     parser = argparse.ArgumentParser(description=(doc or "").strip().splitlines()[0] if doc else None)
     for name, default in defaults.items():
         parser.add_argument(f"--{name.replace('_', '-')}", type=int, default=default)
-    result = run(**vars(parser.parse_args(argv)))
-    results.parent.mkdir(parents=True, exist_ok=True)
-    results.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
+    parser.add_argument("--out", type=Path, default=results, help=f"figures file (default: {results})")
+    options = vars(parser.parse_args(argv))
+    out = options.pop("out")
+    too_small = [f"--{name.replace('_', '-')}" for name in positive if options[name] < 1]
+    if too_small:
+        parser.error(f"{' and '.join(too_small)} must be >= 1")
+    result = run(**options)
+    write_results(out, result)
+    report(result)
     return 0
 
 

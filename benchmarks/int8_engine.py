@@ -15,8 +15,6 @@ Never asserts a time.
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import platform
 import time
@@ -25,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.harness import Table, int_options_main, print_load
 from models.erasenet.engines import load_erasenet
 from models.heap import freeze_loaded_heap
 from models.quantized.calibration import roi_label_agreement, segmenter_inputs
@@ -100,34 +99,36 @@ def compare(frames: list, repeats: int) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=16)
-    parser.add_argument("--seed", type=int, default=52)
-    parser.add_argument("--repeats", type=int, default=3)
-    args = parser.parse_args(argv)
-    if args.frames < 1 or args.repeats < 1:
-        parser.error("--frames and --repeats must be >= 1")
+STAGES = Table((("stage (ms, wall median)", "<28"), ("float", "9.1f"), ("int8", "9.1f"), ("int8/float", "12.2f")),
+               separator="")
+
+
+def run(frames: int, seed: int, repeats: int) -> dict:
+    """Both precisions over ``frames`` simulated frames of scene ``seed`` (after the warm-up frames)."""
     torch.set_num_threads(1)
-    frames = list(simulate_sequence("small", args.frames + WARM_UP, seed=args.seed))
+    simulated = list(simulate_sequence("small", frames + WARM_UP, seed=seed))
     load_before = os.getloadavg()
-    figures = compare(frames, args.repeats)
-    result = {**figures, "threads": 1, "seed": args.seed, "load_average_before": load_before,
-              "load_average_after": os.getloadavg(), "cpu": _cpu(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
+    figures = compare(simulated, repeats)
+    return {**figures, "threads": 1, "seed": seed, "load_average_before": load_before,
+            "load_average_after": os.getloadavg(), "cpu": _cpu(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
+
+
+def report(result: dict) -> None:
     wall, cpu, ratio = result["ms_median_wall"], result["segmenter_network_cpu_ms_median"], result["int8_over_float"]
-    print(f"{'stage (ms, wall median)':<28}{'float':>9}{'int8':>9}{'int8/float':>12}")
+    print(STAGES.header())
     for stage in wall["float"]:
-        print(f"{stage:<28}{wall['float'][stage]:9.1f}{wall['int8'][stage]:9.1f}"
-              f"{wall['int8'][stage] / max(wall['float'][stage], 1e-9):12.2f}")
-    print(f"{'segmenter network (CPU ms)':<28}{cpu['float']:9.1f}{cpu['int8']:9.1f}"
-          f"{ratio['segmenter_network_cpu']:12.2f}")
+        print(STAGES.row(stage, wall["float"][stage], wall["int8"][stage],
+                         wall["int8"][stage] / max(wall["float"][stage], 1e-9)))
+    print(STAGES.row("segmenter network (CPU ms)", cpu["float"], cpu["int8"], ratio["segmenter_network_cpu"]))
     print(f"mIoU RA {result['miou']['float']['ra']:.2f} -> {result['miou']['int8']['ra']:.2f}, RD "
           f"{result['miou']['float']['rd']:.2f} -> {result['miou']['int8']['rd']:.2f}; ROI voxels labelled alike "
           f"{100 * result['roi_label_agreement']:.2f} %  ({result['frames']} frames)")
-    print(f"load average {result['load_average_before']} -> {result['load_average_after']}; {result['cpu']}")
-    return 0
+    print_load(result)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return int_options_main(RESULTS, run, __doc__, argv, report=report, positive=("frames", "repeats"), frames=16,
+                            seed=52, repeats=3)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import statistics
 import tempfile
 import time
@@ -28,9 +27,8 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from benchmarks.edge import PAIRS, ROOT, add_engine_arguments, cpu_flags, pair_engines, spread_frames
+from benchmarks.edge import PAIRS, engine_parser, one_thread_results, pair_engines, spread_frames, write_with_load
 from models.erasenet.compute_report import STEPS
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
@@ -170,24 +168,17 @@ def print_pair(pair: str, entry: dict) -> None:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--store", required=True, help="store whose frames are timed (a fresh seed)")
-    add_engine_arguments(parser, methods=["Percentile"], pairs=["shipped"])
+    parser = engine_parser(__doc__, store_help="store whose frames are timed (a fresh seed)", methods=["Percentile"],
+                           pairs=["shipped"], results="onnx_profile.json")
     parser.add_argument("--frames", type=int, default=8)
-    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "onnx_profile.json"))
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    results: dict[str, object] = {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1,
-                                  "store": args.store, "calibration_store": args.calibration,
-                                  "frames": args.frames, "repeats": args.repeats, "pairs": {}}
+    results = {**one_thread_results(args), "frames": args.frames, "repeats": args.repeats, "pairs": {}}
     cache = Path(args.cache or tempfile.mkdtemp(prefix="onnx-profile-"))
     _, cubes = spread_frames(args.store, args.frames)
     for pair in args.pairs:
         results["pairs"][pair] = entry = profile_pair(pair, args, cubes, cache)
         print_pair(pair, entry)
-    results["load_average_after"] = os.getloadavg()
-    Path(args.out).write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out}")
+    write_with_load(results, args.out)
 
 
 if __name__ == "__main__":

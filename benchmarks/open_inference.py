@@ -14,9 +14,7 @@ asserted.
 
 from __future__ import annotations
 
-import argparse
 import io
-import json
 import sys
 import tempfile
 import time
@@ -25,6 +23,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from benchmarks.harness import int_options_main
 from benchmarks.recording_export import machine
 from pipelines.demo.serve_process import serving
 from radar.simulate import simulate_sequence
@@ -97,16 +96,7 @@ def run(frames: int, json_requests: int, seed: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=40)
-    parser.add_argument("--json-requests", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=25411)
-    args = parser.parse_args(argv)
-    result = run(args.frames, args.json_requests, args.seed)
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
-    return 0
+    return int_options_main(RESULTS, run, __doc__, argv, frames=40, json_requests=3, seed=25411)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@ log transform of the same cube (the floor every method pays), and a D_thresh swe
 (visited points and recall, seeded at true centres) like the paper's table (docs/design.md section 6).
 Prints tables and writes benchmarks/results/stage1.json.
 
-    .venv/bin/python benchmarks/stage1.py [--frames 4] [--sweep-frames 3] [--threads 1]
+    .venv/bin/python -m benchmarks.stage1 [--frames 4] [--sweep-frames 3] [--threads 1]
 
 Target: region growing at most 10% of the detector's forward time. The detector is
 untrained here (its cost does not depend on its weights); region growing is seeded at the true
@@ -12,14 +12,13 @@ centres so that its cost and recall are those of a detector that finds every obj
 
 from __future__ import annotations
 
-import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks.harness import Table, int_options_main
 from models.registry import create_model
 from radar.cfar import cfar_centres
 from radar.profiles import get_profile
@@ -29,6 +28,7 @@ from radar.transforms import log_power
 
 PAPER_SWEEP = {3: (20731, 0.901), 4: (41579, 0.946), 5: (66527, 0.958), 6: (94504, 0.962), 7: (126127, 0.965),
                8: (160323, 0.967)}
+RESULTS = Path(__file__).resolve().parent / "results" / "stage1.json"
 
 
 def _seeds(frame) -> np.ndarray:
@@ -85,36 +85,36 @@ def sweep(preset: str, n_frames: int, distances=(3, 4, 5, 6, 7, 8)) -> dict:
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=4)
-    parser.add_argument("--sweep-frames", type=int, default=3)
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "stage1.json"))
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    results = {"threads": args.threads, "presets": {}, "sweep": {}}
-    print(f"{'preset':8} {'log tf ms':>9} {'detector':>9} {'grow':>7} {'cfar':>7} {'grow/det':>8} "
-          f"{'visited':>8} {'roi':>7} {'recall':>6}")
-    for preset in ("small", "carrada", "nxp"):
-        r = stage_times(preset, args.frames)
-        results["presets"][preset] = r
-        print(f"{preset:8} {r['log_transform_s'] * 1e3:9.1f} {r['detector_s'] * 1e3:9.1f} "
-              f"{r['region_growing_s'] * 1e3:7.1f} {r['cfar_s'] * 1e3:7.1f} {r['region_growing_over_detector']:8.1%} "
-              f"{r['visited']:8.0f} {r['roi_voxels']:7.0f} {r['recall']:6.3f}")
-    for preset in ("nxp", "carrada"):
-        results["sweep"][preset] = sweep(preset, args.sweep_frames)
+PRESETS = Table((("preset", "8"), ("log tf ms", "9.1f"), ("detector", "9.1f"), ("grow", "7.1f"), ("cfar", "7.1f"),
+                 ("grow/det", "8.1%"), ("visited", "8.0f"), ("roi", "7.0f"), ("recall", "6.3f")))
+
+
+def run(frames: int, sweep_frames: int, threads: int) -> dict:
+    """Each preset's stage times over ``frames`` frames and the D_thresh sweep over ``sweep_frames``."""
+    torch.set_num_threads(threads)
+    return {"threads": threads,
+            "presets": {preset: stage_times(preset, frames) for preset in ("small", "carrada", "nxp")},
+            "sweep": {preset: sweep(preset, sweep_frames) for preset in ("nxp", "carrada")},
+            "paper_sweep_nxp": PAPER_SWEEP}
+
+
+def report(results: dict) -> None:
+    print(PRESETS.header())
+    for preset, r in results["presets"].items():
+        print(PRESETS.row(preset, r["log_transform_s"] * 1e3, r["detector_s"] * 1e3, r["region_growing_s"] * 1e3,
+                          r["cfar_s"] * 1e3, r["region_growing_over_detector"], r["visited"], r["roi_voxels"],
+                          r["recall"]))
     print("\nD_thresh sweep (seeded at true centres): visited / recall; paper (NXP) in brackets")
     for d, row in results["sweep"]["nxp"].items():
         paper = PAPER_SWEEP[d]
         car = results["sweep"]["carrada"][d]
         print(f"  {d} m  nxp {row['visited']:8.0f} / {row['recall']:.3f}   [{paper[0]:6d} / {paper[1]:.3f}]"
               f"   carrada {car['visited']:8.0f} / {car['recall']:.3f}")
-    results["paper_sweep_nxp"] = PAPER_SWEEP
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=2))
-    print(f"written to {args.out}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return int_options_main(RESULTS, run, __doc__, argv, report=report, frames=4, sweep_frames=3, threads=1)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import sys
 
+import pytest
+
 from benchmarks import harness
 
 
@@ -46,3 +48,30 @@ def test_a_benchmark_command_line_of_integer_options_writes_and_prints_its_figur
                                     json_requests=1) == 0
     assert json.loads(out.read_text()) == {"frames": 3, "json_requests": 7}
     assert json.loads(capsys.readouterr().out) == {"frames": 3, "json_requests": 7}
+
+
+def test_integer_options_are_checked_and_the_figures_go_to_out_and_to_the_report(tmp_path, capsys):
+    reported = []
+
+    def run(frames: int, seed: int) -> dict:
+        return {"frames": frames, "seed": seed}
+
+    out = tmp_path / "elsewhere" / "figures.json"
+    assert harness.int_options_main(tmp_path / "default.json", run, "Fake.", ["--out", str(out), "--seed", "-4"],
+                                    report=reported.append, positive=("frames",), frames=2, seed=0) == 0
+    assert json.loads(out.read_text()) == {"frames": 2, "seed": -4} == reported[0]
+    assert not (tmp_path / "default.json").exists() and capsys.readouterr().out == ""
+    with pytest.raises(SystemExit) as stopped:
+        harness.int_options_main(tmp_path / "default.json", run, "Fake.", ["--frames", "0"], positive=("frames",),
+                                 frames=2, seed=0)
+    assert stopped.value.code == 2 and "--frames must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "default.json").exists()
+
+
+def test_a_table_aligns_titles_with_their_values():
+    table = harness.Table((("preset", "8"), ("s/frame", "8.3f"), ("share", "6.1%"), ("target", ">7")))
+    assert table.header() == "preset    s/frame  share  target"
+    assert table.row("small", 0.12345, 0.5, "-") == "small       0.123  50.0%       -"
+    assert harness.Table((("stage", "<10"), ("ms", "6.1f")), separator="").row("grow", 2.25) == "grow         2.2"
+    with pytest.raises(ValueError, match="a row of 2 values expected, got 1"):
+        harness.Table((("stage", "<10"), ("ms", "6.1f"))).row("grow")
