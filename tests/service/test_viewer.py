@@ -22,6 +22,8 @@ from tests.service.conftest import NPY
 # .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails the test.
 CHROMIUM = shutil.which("chromium")
 REQUIRED = os.environ.get("RADARSEG_REQUIRE_BROWSER") == "1"
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None and not REQUIRED,
+                                                   reason="chromium is not installed (.ci/run installs it)")]
 
 
 class Dom(HTMLParser):
@@ -85,26 +87,28 @@ def _render_once(url: str, profile: Path) -> Dom:
     return Dom(html)
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium is not installed (.ci/run installs it)")
-def test_viewer_draws_an_example_and_shows_the_services_error_messages(serve, tmp_path):
+@pytest.fixture
+def server(serve, tmp_path):
+    """``radarseg serve`` with the default settings: the shipped model (the tiny random one finds no object to
+    list). No warm-up (three scenes segmented at start-up for the quota estimate; no quota here)."""
     assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
-    # The shipped model (the default settings): the tiny random one finds no object to list. No warm-up (three
-    # scenes segmented at start-up for the quota estimate; no quota here).
-    env = {"RADARSEG_DATA_DIR": str(tmp_path / "data"), "RADARSEG_WARMUP": "false"}
-    with serve(env) as (server,):
-        with httpx.Client(base_url=server.url, timeout=120) as http:
-            cube = http.get("/v1/examples/1").content  # simulated once: the page's request answers from the cache
-        page = rendered(f"{server.url}/viewer?example=1", tmp_path / "browser")
-        # What the API answers for the same cube: the page must show exactly this.
-        with httpx.Client(base_url=server.url, timeout=120) as http:
-            answer = http.post("/v1/segment?outputs=objects,masks,views&encoding=zlib", content=cube,
-                               headers=NPY).json()
-            bad = b"this is not a .npy file"
-            refusal = http.post("/v1/segment", content=bad, headers=NPY)
-        bad_url = "data:application/octet-stream;base64," + base64.b64encode(bad).decode()
-        bad_page = rendered(f"{server.url}/viewer?cube={quote(bad_url, safe='')}", tmp_path / "browser")
-        missing_page = rendered(f"{server.url}/viewer?example=9", tmp_path / "browser")
+    with serve({"RADARSEG_DATA_DIR": str(tmp_path / "data"), "RADARSEG_WARMUP": "false"}) as (server,):
+        yield server
+
+
+def test_viewer_draws_an_example_and_shows_the_services_error_messages(server, tmp_path):
+    with httpx.Client(base_url=server.url, timeout=120) as http:
+        cube = http.get("/v1/examples/1").content  # simulated once: the page's request answers from the cache
+    page = rendered(f"{server.url}/viewer?example=1", tmp_path / "browser")
+    # What the API answers for the same cube: the page must show exactly this.
+    with httpx.Client(base_url=server.url, timeout=120) as http:
+        answer = http.post("/v1/segment?outputs=objects,masks,views&encoding=zlib", content=cube,
+                           headers=NPY).json()
+        bad = b"this is not a .npy file"
+        refusal = http.post("/v1/segment", content=bad, headers=NPY)
+    bad_url = "data:application/octet-stream;base64," + base64.b64encode(bad).decode()
+    bad_page = rendered(f"{server.url}/viewer?cube={quote(bad_url, safe='')}", tmp_path / "browser")
+    missing_page = rendered(f"{server.url}/viewer?example=9", tmp_path / "browser")
 
     assert page.attrs["body"]["data-state"] == "done", page.text.get("message")
     assert answer["objects"], "the shipped model found no object in example 1: the test would check nothing"
@@ -127,20 +131,15 @@ def test_viewer_draws_an_example_and_shows_the_services_error_messages(serve, tm
     assert "no example 9" in missing_page.text["message"]
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(CHROMIUM is None and not REQUIRED, reason="chromium is not installed (.ci/run installs it)")
-def test_viewer_plays_an_example_as_a_stream_with_tracks_and_velocity_arrows(serve, tmp_path):
-    assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
-    env = {"RADARSEG_DATA_DIR": str(tmp_path / "data"), "RADARSEG_WARMUP": "false"}
-    with serve(env) as (server,):
-        page = rendered(f"{server.url}/viewer?stream=1", tmp_path / "browser")
-        with httpx.Client(base_url=server.url, timeout=120) as http:  # the same frames as a stream of our own
-            frames = http.get("/v1/examples").json()["examples"][0]["frames"]
-            stream = http.post("/v1/streams").json()["id"]
-            answers = [http.post(f"/v1/streams/{stream}/frames?seq={k}&outputs=objects", headers=NPY,
-                                 content=http.get(f"/v1/examples/1?frame={k}").content).json()
-                       for k in range(frames)]
-            left = http.get(f"/v1/streams/{stream}").json()["frames"]
+def test_viewer_plays_an_example_as_a_stream_with_tracks_and_velocity_arrows(server, tmp_path):
+    page = rendered(f"{server.url}/viewer?stream=1", tmp_path / "browser")
+    with httpx.Client(base_url=server.url, timeout=120) as http:  # the same frames as a stream of our own
+        frames = http.get("/v1/examples").json()["examples"][0]["frames"]
+        stream = http.post("/v1/streams").json()["id"]
+        answers = [http.post(f"/v1/streams/{stream}/frames?seq={k}&outputs=objects", headers=NPY,
+                             content=http.get(f"/v1/examples/1?frame={k}").content).json()
+                   for k in range(frames)]
+        left = http.get(f"/v1/streams/{stream}").json()["frames"]
 
     assert page.attrs["body"]["data-state"] == "done", page.text.get("message")
     last = answers[-1]
