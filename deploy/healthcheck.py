@@ -16,6 +16,7 @@ import os
 import sys
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from pathlib import Path
 
 
@@ -28,8 +29,9 @@ def api_healthy(url: str, timeout_s: float = 4.0) -> bool:
         return False
 
 
-def raylet_running(proc: Path = Path("/proc")) -> bool:
-    """True when a process whose executable name is ``raylet`` runs (and is not a zombie)."""
+def process_stats(proc: Path = Path("/proc")) -> Iterator[tuple[int, str, list[str]]]:
+    """Each process of ``proc`` as (pid, executable name, the fields of ``/proc/PID/stat`` after the name: state
+    first, then the parent pid and the process group); one that ends while read is passed over."""
     for entry in proc.iterdir():
         if not entry.name.isdigit():
             continue
@@ -37,10 +39,12 @@ def raylet_running(proc: Path = Path("/proc")) -> bool:
             stat = (entry / "stat").read_text()
         except OSError:
             continue
-        name, state = stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()[0]
-        if name == "raylet" and state != "Z":
-            return True
-    return False
+        yield int(entry.name), stat[stat.index("(") + 1:stat.rindex(")")], stat[stat.rindex(")") + 2:].split()
+
+
+def raylet_running(proc: Path = Path("/proc")) -> bool:
+    """True when a process whose executable name is ``raylet`` runs (and is not a zombie)."""
+    return any(name == "raylet" and fields[0] != "Z" for _, name, fields in process_stats(proc))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from deploy.healthcheck import process_stats
 from tests.conftest import save_tiny_checkpoints, wait_until  # noqa: F401 (re-exported for the pipelines tests)
 
 REPO = Path(__file__).resolve().parents[2]
@@ -58,18 +59,7 @@ def node_ports() -> list[str]:
 
 def group_alive(pgid: int) -> list[int]:
     """Pids (not zombies) whose process group is ``pgid``."""
-    alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        fields = stat[stat.rindex(")") + 2:].split()
-        if fields[0] != "Z" and int(fields[2]) == pgid:
-            alive.append(int(entry.name))
-    return alive
+    return [pid for pid, _, fields in process_stats() if fields[0] != "Z" and int(fields[2]) == pgid]
 
 
 def stop_group(pgid: int, *, grace_s: float = 10.0) -> list[int]:
