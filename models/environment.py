@@ -52,6 +52,9 @@ class Environment:
     onnx_cache_key_file: Path | None = _variable(
         "RADARSEG_ONNX_CACHE_KEY_FILE", None, _path,
         "the secret that seals the ONNX exports (unset: ~/.config/radarseg/onnx-cache.key)")
+    int8_cache: Path | None = _variable("RADARSEG_INT8_CACHE", None, _path,
+                                        "where the torch engine's int8 calibrations are kept "
+                                        "(unset: ~/.cache/radarseg/int8)")
     torch_extensions_dir: Path | None = _variable(
         "TORCH_EXTENSIONS_DIR", None, _path,
         "where the compiled sparse kernels are built (torch's variable; unset: ~/.cache/radarseg/extensions)")

@@ -21,7 +21,8 @@ statically quantised (``models.export.quantize``), calibrated on simulated frame
 
 PRECISIONS = ("float", "int8")
 """What the torch engine's sparse segmenter computes in: float (the compiled float32 kernels), or int8 (the int8
-kernels, ``models.quantized``: calibrated on ``calibration=``'s frames, default simulated frames of the preset)."""
+kernels, ``models.quantized``: calibrated on ``calibration=``'s frames, default simulated frames of the preset; the
+calibration is kept in ``models.quantized.calibration_cache`` and read back at the next load of the same pair)."""
 
 
 def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Checkpoint, *, engine: str = "torch",
@@ -52,7 +53,7 @@ def load_erasenet(detector: str | Path | Checkpoint, segmenter: str | Path | Che
         if precision == "int8":
             from models.quantized.erasenet import to_int8
 
-            to_int8(net, calibration)
+            to_int8(net, calibration, checkpoints=(detector, segmenter))  # calibrated once, then read back
         return net
     from models.export.export_cache import onnx_erasenet
 

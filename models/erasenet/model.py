@@ -95,6 +95,10 @@ class EraseNet:
     normalises_detector_input = True
     """The detector's input is normalised here (an exported graph that normalises its own input: False)."""
 
+    precision = "float"
+    """What the segmenter computes in: its form's ``precision`` (:meth:`use_segmenter_form`; int8:
+    ``models.quantized``)."""
+
     def __init__(self, detector: nn.Module | None, segmenter: nn.Module, profile: RadarProfile | str, *,
                  class_names: tuple[str, ...] | None = None, mean_db: float = 0.0, std_db: float = 1.0,
                  score_threshold: float = SCORE_THRESHOLD, max_objects: int = MAX_OBJECTS,
@@ -161,6 +165,19 @@ class EraseNet:
         return cls(det.build(), seg.build(), profile, class_names=det.class_names,
                    mean_db=det.normalisation.get("mean", 0.0), std_db=det.normalisation.get("std", 1.0),
                    device=device, **kwargs)
+
+    @property
+    def segmenter_form(self) -> Any:
+        """What :meth:`point_logits` runs the segmenter as: its fused inference form (or the one
+        :meth:`use_segmenter_form` gave), None when the eager module runs."""
+        return self._fused
+
+    def use_segmenter_form(self, form: Any) -> None:
+        """Run the segmenter as ``form`` from now on: called as the fused form is, ``form(sparse) -> (logits,
+        MacTally)`` (e.g. :class:`models.quantized.segmenter.Int8MinkUNet`); its ``precision`` (default "float")
+        becomes the model's."""
+        self._fused = form
+        self.precision = getattr(form, "precision", "float")
 
     @property
     def history_frames(self) -> int:
