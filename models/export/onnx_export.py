@@ -45,11 +45,11 @@ from radar.roi import N_FEATURES
 OPSET = 17
 """ONNX opset of both graphs (onnxruntime >= 1.14, OpenVINO, TensorRT 8.6 read it)."""
 FORMAT = "radarseg.onnx"
-VERSION = 5
+VERSION = 6
 """Bump when the graphs' inputs, outputs or formulation change: the export cache keys on it (2: row blocks
 as Slice, not SplitToSequence; 3: each sparse conv's bias is its Gemm's C input, not an Add; 4: the 3^3 maps as
 z-columns, ``columns_s*`` inputs; 5: a detector that reads earlier frames takes ``history`` and
-``history_present``)."""
+``history_present``; 6: the float segmenter's 3^3 convs gather z-columns, as the int8 one's, instead of 27 rows)."""
 DETECTOR_OUTPUTS = ("heatmap", "offset", "doppler")
 HISTORY_INPUTS = ("history", "history_present")
 SEGMENTER_OUTPUTS = ("logits", "labels")
@@ -168,7 +168,8 @@ def example_voxels(profile: RadarProfile) -> np.ndarray:
 def export_segmenter(segmenter: nn.Module, profile: RadarProfile, path: Path, *,
                      column_gathers: bool = False) -> list[dict[str, Any]]:
     """Write ``segmenter.onnx`` (see the module docstring); returns its layer table for MAC counts.
-    ``column_gathers``: the form quantised for int8 (:class:`models.export.sparse_graph.ExportMinkUNet`)."""
+    ``column_gathers``: the form :func:`export_onnx` writes and int8 is quantised from (3^3 convs gather z-columns,
+    :class:`models.export.sparse_graph.ExportMinkUNet`); without it, 27 rows per voxel."""
     graph = SegmenterGraph(segmenter, column_gathers=column_gathers).eval()
     maps = kernel_maps(example_voxels(profile))
     names = map_input_names()
@@ -215,7 +216,7 @@ def export_onnx(detector: Checkpoint, segmenter: Checkpoint, out: str | Path) ->
     detector_model, segmenter_model = det.build(), seg.build()
     mean_db, std_db = det.normalisation.get("mean", 0.0), det.normalisation.get("std", 1.0)
     export_detector(detector_model, profile, mean_db, std_db, out / "detector.onnx")
-    layers = export_segmenter(segmenter_model, profile, out / "segmenter.onnx")
+    layers = export_segmenter(segmenter_model, profile, out / "segmenter.onnx", column_gathers=True)
     n_range, n_angle, n_doppler = profile.shape
     detector_report = ComputeCounter(detector_model).report((1, n_doppler, n_range, n_angle))
     manifest = {

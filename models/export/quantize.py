@@ -356,7 +356,7 @@ def _detector_precision(out: Path, float_dir: Path, feeds: Sequence[dict[str, np
 
 def _column_segmenter(segmenter: Checkpoint, out: Path) -> Path:
     """The float segmenter graph in the form its int8 graph is quantised from: 3^3 convs gathering z-columns
-    (``ExportMinkUNet(column_gathers=True)``; the float export gathers 27 rows). Same inputs and outputs."""
+    (``ExportMinkUNet(column_gathers=True)``, the float export's form too). Same inputs and outputs."""
     from models.export.onnx_export import export_segmenter
 
     path = out / ".segmenter-columns.onnx"

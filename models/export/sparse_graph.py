@@ -186,10 +186,12 @@ class ExportMinkUNet(nn.Module):
     def __init__(self, model: MinkUNet, *, reference_voxels: dict[int, int] | None = None,
                  column_gathers: bool = False) -> None:
         """``reference_voxels``: voxels per stride the row blocks are sized for (default ``REFERENCE_VOXELS``).
-        ``column_gathers``: each 3^3 conv gathers z-columns, then 9 columns per voxel (the int8 graph's form: about
-        half the row copies, 0.75x its time); otherwise each level's 27-row table is expanded from the columns once
-        in the graph and every conv gathers 27 rows (the float graph's form: its 4-byte rows are bandwidth-bound,
-        and the column form, which moves 15 % more bytes, ran 1.08x its time). Same inputs either way."""
+        ``column_gathers``: each 3^3 conv gathers z-columns, then 9 columns per voxel: about half the row copies,
+        the exported form (export format 6) for float and int8 (int8: 0.75x its time). Otherwise each level's
+        27-row table is expanded from the columns once in the graph and every conv gathers 27 rows (the float
+        graph's form up to format 5: the column form, which moves 15 % more bytes, ran 1.08x its time on an Intel
+        Xeon, but 0.85-0.87x on an AMD EPYC, where onnxruntime's Gather costs about 8 ns a row whatever its width,
+        16-96 bytes, so the row count decides). Same inputs either way."""
         super().__init__()
         self.column_gathers = column_gathers
         if isinstance(model, SPVCNN) or type(model) is not MinkUNet:
