@@ -288,19 +288,28 @@ class EraseNet:
         return decode_centres(self._run_detector, outputs, [log_power], k=self.max_objects,
                               score_threshold=score_threshold, doppler_refinement=self.doppler_refinement)[0]
 
-    def _history_input(self, history: Sequence[np.ndarray | None]) -> dict[str, torch.Tensor]:
-        """The detector's ``history`` (1, H, D, R, A), normalised, zero where absent, and ``history_present`` (1, H)."""
+    def _earlier_frames(self, history: Sequence[np.ndarray | None]) -> list[np.ndarray | None]:
+        """``history`` (log power (R, A, D) dB or None where absent) checked against the detector, which reads at
+        most ``history_frames`` earlier frames of the cube's shape, and padded with None to ``history_frames``.
+
+        Raises:
+            ValueError: a detector that reads one frame, more frames than it reads, or a frame of another shape.
+        """
         n_history = self.history_frames
         if not n_history:
             raise ValueError("this model's detector reads one frame (history_frames 0): give no history")
         if len(history) > n_history:
             raise ValueError(f"{len(history)} earlier frames given, the detector reads {n_history}")
-        frames = [*history, *[None] * (n_history - len(history))]
         shape = self.profile.shape
-        for frame in frames:
+        for frame in history:
             if frame is not None and frame.shape != shape:
                 raise ValueError(f"an earlier frame must have the cube's shape {shape}, got {frame.shape}")
-        zeros = torch.zeros(self.profile.n_doppler, *shape[:2], device=self.device)
+        return [*history, *[None] * (n_history - len(history))]
+
+    def _history_input(self, history: Sequence[np.ndarray | None]) -> dict[str, torch.Tensor]:
+        """The detector's ``history`` (1, H, D, R, A), normalised, zero where absent, and ``history_present`` (1, H)."""
+        frames = self._earlier_frames(history)
+        zeros = torch.zeros(self.profile.n_doppler, *self.profile.shape[:2], device=self.device)
         earlier = [zeros if frame is None else self._detector_input(frame.astype(np.float32, copy=False))[0]
                    for frame in frames]
         present = torch.tensor([[frame is not None for frame in frames]], device=self.device)

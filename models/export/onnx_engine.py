@@ -154,21 +154,12 @@ class OnnxEraseNet(EraseNet):
 
     def _history_input(self, history: Sequence[np.ndarray | None]) -> dict[str, np.ndarray]:
         """The graph's ``history`` (H, R, A, D) dB, zero where absent, and ``history_present`` (H,) float32."""
-        n_history = self.history_frames
-        if not n_history:
-            raise ValueError("this model's detector reads one frame (history_frames 0): give no history")
-        if len(history) > n_history:
-            raise ValueError(f"{len(history)} earlier frames given, the detector reads {n_history}")
-        shape = self.profile.shape
-        earlier = np.zeros((n_history, *shape), np.float32)
-        present = np.zeros(n_history, np.float32)
-        for h, frame in enumerate(history):
-            if frame is None:
-                continue
-            if frame.shape != shape:
-                raise ValueError(f"an earlier frame must have the cube's shape {shape}, got {frame.shape}")
-            earlier[h], present[h] = frame, 1.0
-        return {"history": earlier, "history_present": present}
+        frames = self._earlier_frames(history)
+        earlier = np.zeros((len(frames), *self.profile.shape), np.float32)
+        for h, frame in enumerate(frames):
+            if frame is not None:
+                earlier[h] = frame
+        return {"history": earlier, "history_present": np.array([frame is not None for frame in frames], np.float32)}
 
     def voxel_logits(self, coords: np.ndarray, features: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
         """The segmenter graph on voxels (N, 3) bins with features (N, 4): logits (N, C), labels (N,) int64,
