@@ -1,6 +1,6 @@
 """int8 on the edge: the shipped pair and the slimmed pair, float and int8 ONNX graphs, against the default engine.
 
-    nice -n 5 .venv/bin/python benchmarks/edge.py --store /tmp/edge.zarr --calibration /tmp/edge-calib.zarr
+    nice -n 5 .venv/bin/python -m benchmarks.edge --store /tmp/edge.zarr --calibration /tmp/edge-calib.zarr
 
 Per pair: parameters, bytes on disk of both .onnx files, MACs (the detector's per frame, the segmenter's useful
 MACs as the mean over the timed frames), the median over ``--timing-frames`` frames of each frame's best of
@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.harness import write_with_load
 from models.checkpoint import load_pair
 from models.erasenet.engines import load_erasenet
 from models.export.export_cache import exported_dir
@@ -82,13 +83,6 @@ def one_thread_results(args: argparse.Namespace) -> dict[str, object]:
     torch.set_num_threads(1)
     return {"cpu": cpu_flags(), "load_average_before": os.getloadavg(), "threads": 1, "store": args.store,
             "calibration_store": args.calibration}
-
-
-def write_with_load(results: dict[str, object], out: str) -> None:
-    """The figures, with the load average after, written to ``out``."""
-    results["load_average_after"] = os.getloadavg()
-    Path(out).write_text(json.dumps(results, indent=2))
-    print(f"wrote {out}")
 
 
 def spread_frames(store: str, frames: int) -> tuple[np.ndarray, list[np.ndarray]]:

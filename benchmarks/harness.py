@@ -127,6 +127,13 @@ def write_results(path: Path, result: dict) -> None:
     path.write_text(json.dumps(result, indent=2))
 
 
+def write_with_load(results: dict, out: str | Path) -> None:
+    """``results`` with the load average after the run (``load_average_after``) written to ``out``, and where."""
+    results["load_average_after"] = os.getloadavg()
+    write_results(Path(out), results)
+    print(f"wrote {out}")
+
+
 def print_json(result: dict) -> None:
     """The figures as indented JSON on stdout: the report of a benchmark without a table of its own."""
     print(json.dumps(result, indent=2))

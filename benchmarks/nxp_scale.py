@@ -38,7 +38,7 @@ import httpx
 import numpy as np
 import torch
 
-from benchmarks.harness import machine
+from benchmarks.harness import machine, write_with_load
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.registry import create_model
 from radar import transforms
@@ -222,10 +222,7 @@ def main(argv: list[str] | None = None) -> dict:
             results["serve"] = serve_figures(detector, segmenter, cubes[-1], out)
             print("serve", json.dumps(results["serve"]), flush=True)
     results["benchmark_peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    results["load_average_after"] = os.getloadavg()
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out}")
+    write_with_load(results, args.out)
     return results
 
 

@@ -28,7 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.edge import PAIRS, engine_parser, one_thread_results, pair_engines, spread_frames, write_with_load
+from benchmarks.edge import PAIRS, engine_parser, one_thread_results, pair_engines, spread_frames
+from benchmarks.harness import write_with_load
 from models.erasenet.compute_report import STEPS
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
