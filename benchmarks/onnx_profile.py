@@ -11,7 +11,11 @@ frames), the segment stage of the ONNX engines split into its kernel maps (the s
 engine's, numpy's beside them) and the graph run, and the graph run split by operator type over the same ROIs (a
 second session per graph with profiling on; its sums run 1.3-1.5x above the plain run's, the profiler's own cost
 per node, so read its shares). ``ceiling`` is the int8 frame less its profiled matrix products: what the int8
-arithmetic could save at most.
+arithmetic could save at most. ``segment_cpu_ms``: the segmenter on each ROI in this thread's CPU time (best of
+``--repeats``, at least 3, median over frames; on a shared machine it moves far less than the wall clock): the
+torch engine's network (its kernel maps included), the float ONNX engine's kernel maps and graph, and beside them
+the float graph in its export format 5 form (27 rows gathered per voxel: the ratio is what format 6's z-column
+gathers gained).
 
 Writes ``benchmarks/results/onnx_profile.json`` with the CPU's flags and the load average before and after.
 """
@@ -28,11 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.edge import PAIRS, engine_parser, one_thread_results, pair_engines, spread_frames
+from benchmarks.edge import PAIRS, ROOT, engine_parser, one_thread_results, pair_engines, spread_frames
 from benchmarks.harness import write_with_load
+from models.checkpoint import load_pair
 from models.erasenet.compute_report import STEPS
 from models.export.kernel_maps_compiled import fastest_kernel_maps
 from models.export.kernel_maps_numpy import kernel_maps
+from models.export.onnx_export import export_segmenter
 from radar.input_kind import InputKind
 
 ENGINES = ("onnx", "onnx-int8", "torch")
@@ -93,6 +99,49 @@ def segment_split(nets: dict, feeds: list, repeats: int) -> dict[str, float]:
     return out
 
 
+def segment_cpu(nets: dict, feeds: list, repeats: int, rows_graph: Path) -> dict[str, float]:
+    """Median over the ROIs of each ROI's best thread CPU time (ms): the torch engine's segmenter network (kernel
+    maps included), the float ONNX engine's kernel maps and graph run, and the float graph with 27-row gathers."""
+    import onnxruntime as ort
+    import torch
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    rows = ort.InferenceSession(str(rows_graph), options, providers=["CPUExecutionProvider"])
+    torch_net, session = nets["torch"], nets["onnx"]._segmenter_session
+    best: dict[str, list[float]] = {name: [] for name in ("torch_network", "onnx_maps", "onnx_graph",
+                                                          "onnx_graph_rows")}
+    for coords, features in feeds:
+        sparse_coords = torch.from_numpy(np.hstack([np.zeros((len(coords), 1), np.int64), coords.astype(np.int64)]))
+        times: dict[str, list[float]] = {name: [] for name in best}
+        steps = [("torch", None), ("onnx", session), ("rows", rows)]
+        for repeat in range(repeats):
+            for name, graph in (steps if repeat % 2 == 0 else steps[::-1]):
+                started = time.thread_time()
+                if graph is None:
+                    with torch.no_grad():
+                        torch_net.segmenter_form(torch_net.segmenter.make_input(sparse_coords,
+                                                                                torch.from_numpy(features)))
+                    times["torch_network"].append(time.thread_time() - started)
+                    continue
+                maps = fastest_kernel_maps(coords)
+                mapped = time.thread_time()
+                graph.run(None, {"features": features, **maps})
+                done = time.thread_time()
+                if name == "onnx":
+                    times["onnx_maps"].append(mapped - started)
+                    times["onnx_graph"].append(done - mapped)
+                else:
+                    times["onnx_graph_rows"].append(done - mapped)
+        for name in best:
+            best[name].append(min(times[name]))
+    out = {name: 1e3 * statistics.median(values) for name, values in best.items()}
+    out["onnx_over_torch"] = (out["onnx_maps"] + out["onnx_graph"]) / out["torch_network"]
+    out["graph_over_rows_graph"] = out["onnx_graph"] / out["onnx_graph_rows"]
+    return out
+
+
 def operator_profile(path: Path, feeds: list, fold_weights: bool = False) -> dict[str, float]:
     """ms per ROI by operator type of one graph over ``feeds`` (onnxruntime's profiler, one thread)."""
     import onnxruntime as ort
@@ -134,6 +183,11 @@ def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], c
                                              tuple(args.methods), cubes[0])
     stages, feeds = stage_times(nets, cubes, args.repeats)
     split = segment_split(nets, feeds, args.repeats)
+    rows_graph = float_dir / "segmenter-rows.onnx"  # the float graph's export format 5 form, for comparison
+    if not rows_graph.is_file():
+        export_segmenter(load_pair(*(ROOT / path for path in PAIRS[pair]))[1].build().eval(),
+                         nets["onnx"].profile, rows_graph)
+    cpu = segment_cpu(nets, feeds, max(args.repeats, 3), rows_graph)
     graph_feeds = [{"features": features, **kernel_maps(coords)} for coords, features in feeds]
     int8_manifest = json.loads((int8_dir / "manifest.json").read_text())
     fold = int8_manifest["detector"].get("precision") == "int8-weights"
@@ -148,7 +202,7 @@ def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], c
     ceiling = stages["onnx-int8"]["total"] - int8_products
     return {"detector": PAIRS[pair][0], "segmenter": PAIRS[pair][1],
             "roi_voxels": [int(len(coords)) for coords, _ in feeds],
-            "stages_ms": stages, "segment_split_ms": split, "operators_ms": operators,
+            "stages_ms": stages, "segment_split_ms": split, "segment_cpu_ms": cpu, "operators_ms": operators,
             "ceiling": {"int8_products_ms": int8_products, "int8_without_products_ms": ceiling,
                         "torch_ms": stages["torch"]["total"],
                         "int8_without_products_over_torch": ceiling / stages["torch"]["total"]}}
@@ -161,6 +215,7 @@ def print_pair(pair: str, entry: dict) -> None:
     for stage in (*STEPS, "total"):
         print(f"{stage:>10} " + " ".join(f"{stages[name][stage]:10.2f}" for name in ENGINES))
     print("segment split (ms):", {key: round(value, 2) for key, value in entry["segment_split_ms"].items()})
+    print("segment CPU time (ms):", {key: round(value, 3) for key, value in entry["segment_cpu_ms"].items()})
     for graph, precisions in entry["operators_ms"].items():
         for precision, ops in precisions.items():
             top = ", ".join(f"{op} {ms:.2f}" for op, ms in list(ops.items())[:8])
