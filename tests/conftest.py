@@ -1,4 +1,5 @@
 import os
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -9,6 +10,8 @@ os.environ.setdefault("RAY_AUTH_MODE", "disabled")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 if os.environ.get("PYTEST_XDIST_WORKER"):  # `make test` runs one worker per core: one thread each, children too
     os.environ.setdefault("OMP_NUM_THREADS", "1")
+if "RADARSEG_INT8_CACHE" not in os.environ:  # int8 calibrations kept by the suite's runs stay in the suite's folder
+    os.environ["RADARSEG_INT8_CACHE"] = tempfile.mkdtemp(prefix="radarseg-int8-cache-")
 
 
 def pytest_configure(config):
