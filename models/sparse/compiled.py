@@ -48,8 +48,12 @@ KERNELS = ("auto", "compiled", "reference")
 RENAMED = {"native": "compiled", "torch": "reference"}  # earlier names -> today's
 KERNELS_ENV = "RADARSEG_SPARSE_KERNELS"
 OLD_KERNELS_ENV = "RADARSEG_SPARSE_ENGINE"  # refused with the new name
-SOURCES = (Path(__file__).parent / "csrc" / "sparse_conv.cpp", Path(__file__).parent / "csrc" / "kernel_maps.cpp")
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = (CSRC / "sparse_conv.cpp", CSRC / "kernel_maps.cpp")
 """The extension's C++ files: the convolution kernels (and the module's bindings), and a pyramid's kernel maps."""
+HEADERS = (CSRC / "micro_kernel.h",)
+"""The headers the extensions' C++ files include (the micro-kernel this one shares with `models.sparse.int8`'s):
+hashed into every build key with the sources."""
 CFLAGS = ("-O3", "-march=native", "-fopenmp")
 LDFLAGS = ("-fopenmp",)
 # Instruction sets the kernels can be built for: `native` (everything this CPU has: 16-lane AVX-512
@@ -116,12 +120,12 @@ def cpu_flags() -> str:
     return platform.processor() or platform.machine()
 
 
-def build_key(instruction_set: str = "native") -> str:
-    """Hash of everything the compiled code depends on (see the module docstring)."""
+def build_key(instruction_set: str = "native", sources: tuple[Path, ...] = SOURCES) -> str:
+    """Hash of everything the code compiled from `sources` depends on (see the module docstring)."""
     digest = hashlib.sha256()
     flags = CFLAGS + INSTRUCTION_SETS[instruction_set] + LDFLAGS
-    for part in (*(source.read_bytes() for source in SOURCES), " ".join(flags).encode(), torch.__version__.encode(),
-                 sys.version.encode(), cpu_flags().encode(), platform.machine().encode()):
+    for part in (*(source.read_bytes() for source in sources + HEADERS), " ".join(flags).encode(),
+                 torch.__version__.encode(), sys.version.encode(), cpu_flags().encode(), platform.machine().encode()):
         digest.update(part)
         digest.update(b"\0")
     return digest.hexdigest()[:16]
@@ -194,30 +198,41 @@ def build(instruction_set: str) -> ModuleType:
     Raises:
         RuntimeError: the build failed; the message says why.
     """
+    return build_extension("radarseg_sparse", SOURCES, instruction_set, "the compiled sparse kernels")
+
+
+def build_extension(prefix: str, sources: tuple[Path, ...], instruction_set: str, what: str) -> ModuleType:
+    """`sources` compiled as one extension for `instruction_set` (one of `INSTRUCTION_SETS`), cached in
+    `build_root() / f"{prefix}_{build_key}"`; `what` names the kernels in the log and in the error.
+
+    Raises:
+        ValueError: an unknown instruction set.
+        RuntimeError: the build failed; the message says why.
+    """
     from torch.utils import cpp_extension  # noqa: PLC0415  (imports setuptools: only when needed)
 
-    name = f"radarseg_sparse_{build_key(instruction_set)}"
+    if instruction_set not in INSTRUCTION_SETS:
+        raise ValueError(f"instruction set must be one of {tuple(INSTRUCTION_SETS)}, got {instruction_set!r}")
+    name = f"{prefix}_{build_key(instruction_set, sources)}"
     directory = build_root() / name
     cached = (directory / f"{name}.so").is_file()
     if not cached:
-        logger.info("building the compiled sparse kernels (%s) in %s (first use with this CPU and source)",
-                    instruction_set, directory)
+        logger.info("building %s (%s) in %s (first use with this CPU and source)", what, instruction_set, directory)
     started = time.perf_counter()
     try:
         _ensure_ninja_on_path()
         directory.mkdir(parents=True, exist_ok=True)
         with _build_lock(directory):
             module = cpp_extension.load(
-                name=name, sources=[str(source) for source in SOURCES], build_directory=str(directory),
+                name=name, sources=[str(source) for source in sources], build_directory=str(directory),
                 extra_cflags=list(CFLAGS + INSTRUCTION_SETS[instruction_set]), extra_ldflags=list(LDFLAGS),
                 verbose=False,
             )
-    except Exception as error:  # noqa: BLE001  (compiler, ninja, linker or file errors all mean "no engine")
+    except Exception as error:  # noqa: BLE001  (compiler, ninja, linker or file errors all mean "no kernels")
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise RuntimeError(f"the compiled sparse kernels did not build ({type(error).__name__}: {first_line})") \
-            from error
+        raise RuntimeError(f"{what} did not build ({type(error).__name__}: {first_line})") from error
     if not cached:
-        logger.info("built the compiled sparse kernels in %.1f s", time.perf_counter() - started)
+        logger.info("built %s in %.1f s", what, time.perf_counter() - started)
     return module
 
 

@@ -7,79 +7,37 @@ result written as float32 or requantised to uint8. On a CPU with AVX-512 VNNI th
 it), elsewhere AVX2's `vpmaddwd` on operands widened to int16 (exact: no int16 saturation as `vpmaddubsw` would
 have). `path()` says which one this build runs.
 
-A separate extension from the float one (`models.sparse.compiled`), cached beside it under the same rules: a folder
-named by a hash of the source, the flags, torch's and Python's versions and the CPU's instruction-set flags
-(`-march=native`). `build("avx2")` builds the AVX2 variant on an AVX-512 machine (the tests compare both).
+A separate extension from the float one (`models.sparse.compiled`, whose micro-kernel `csrc/micro_kernel.h` it
+shares), built and cached by the same function: a folder named by a hash of the source and headers, the flags,
+torch's and Python's versions and the CPU's instruction-set flags (`-march=native`). `build("avx2")` builds the
+AVX2 variant on an AVX-512 machine (the tests compare both).
 """
 
 from __future__ import annotations
 
-import hashlib
-import logging
-import platform
-import sys
 import threading
-import time
 from pathlib import Path
 from types import ModuleType
 
-import torch
 from torch import Tensor
 
 from models.sparse import compiled
 
-logger = logging.getLogger(__name__)
-
 SOURCE = Path(__file__).parent / "csrc" / "sparse_conv_int8.cpp"
-INSTRUCTION_SETS = {"native": (), "avx2": ("-mno-avx512f",)}
-"""`native`: everything this CPU has (VNNI where present); `avx2`: AVX-512 (and with it VNNI) off."""
 
 _module: ModuleType | None = None
 _lock = threading.Lock()
 
 
-def build_key(instruction_set: str = "native") -> str:
-    """Hash of everything the compiled code depends on."""
-    digest = hashlib.sha256()
-    flags = compiled.CFLAGS + INSTRUCTION_SETS[instruction_set] + compiled.LDFLAGS
-    for part in (SOURCE.read_bytes(), " ".join(flags).encode(), torch.__version__.encode(), sys.version.encode(),
-                 compiled.cpu_flags().encode(), platform.machine().encode()):
-        digest.update(part)
-        digest.update(b"\0")
-    return digest.hexdigest()[:16]
-
-
 def build(instruction_set: str = "native") -> ModuleType:
-    """The int8 kernels compiled for `instruction_set` (a key of `INSTRUCTION_SETS`), cached.
+    """The int8 kernels compiled for `instruction_set` (a key of `compiled.INSTRUCTION_SETS`: `native`, everything
+    this CPU has, VNNI where present; `avx2`, AVX-512 and with it VNNI off), cached.
 
     Raises:
+        ValueError: an unknown instruction set.
         RuntimeError: the build failed; the message says why.
     """
-    from torch.utils import cpp_extension  # noqa: PLC0415  (imports setuptools: only when needed)
-
-    if instruction_set not in INSTRUCTION_SETS:
-        raise ValueError(f"instruction set must be one of {tuple(INSTRUCTION_SETS)}, got {instruction_set!r}")
-    name = f"radarseg_sparse_int8_{build_key(instruction_set)}"
-    directory = compiled.build_root() / name
-    cached = (directory / f"{name}.so").is_file()
-    if not cached:
-        logger.info("building the int8 sparse kernels (%s) in %s", instruction_set, directory)
-    started = time.perf_counter()
-    try:
-        compiled._ensure_ninja_on_path()
-        directory.mkdir(parents=True, exist_ok=True)
-        with compiled._build_lock(directory):
-            module = cpp_extension.load(
-                name=name, sources=[str(SOURCE)], build_directory=str(directory),
-                extra_cflags=list(compiled.CFLAGS + INSTRUCTION_SETS[instruction_set]),
-                extra_ldflags=list(compiled.LDFLAGS), verbose=False)
-    except Exception as error:  # noqa: BLE001  (compiler, ninja, linker or file errors all mean "no kernels")
-        first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
-        raise RuntimeError(f"the int8 sparse kernels did not build ({type(error).__name__}: {first_line})") \
-            from error
-    if not cached:
-        logger.info("built the int8 sparse kernels in %.1f s", time.perf_counter() - started)
-    return module
+    return compiled.build_extension("radarseg_sparse_int8", (SOURCE,), instruction_set, "the int8 sparse kernels")
 
 
 def load() -> ModuleType:

@@ -13,10 +13,11 @@
 //       grad[k] = sum_j src[neighbours[j, k]]^T dense[j]          (weight gradients)
 //
 // Design: output-stationary blocks of `kBlockRows` rows. Within a block, for each offset k the rows that
-// have a neighbour are listed, and a register-blocked micro-kernel multiplies up to 4 (AVX2) or 8 (AVX-512)
-// of them at a time by weight[k] (which stays in L1 while the block runs through that offset): only useful MACs execute,
-// missing neighbours cost nothing. Blocks run in parallel through at::parallel_for; the forward writes
-// disjoint rows (no atomics), the weight gradient keeps one accumulator per thread and sums them.
+// have a neighbour are listed, and a register-blocked micro-kernel (micro_kernel.h, shared with the int8
+// kernels) multiplies up to 4 (AVX2) or 8 (AVX-512) of them at a time by weight[k] (which stays in L1 while the
+// block runs through that offset): only useful MACs execute, missing neighbours cost nothing. Blocks run in
+// parallel through at::parallel_for; the forward writes disjoint rows (no atomics), the weight gradient keeps one
+// accumulator per thread and sums them.
 // Output columns are padded to a multiple of 8 floats inside the kernels so every vector op is full.
 // For inference, `neighbour_conv_fused` and `scatter_conv_fused` apply a folded BatchNorm's bias, a residual sum and
 // a ReLU in the loop that writes the output rows (no extra pass over the features).
@@ -32,10 +33,13 @@
 #include <algorithm>
 #include <cstdint>
 #include <cstring>
-#include <type_traits>
 #include <vector>
 
+#include "micro_kernel.h"
+
 namespace {
+
+using namespace radarseg_kernels;
 
 // Vectors: `half` is 8 floats (AVX2's register); `wide` is 16 floats where the compiler targets AVX-512
 // (-march=native on such a CPU: 32 registers, 16 lanes), else the same 8 floats. Columns are padded to a
@@ -44,152 +48,60 @@ namespace {
 typedef float half_v __attribute__((vector_size(32)));
 #if defined(__AVX512F__)
 typedef float wide_v __attribute__((vector_size(64)));
-constexpr int64_t kWide = 16;
-constexpr int kMaxRows = 8;       // 8 rows x up to 3 vectors = 24 accumulators of 32 registers
-constexpr int kMaxChunkVectors = 3;
 #else
 typedef half_v wide_v;
-constexpr int64_t kWide = 8;
-constexpr int kMaxRows = 4;       // 4 rows x 3 vectors = 12 accumulators of AVX2's 16 registers
-constexpr int kMaxChunkVectors = 3;
 #endif
 
-constexpr int64_t kLanes = 8;
-constexpr int64_t kBlockRows = 64;
+// The micro-kernel's types and multiply-add on float32 rows (micro_kernel.h).
+struct FloatOps {
+  using in_t = float;
+  using weight_t = float;
+  using acc_t = float;
+  using wide_v = ::wide_v;
+  using half_v = ::half_v;
+#if defined(__AVX512F__)
+  static constexpr int64_t kWide = 16;
+  static constexpr int kMaxRows = 8;  // 8 rows x up to 3 vectors = 24 accumulators of 32 registers
+#else
+  static constexpr int64_t kWide = 8;
+  static constexpr int kMaxRows = 4;  // 4 rows x 3 vectors = 12 accumulators of AVX2's 16 registers
+#endif
+  static constexpr int kMaxChunkVectors = 3;
+  static constexpr int64_t kGroup = 1;
 
-// Unaligned loads and stores (memcpy compiles to one vector move; an alignment attribute on a typedef would
-// be dropped when the type is a template argument).
-template <typename V>
-inline V load(const float* p) {
-  V v;
-  std::memcpy(&v, p, sizeof(V));
-  return v;
-}
-template <typename V>
-inline void store(float* p, V v) { std::memcpy(p, &v, sizeof(V)); }
-template <typename V>
-inline V bcast(float x) { return x - V{}; }  // scalar - vector broadcasts the scalar
+  static inline float group(const float* p) { return *p; }
+  template <typename V>
+  static inline V madd(V acc, float x, V w) { return acc + (x - V{}) * w; }  // scalar - vector broadcasts the scalar
+};
 
-inline int64_t padded(int64_t d) { return (d + kLanes - 1) / kLanes * kLanes; }
-
-// dst[r][d0:d0+columns] += src[r][0:C] @ w[:, d0:...] (w is (C, Dp)), for R rows.
-template <int R, int NW, int NH>
-inline void rows_times_weight_chunk(const float* const* src, const float* w, int64_t C, int64_t Dp, int64_t d0,
-                                    float* const* dst) {
-  wide_v acc[R][NW > 0 ? NW : 1];
-  half_v tail[R];
-  for (int r = 0; r < R; ++r) {
-    for (int v = 0; v < NW; ++v) acc[r][v] = load<wide_v>(dst[r] + d0 + v * kWide);
-    if (NH) tail[r] = load<half_v>(dst[r] + d0 + NW * kWide);
-  }
-  for (int64_t c = 0; c < C; ++c) {
-    wide_v wv[NW > 0 ? NW : 1];
-    half_v wt{};
-    const float* wc = w + c * Dp + d0;
-    for (int v = 0; v < NW; ++v) wv[v] = load<wide_v>(wc + v * kWide);
-    if (NH) wt = load<half_v>(wc + NW * kWide);
-    for (int r = 0; r < R; ++r) {
-      const float x = src[r][c];
-      for (int v = 0; v < NW; ++v) acc[r][v] += bcast<wide_v>(x) * wv[v];
-      if (NH) tail[r] += bcast<half_v>(x) * wt;
-    }
-  }
-  for (int r = 0; r < R; ++r) {
-    for (int v = 0; v < NW; ++v) store<wide_v>(dst[r] + d0 + v * kWide, acc[r][v]);
-    if (NH) store<half_v>(dst[r] + d0 + NW * kWide, tail[r]);
-  }
-}
+constexpr int kMaxRows = FloatOps::kMaxRows;
 
 // grad[0:A][d0:d0+columns] += sum_r src[r][0:A]^T dense[r][d0:...], for R pairs (dense rows padded to Bp).
 template <int R, int NW, int NH>
 inline void outer_products_chunk(const float* const* src, const float* const* dense, int64_t A, int64_t Bp,
                                  int64_t d0, float* grad) {
-  wide_v g[R][NW > 0 ? NW : 1];
-  half_v gt[R];
-  for (int r = 0; r < R; ++r) {
-    for (int v = 0; v < NW; ++v) g[r][v] = load<wide_v>(dense[r] + d0 + v * kWide);
-    if (NH) gt[r] = load<half_v>(dense[r] + d0 + NW * kWide);
-  }
+  Tile<FloatOps, R, NW, NH> g;
+  for (int r = 0; r < R; ++r) g.load_row(r, dense[r] + d0);
   for (int64_t a = 0; a < A; ++a) {
     float* ga = grad + a * Bp + d0;
-    wide_v acc[NW > 0 ? NW : 1];
-    half_v acc_tail{};
-    for (int v = 0; v < NW; ++v) acc[v] = load<wide_v>(ga + v * kWide);
-    if (NH) acc_tail = load<half_v>(ga + NW * kWide);
-    for (int r = 0; r < R; ++r) {
-      const float x = src[r][a];
-      for (int v = 0; v < NW; ++v) acc[v] += bcast<wide_v>(x) * g[r][v];
-      if (NH) acc_tail += bcast<half_v>(x) * gt[r];
-    }
-    for (int v = 0; v < NW; ++v) store<wide_v>(ga + v * kWide, acc[v]);
-    if (NH) store<half_v>(ga + NW * kWide, acc_tail);
-  }
-}
-
-template <int N>
-using Count = std::integral_constant<int, N>;
-
-// Both micro-kernels walk the padded columns in chunks: as many wide vectors as fit (at most
-// kMaxChunkVectors, and two + two for four), then one half vector for 8 columns left over; `chunk(d0, NW, NH)`
-// runs one chunk.
-template <typename F>
-inline void over_columns(int64_t Dp, F&& chunk) {
-  for (int64_t d0 = 0; d0 < Dp;) {
-    const int64_t wide = (Dp - d0) / kWide;
-    const bool half = (Dp - d0) % kWide != 0;  // only where kWide is 16
-    if (wide >= kMaxChunkVectors && wide != 4) {
-      chunk(d0, Count<kMaxChunkVectors>{}, Count<0>{});
-      d0 += kMaxChunkVectors * kWide;
-    } else if (wide >= 2) {
-      chunk(d0, Count<2>{}, Count<0>{});
-      d0 += 2 * kWide;
-    } else if (wide == 1 && half) {
-      chunk(d0, Count<1>{}, Count<1>{});
-      d0 += kWide + kLanes;
-    } else if (wide == 1) {
-      chunk(d0, Count<1>{}, Count<0>{});
-      d0 += kWide;
-    } else {
-      chunk(d0, Count<0>{}, Count<1>{});
-      d0 += kLanes;
-    }
-  }
-}
-
-// `body(Count<R>{})` for R = rows (1 <= rows <= kMaxRows): the row count as a compile-time constant.
-template <typename F>
-inline void with_rows(int rows, F&& body) {
-  switch (rows) {
-#if defined(__AVX512F__)
-    case 8: body(Count<8>{}); break;
-    case 7: body(Count<7>{}); break;
-    case 6: body(Count<6>{}); break;
-    case 5: body(Count<5>{}); break;
-#endif
-    case 4: body(Count<4>{}); break;
-    case 3: body(Count<3>{}); break;
-    case 2: body(Count<2>{}); break;
-    default: body(Count<1>{}); break;
+    Tile<FloatOps, 1, NW, NH> acc;
+    acc.load_row(0, ga);
+    for (int r = 0; r < R; ++r) acc.madd_row(0, src[r][a], g, r);
+    acc.store_row(0, ga);
   }
 }
 
 // dst[r] += src[r] @ w for `rows` <= kMaxRows rows.
 inline void rows_times_weight_any(int rows, const float* const* src, const float* w, int64_t C, int64_t Dp,
                                   float* const* dst) {
-  with_rows(rows, [&](auto r) {
-    over_columns(Dp, [&](int64_t d0, auto nw, auto nh) {
-      rows_times_weight_chunk<decltype(r)::value, decltype(nw)::value, decltype(nh)::value>(src, w, C, Dp, d0, dst);
-    });
-  });
+  rows_times_weight<FloatOps>(rows, src, w, C, Dp, dst);
 }
 
 // grad += sum_r src[r]^T dense[r] for `rows` <= kMaxRows pairs.
 inline void outer_products_any(int rows, const float* const* src, const float* const* dense, int64_t A, int64_t Bp,
                                float* grad) {
-  with_rows(rows, [&](auto r) {
-    over_columns(Bp, [&](int64_t d0, auto nw, auto nh) {
-      outer_products_chunk<decltype(r)::value, decltype(nw)::value, decltype(nh)::value>(src, dense, A, Bp, d0, grad);
-    });
+  over_tiles<FloatOps>(rows, Bp, [&](auto r, int64_t d0, auto nw, auto nh) {
+    outer_products_chunk<decltype(r)::value, decltype(nw)::value, decltype(nh)::value>(src, dense, A, Bp, d0, grad);
   });
 }
 

@@ -13,7 +13,8 @@
 // residual times its per-channel scale, or a float one), ReLU, and either float32 out or requantised to uint8
 // (q = clamp(rint(v / out_scale[d]), 0, 255), a scale per output channel).
 //
-// Micro-kernels (R rows x columns of int32 accumulators, the weight chunk kept in registers over the rows):
+// Micro-kernels (micro_kernel.h's, as the float kernels': R rows x columns of int32 accumulators, the weight chunk
+// kept in registers over the rows), this build's multiply-add in `Int8Ops`:
 // - AVX-512 VNNI: `vpdpbusd` multiplies 4 unsigned activation bytes by 4 signed weight bytes per int32 lane and
 //   adds them exactly (no intermediate saturation); 8 rows x up to 3 vectors of 16 lanes (+ one 8-lane vector
 //   through AVX512VL). Weights packed (K, C/4, Dp, 4) int8.
@@ -36,49 +37,28 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <type_traits>
 #include <vector>
+
+#include "micro_kernel.h"
 
 namespace {
 
-constexpr int64_t kLanes = 8;
-constexpr int64_t kBlockRows = 64;
-constexpr int kMaxChunkVectors = 3;
+using namespace radarseg_kernels;
+
 constexpr int64_t kMaxColumns = 4096;  // output channels of one layer, at most
 
 #if defined(__AVX512F__) && defined(__AVX512VNNI__) && defined(__AVX512VL__)
 #define RADARSEG_INT8_VNNI512 1
 constexpr const char* kPath = "avx512-vnni";
-constexpr int64_t kWide = 16;
-constexpr int kMaxRows = 8;
-constexpr int kGroup = 4;  // input channels per packed weight group
-typedef int8_t packed_t;
 #elif defined(__AVXVNNI__)
 #define RADARSEG_INT8_AVXVNNI 1  // AVX-VNNI without AVX-512 (e.g. Alder Lake): vpdpbusd on 8-lane vectors
 constexpr const char* kPath = "avx-vnni";
-constexpr int64_t kWide = 8;
-constexpr int kMaxRows = 4;
-constexpr int kGroup = 4;
-typedef int8_t packed_t;
 #elif defined(__AVX2__)
 #define RADARSEG_INT8_AVX2 1
 constexpr const char* kPath = "avx2";
-constexpr int64_t kWide = 8;
-constexpr int kMaxRows = 4;
-constexpr int kGroup = 2;
-typedef int16_t packed_t;
 #else
 constexpr const char* kPath = "scalar";
-constexpr int64_t kWide = 8;
-constexpr int kMaxRows = 4;
-constexpr int kGroup = 4;
-typedef int8_t packed_t;
 #endif
-
-inline int64_t padded(int64_t d) { return (d + kLanes - 1) / kLanes * kLanes; }
-
-template <int N>
-using Count = std::integral_constant<int, N>;
 
 inline int32_t load_u32(const uint8_t* p) {
   int32_t v;
@@ -86,126 +66,71 @@ inline int32_t load_u32(const uint8_t* p) {
   return v;
 }
 
-// acc[r][d0:d0+columns] += src[r][0:C] . w[:, d0:...] for R rows; w is packed (C / kGroup, Dp, kGroup).
-template <int R, int NW, int NH>
-inline void rows_times_weight_chunk(const uint8_t* const* src, const packed_t* w, int64_t C, int64_t Dp, int64_t d0,
-                                    int32_t* const* dst) {
-#if defined(RADARSEG_INT8_VNNI512)
-  __m512i acc[R][NW > 0 ? NW : 1];
-  __m256i tail[R];
-  for (int r = 0; r < R; ++r) {
-    for (int v = 0; v < NW; ++v) acc[r][v] = _mm512_loadu_si512(dst[r] + d0 + v * kWide);
-    if (NH) tail[r] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(dst[r] + d0 + NW * kWide));
+// The micro-kernel's types and multiply-add on this build's path (micro_kernel.h; the scalar path has none).
+struct Int8Ops {
+  using in_t = uint8_t;
+  using acc_t = int32_t;
+  static constexpr int kMaxChunkVectors = 3;
+#if defined(RADARSEG_INT8_AVX2)
+  using weight_t = int16_t;
+  static constexpr int64_t kGroup = 2;  // input channels per packed weight group
+  // two activation bytes as an int16 pair, zero-extended (the bytes are unsigned)
+  static inline int32_t group(const uint8_t* p) {
+    return static_cast<int32_t>(p[0]) | (static_cast<int32_t>(p[1]) << 16);
   }
-  for (int64_t c = 0; c < C; c += 4) {
-    const packed_t* wc = w + (c / 4 * Dp + d0) * 4;
-    __m512i wv[NW > 0 ? NW : 1];
-    __m256i wt = _mm256_setzero_si256();
-    for (int v = 0; v < NW; ++v) wv[v] = _mm512_loadu_si512(wc + v * kWide * 4);
-    if (NH) wt = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(wc + NW * kWide * 4));
-    for (int r = 0; r < R; ++r) {
-      const int32_t x = load_u32(src[r] + c);
-      for (int v = 0; v < NW; ++v) acc[r][v] = _mm512_dpbusd_epi32(acc[r][v], _mm512_set1_epi32(x), wv[v]);
-      if (NH) tail[r] = _mm256_dpbusd_epi32(tail[r], _mm256_set1_epi32(x), wt);
-    }
-  }
-  for (int r = 0; r < R; ++r) {
-    for (int v = 0; v < NW; ++v) _mm512_storeu_si512(dst[r] + d0 + v * kWide, acc[r][v]);
-    if (NH) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + NW * kWide), tail[r]);
-  }
-#elif defined(RADARSEG_INT8_AVXVNNI)
-  static_assert(NH == 0, "AVX-VNNI chunks are whole 8-lane vectors");
-  __m256i acc[R][NW > 0 ? NW : 1];
-  for (int r = 0; r < R; ++r)
-    for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(dst[r] + d0 + v * 8));
-  for (int64_t c = 0; c < C; c += 4) {
-    const packed_t* wc = w + (c / 4 * Dp + d0) * 4;
-    __m256i wv[NW > 0 ? NW : 1];
-    for (int v = 0; v < NW; ++v) wv[v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(wc + v * 32));
-    for (int r = 0; r < R; ++r) {
-      const __m256i xv = _mm256_set1_epi32(load_u32(src[r] + c));
-      for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_dpbusd_avx_epi32(acc[r][v], xv, wv[v]);
-    }
-  }
-  for (int r = 0; r < R; ++r)
-    for (int v = 0; v < NW; ++v) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + v * 8), acc[r][v]);
-#elif defined(RADARSEG_INT8_AVX2)
-  static_assert(NH == 0, "AVX2 chunks are whole 8-lane vectors");
-  __m256i acc[R][NW > 0 ? NW : 1];
-  for (int r = 0; r < R; ++r)
-    for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(dst[r] + d0 + v * 8));
-  for (int64_t c = 0; c < C; c += 2) {
-    const packed_t* wc = w + (c / 2 * Dp + d0) * 2;
-    __m256i wv[NW > 0 ? NW : 1];
-    for (int v = 0; v < NW; ++v) wv[v] = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(wc + v * 16));
-    for (int r = 0; r < R; ++r) {
-      // two activation bytes as an int16 pair, zero-extended (the bytes are unsigned)
-      const int32_t x = static_cast<int32_t>(src[r][c]) | (static_cast<int32_t>(src[r][c + 1]) << 16);
-      const __m256i xv = _mm256_set1_epi32(x);
-      for (int v = 0; v < NW; ++v) acc[r][v] = _mm256_add_epi32(acc[r][v], _mm256_madd_epi16(xv, wv[v]));
-    }
-  }
-  for (int r = 0; r < R; ++r)
-    for (int v = 0; v < NW; ++v) _mm256_storeu_si256(reinterpret_cast<__m256i*>(dst[r] + d0 + v * 8), acc[r][v]);
 #else
-  const int64_t columns = NW * kWide + NH * kLanes;
-  for (int r = 0; r < R; ++r)
-    for (int64_t c = 0; c < C; ++c) {
-      const int32_t x = src[r][c];
-      const packed_t* wc = w + (c / 4 * Dp + d0) * 4 + c % 4;
-      for (int64_t d = 0; d < columns; ++d) dst[r][d0 + d] += x * static_cast<int32_t>(wc[d * 4]);
-    }
+  using weight_t = int8_t;
+  static constexpr int64_t kGroup = 4;
+  static inline int32_t group(const uint8_t* p) { return load_u32(p); }  // four activation bytes, one lane
 #endif
-}
-
-// The padded columns in chunks of at most kMaxChunkVectors wide vectors (two + two for four), then one 8-lane
-// vector for 8 columns left over where kWide is 16.
-template <typename F>
-inline void over_columns(int64_t Dp, F&& chunk) {
-  for (int64_t d0 = 0; d0 < Dp;) {
-    const int64_t wide = (Dp - d0) / kWide;
-    const bool half = (Dp - d0) % kWide != 0;
-    if (wide >= kMaxChunkVectors && wide != 4) {
-      chunk(d0, Count<kMaxChunkVectors>{}, Count<0>{});
-      d0 += kMaxChunkVectors * kWide;
-    } else if (wide >= 2) {
-      chunk(d0, Count<2>{}, Count<0>{});
-      d0 += 2 * kWide;
-    } else if (wide == 1) {
-      chunk(d0, Count<1>{}, Count<0>{});
-      d0 += kWide;
-    } else if (half) {
+  // Vectors of int32 lanes (the sums'; a weight vector's lanes are 4-byte columns too), cast to the intrinsics'
+  // types in `madd` only: accumulators of __m512i (64-bit lanes) make GCC copy each one around every vpdpbusd in
+  // the loop, and spill them once they fill the registers.
 #if defined(RADARSEG_INT8_VNNI512)
-      chunk(d0, Count<0>{}, Count<1>{});
-#endif
-      d0 += kLanes;
-    }
+  typedef int32_t wide_v __attribute__((vector_size(64)));
+  typedef int32_t half_v __attribute__((vector_size(32)));
+  static constexpr int64_t kWide = 16;
+  static constexpr int kMaxRows = 8;
+  static inline wide_v madd(wide_v acc, int32_t x, wide_v w) {
+    return (wide_v)_mm512_dpbusd_epi32((__m512i)acc, _mm512_set1_epi32(x), (__m512i)w);
   }
-}
-
-template <typename F>
-inline void with_rows(int rows, F&& body) {
-  switch (rows) {
-#if defined(RADARSEG_INT8_VNNI512)
-    case 8: body(Count<8>{}); break;
-    case 7: body(Count<7>{}); break;
-    case 6: body(Count<6>{}); break;
-    case 5: body(Count<5>{}); break;
-#endif
-    case 4: body(Count<4>{}); break;
-    case 3: body(Count<3>{}); break;
-    case 2: body(Count<2>{}); break;
-    default: body(Count<1>{}); break;
+  static inline half_v madd(half_v acc, int32_t x, half_v w) {
+    return (half_v)_mm256_dpbusd_epi32((__m256i)acc, _mm256_set1_epi32(x), (__m256i)w);
   }
-}
+#else
+  typedef int32_t wide_v __attribute__((vector_size(32)));
+  typedef wide_v half_v;
+  static constexpr int64_t kWide = 8;
+  static constexpr int kMaxRows = 4;
+#endif
+#if defined(RADARSEG_INT8_AVXVNNI)
+  static inline wide_v madd(wide_v acc, int32_t x, wide_v w) {
+    return (wide_v)_mm256_dpbusd_avx_epi32((__m256i)acc, _mm256_set1_epi32(x), (__m256i)w);
+  }
+#elif defined(RADARSEG_INT8_AVX2)
+  static inline wide_v madd(wide_v acc, int32_t x, wide_v w) {
+    return (wide_v)_mm256_add_epi32((__m256i)acc, _mm256_madd_epi16(_mm256_set1_epi32(x), (__m256i)w));
+  }
+#endif
+};
 
+typedef Int8Ops::weight_t packed_t;
+constexpr int kMaxRows = Int8Ops::kMaxRows;
+constexpr int64_t kGroup = Int8Ops::kGroup;
+
+// acc[r][0:Dp] += src[r][0:C] . w for `rows` <= kMaxRows rows; w is packed (C / kGroup, Dp, kGroup).
 inline void rows_times_weight_any(int rows, const uint8_t* const* src, const packed_t* w, int64_t C, int64_t Dp,
                                   int32_t* const* dst) {
-  with_rows(rows, [&](auto r) {
-    over_columns(Dp, [&](int64_t d0, auto nw, auto nh) {
-      rows_times_weight_chunk<decltype(r)::value, decltype(nw)::value, decltype(nh)::value>(src, w, C, Dp, d0, dst);
-    });
-  });
+#if defined(RADARSEG_INT8_VNNI512) || defined(RADARSEG_INT8_AVXVNNI) || defined(RADARSEG_INT8_AVX2)
+  rows_times_weight<Int8Ops>(rows, src, w, C, Dp, dst);
+#else
+  for (int r = 0; r < rows; ++r)
+    for (int64_t c = 0; c < C; ++c) {
+      const int32_t x = src[r][c];
+      const packed_t* wc = w + c / kGroup * Dp * kGroup + c % kGroup;
+      for (int64_t d = 0; d < Dp; ++d) dst[r][d] += x * static_cast<int32_t>(wc[d * kGroup]);
+    }
+#endif
 }
 
 // The epilogue of a layer (see the file's comment); `zero_point` with `weight_sums` (K, D): the input offset.
@@ -382,6 +307,21 @@ void neighbour_block(const Layer& L, int64_t j0, int64_t rows, int32_t* acc) {
   }
 }
 
+// Each block of output rows' int32 sums (neighbour_block), blocks in parallel, then `write(row, sums)` for each of
+// the block's rows (`sums`: the row's D values).
+template <typename F>
+void gather_rows(const Layer& L, F&& write) {
+  const int64_t blocks = (L.M + kBlockRows - 1) / kBlockRows;
+  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
+    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
+    for (int64_t block = begin; block < end; ++block) {
+      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, L.M - j0);
+      neighbour_block(L, j0, rows, acc.data());
+      for (int64_t r = 0; r < rows; ++r) write(j0 + r, acc.data() + r * L.Dp);
+    }
+  });
+}
+
 }  // namespace
 
 at::Tensor neighbour_conv_int8_raw(at::Tensor src, at::Tensor neighbours, at::Tensor packed, int64_t D,
@@ -389,15 +329,7 @@ at::Tensor neighbour_conv_int8_raw(at::Tensor src, at::Tensor neighbours, at::Te
   const Layer L = make_layer(src, neighbours, packed, D, zero_point, weight_sums, "neighbour_conv_int8_raw");
   auto out = at::empty({L.M, D}, at::TensorOptions().dtype(at::kInt));
   int32_t* dst = out.data_ptr<int32_t>();
-  const int64_t blocks = (L.M + kBlockRows - 1) / kBlockRows;
-  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
-    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
-    for (int64_t block = begin; block < end; ++block) {
-      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, L.M - j0);
-      neighbour_block(L, j0, rows, acc.data());
-      for (int64_t r = 0; r < rows; ++r) std::memcpy(dst + (j0 + r) * D, acc.data() + r * L.Dp, D * sizeof(int32_t));
-    }
-  });
+  gather_rows(L, [&](int64_t row, const int32_t* sums) { std::memcpy(dst + row * D, sums, D * sizeof(int32_t)); });
   return out;
 }
 
@@ -411,15 +343,7 @@ at::Tensor neighbour_conv_int8(at::Tensor src, at::Tensor neighbours, at::Tensor
                                    "neighbour_conv_int8");
   auto out = make_output(L.M, D, e);
   void* dst = out.data_ptr();
-  const int64_t blocks = (L.M + kBlockRows - 1) / kBlockRows;
-  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
-    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
-    for (int64_t block = begin; block < end; ++block) {
-      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, L.M - j0);
-      neighbour_block(L, j0, rows, acc.data());
-      for (int64_t r = 0; r < rows; ++r) e.write(dst, j0 + r, acc.data() + r * L.Dp, D);
-    }
-  });
+  gather_rows(L, [&](int64_t row, const int32_t* sums) { e.write(dst, row, sums, D); });
   return out;
 }
 
@@ -547,14 +471,7 @@ at::Tensor neighbour_conv_int8_pairs(at::Tensor src, at::Tensor offsets, at::Ten
   const Epilogue e = make_epilogue(scale, bias, residual, residual_scale, relu, out_scale, M, D, what);
   auto out = make_output(M, D, e);
   void* dst = out.data_ptr();
-  at::parallel_for(0, blocks, 1, [&](int64_t begin, int64_t end) {
-    std::vector<int32_t> acc(static_cast<size_t>(kBlockRows * L.Dp));
-    for (int64_t block = begin; block < end; ++block) {
-      const int64_t j0 = block * kBlockRows, rows = std::min(kBlockRows, M - j0);
-      neighbour_block(L, j0, rows, acc.data());
-      for (int64_t r = 0; r < rows; ++r) e.write(dst, j0 + r, acc.data() + r * L.Dp, D);
-    }
-  });
+  gather_rows(L, [&](int64_t row, const int32_t* sums) { e.write(dst, row, sums, D); });
   return out;
 }
 
