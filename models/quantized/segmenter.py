@@ -145,8 +145,8 @@ class _Run:
 class Int8MinkUNet:
     """``int8(x) -> (logits (N, num_classes) float32, MacTally)``, as :class:`FusedMinkUNet` is called.
 
-    ``activation_scales``: each requantised activation's uint8 scale per channel (C,), in the order :meth:`__call__`
-    produces them
+    ``activation_scales``: each requantised activation's uint8 scale per channel (C,), in the order the layer walk
+    (:meth:`FusedMinkUNet.walk`) produces them
     (:func:`models.quantized.calibration.calibrate` measures them on frames); ``input_range``: the input features'.
     The int8 layers are built on first use from their input's scales (constants: the same at every call)."""
 
@@ -235,6 +235,12 @@ class Int8MinkUNet:
             run.macs.add(len(x.feats), layer.channels)
         return self._submanifold(hidden, block.second, run, residual=shortcut)
 
+    def _concat(self, up: QTensor, skip: QTensor) -> QTensor:
+        """A skip concatenation: each part keeps its scales, the float channels' positions follow the columns."""
+        positions = torch.cat([up.positions(), skip.positions() + up.feats.shape[1]])
+        return QTensor(torch.cat([up.feats, skip.feats], dim=1), torch.cat([up.scale, skip.scale]), skip.stride,
+                       skip.cache, channels=positions)
+
     def quantise_input(self, feats: Tensor, stride: int, cache: object) -> QTensor:
         """The input features (N, C) float as uint8 with their per-feature scale and zero point."""
         scale, zero_point = self.input_range.quantisation()
@@ -251,23 +257,7 @@ class Int8MinkUNet:
         run = _Run()
         fused = self.fused
         x.cache.build_pyramid(x.stride, len(fused.encoder) + 1)
-        q = self.quantise_input(x.feats.float(), x.stride, x.cache)
-        for conv in fused.stem:
-            q = self._submanifold(q, conv, run)
-        skips = [q]
-        for down, stack in fused.encoder:
-            q = self._strided(skips[-1], down, run)
-            for block in stack:
-                q = self._residual(q, block, run)
-            skips.append(q)
-        y = skips.pop()
-        for (up, stack), skip in zip(fused.decoder, reversed(skips), strict=True):
-            up_out = self._transposed(y, up, run)
-            positions = torch.cat([up_out.positions(), skip.positions() + up_out.feats.shape[1]])
-            y = QTensor(torch.cat([up_out.feats, skip.feats], dim=1), torch.cat([up_out.scale, skip.scale]),
-                        skip.stride, skip.cache, channels=positions)
-            for block in stack:
-                y = self._residual(y, block, run)
+        y = fused.walk(self.quantise_input(x.feats.float(), x.stride, x.cache), self, run)
         if run.layer != len(self.activation_scales):
             raise ValueError(f"{len(self.activation_scales)} activation scales for {run.layer} activations")
         feats = y.feats if y.feats.dtype == torch.float32 else y.dequantise()  # the last convolution's: float

@@ -21,6 +21,7 @@ so the fused form runs wherever the eager one does.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol, TypeVar
 
 import torch
 from torch import Tensor, nn
@@ -102,6 +103,26 @@ class MacTally:
     def add(self, pairs: int, channels: int, executed: int | None = None) -> None:
         self.useful += pairs * channels
         self.executed += pairs * channels if executed is None else executed
+
+
+Features = TypeVar("Features")
+State = TypeVar("State", contravariant=True)
+
+
+class LayerRunner(Protocol[Features, State]):
+    """What :meth:`FusedMinkUNet.walk` runs each layer with, on its own kind of features and one frame's ``state``:
+    the float network itself (``SparseTensor``, its ``MacTally``), or ``models.quantized.segmenter.Int8MinkUNet``
+    (uint8 ``QTensor``, its run)."""
+
+    def _submanifold(self, x: Features, conv: FoldedConv, state: State, /) -> Features: ...
+
+    def _strided(self, x: Features, conv: FoldedConv, state: State, /) -> Features: ...
+
+    def _transposed(self, x: Features, conv: FoldedConv, state: State, /) -> Features: ...
+
+    def _residual(self, x: Features, block: FoldedResidual, state: State, /) -> Features: ...
+
+    def _concat(self, up: Features, skip: Features, /) -> Features: ...
 
 
 class FusedMinkUNet:
@@ -187,25 +208,35 @@ class FusedMinkUNet:
             macs.add(len(x), block.shortcut.channels)
         return self._submanifold(hidden, block.second, macs, residual=shortcut.contiguous(), relu=True)
 
+    def _concat(self, up: SparseTensor, skip: SparseTensor) -> SparseTensor:
+        return cat_features([up, skip])
+
     # ----------------------------------------------------------------- the network
+    def walk(self, x: Features, layers: LayerRunner[Features, State], state: State) -> Features:
+        """The features the classifier reads: the stem, each encoder level (its strided conv, then its residual
+        blocks; each level's output kept for its skip), each decoder level (its transposed conv, the skip
+        concatenated, its residual blocks), every layer run by ``layers``."""
+        for conv in self.stem:
+            x = layers._submanifold(x, conv, state)
+        skips = [x]
+        for down, stack in self.encoder:
+            x = layers._strided(skips[-1], down, state)
+            for block in stack:
+                x = layers._residual(x, block, state)
+            skips.append(x)
+        y = skips.pop()
+        for (up, stack), skip in zip(self.decoder, reversed(skips), strict=True):
+            y = layers._concat(layers._transposed(y, up, state), skip)
+            for block in stack:
+                y = layers._residual(y, block, state)
+        return y
+
     @torch.no_grad()
     def __call__(self, x: SparseTensor) -> tuple[Tensor, MacTally]:
         """Logits (N, num_classes) for the N voxels of ``x`` (stride 1) and the frame's MACs."""
         macs = MacTally()
         x.cache.build_pyramid(x.stride, len(self.encoder) + 1)  # every level's kernel maps in one compiled pass
-        for conv in self.stem:
-            x = self._submanifold(x, conv, macs)
-        skips = [x]
-        for down, stack in self.encoder:
-            x = self._strided(skips[-1], down, macs)
-            for block in stack:
-                x = self._residual(x, block, macs)
-            skips.append(x)
-        y = skips.pop()
-        for (up, stack), skip in zip(self.decoder, reversed(skips), strict=True):
-            y = cat_features([self._transposed(y, up, macs), skip])
-            for block in stack:
-                y = self._residual(y, block, macs)
+        y = self.walk(x, self, macs)
         logits = y.feats @ self.classifier_weight
         if self.classifier_bias is not None:
             logits += self.classifier_bias
