@@ -12,12 +12,13 @@
 // The element types, vectors and multiply-add come from an `Ops` type:
 //   in_t, weight_t, acc_t                 activation, packed weight and accumulator elements
 //   wide_v, half_v                        vectors of kWide and 8 lanes (the same type where kWide is 8)
-//   kWide, kGroup, kMaxRows, kMaxChunkVectors
+//   kWide, kGroup, kMaxRows, kMaxChunkVectors, kHalfJoinsWide (see over_columns)
 //   group(const in_t*)                    the kGroup activations of one input group, as the scalar to broadcast
 //   madd(acc, x, w)                       acc + broadcast(x) . w, for wide_v and (where kWide is 16) half_v
 
 #pragma once
 
+#include <algorithm>
 #include <cstdint>
 #include <cstring>
 #include <type_traits>
@@ -76,18 +77,17 @@ inline void rows_times_weight_chunk(const typename Ops::in_t* const* src, const 
                                     int64_t Dp, int64_t d0, typename Ops::acc_t* const* dst) {
   Tile<Ops, R, NW, NH> acc;
   for (int r = 0; r < R; ++r) acc.load_row(r, dst[r] + d0);
-  const typename Ops::weight_t* wc = w + d0 * Ops::kGroup;  // the chunk's weights of the input group at c
-  for (int64_t c = 0; c < C; c += Ops::kGroup, wc += Dp * Ops::kGroup) {
+  for (int64_t c = 0; c < C; c += Ops::kGroup) {
     Tile<Ops, 1, NW, NH> weights;
-    weights.load_row(0, wc);
+    weights.load_row(0, w + (c / Ops::kGroup * Dp + d0) * Ops::kGroup);
     for (int r = 0; r < R; ++r) acc.madd_row(r, Ops::group(src[r] + c), weights, 0);
   }
   for (int r = 0; r < R; ++r) acc.store_row(r, dst[r] + d0);
 }
 
 // The padded columns in chunks: as many wide vectors as fit (at most kMaxChunkVectors, and two + two for four),
-// then, where kWide is 16, one half vector for 8 columns left over (with the last wide one when 24 are left);
-// `chunk(d0, Count<NW>{}, Count<NH>{})` runs one chunk.
+// then, where kWide is 16, one half vector for 8 columns left over (in the last wide one's chunk when 24 are left
+// and Ops::kHalfJoinsWide); `chunk(d0, Count<NW>{}, Count<NH>{})` runs one chunk.
 template <typename Ops, typename F>
 inline void over_columns(int64_t Dp, F&& chunk) {
   constexpr int64_t kWide = Ops::kWide;
@@ -102,17 +102,19 @@ inline void over_columns(int64_t Dp, F&& chunk) {
     } else if (wide >= 2) {
       chunk(d0, Count<2>{}, Count<0>{});
       d0 += 2 * kWide;
-    } else if (wide == 1 && !half) {
+    } else if (wide == 1 && !(half && Ops::kHalfJoinsWide)) {
       chunk(d0, Count<1>{}, Count<0>{});
       d0 += kWide;
     } else if constexpr (kWide > kLanes) {
-      if (wide == 1) {
-        chunk(d0, Count<1>{}, Count<1>{});
-        d0 += kWide + kLanes;
-      } else {
-        chunk(d0, Count<0>{}, Count<1>{});
-        d0 += kLanes;
+      if constexpr (Ops::kHalfJoinsWide) {
+        if (wide == 1) {
+          chunk(d0, Count<1>{}, Count<1>{});
+          d0 += kWide + kLanes;
+          continue;
+        }
       }
+      chunk(d0, Count<0>{}, Count<1>{});
+      d0 += kLanes;
     }
   }
 }
@@ -120,10 +122,17 @@ inline void over_columns(int64_t Dp, F&& chunk) {
 // `body(Count<R>{})` for R = rows (1 <= rows <= MaxRows): the row count as a compile-time constant.
 template <int MaxRows, typename F>
 inline void with_rows(int rows, F&& body) {
-  if constexpr (MaxRows > 1) {
-    if (rows < MaxRows) return with_rows<MaxRows - 1>(rows, body);
+  static_assert(MaxRows == 4 || MaxRows == 8, "4 or 8 rows at a time");
+  switch (rows) {  // the cases above MaxRows never come
+    case 8: body(Count<std::min(8, MaxRows)>{}); break;
+    case 7: body(Count<std::min(7, MaxRows)>{}); break;
+    case 6: body(Count<std::min(6, MaxRows)>{}); break;
+    case 5: body(Count<std::min(5, MaxRows)>{}); break;
+    case 4: body(Count<4>{}); break;
+    case 3: body(Count<3>{}); break;
+    case 2: body(Count<2>{}); break;
+    default: body(Count<1>{}); break;
   }
-  body(Count<MaxRows>{});
 }
 
 // `tile(Count<R>{}, d0, Count<NW>{}, Count<NH>{})` over every chunk of Dp columns of a group of `rows` rows.

@@ -67,6 +67,7 @@ struct FloatOps {
   static constexpr int kMaxRows = 4;  // 4 rows x 3 vectors = 12 accumulators of AVX2's 16 registers
 #endif
   static constexpr int kMaxChunkVectors = 3;
+  static constexpr bool kHalfJoinsWide = true;  // 24 columns as one chunk of 16 + 8
   static constexpr int64_t kGroup = 1;
 
   static inline float group(const float* p) { return *p; }
