@@ -17,7 +17,7 @@ from radar.simulate import simulate_sequence
 
 
 def post_to_service(out: Path, *, detector: Path, segmenter: Path, seed: int = 99,
-                    ready_timeout_s: float = 120.0) -> dict[str, Any]:
+                    ready_timeout_s: float = 300.0) -> dict[str, Any]:
     """``radarseg serve`` with the given checkpoints on a free loopback port; one simulated ``small`` cube
     posted to ``/v1/segment``; returns the response's objects, compute and usage, and the true objects."""
     port = free_port()
