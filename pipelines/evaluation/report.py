@@ -7,6 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from pipelines.evaluation.tracking import match_key
+
 PAPER_REFERENCE = {  # docs/design.md section 12, ERASE-Net (M); for context only (other data, other radars)
     "NXP": {"RD": 73.70, "RA": 57.02, "mAP": 0.853, "macs_g": "12.0 + 1.46"},
     "CARRADA": {"RD": 53.57, "RA": 43.95, "mAP": 0.52, "macs_g": "8.41 + 0.49"},
@@ -122,7 +124,7 @@ def tracking_headline(tracking: dict[str, Any] | None) -> str:
         return "tracking: not evaluated"
     if "skipped" in tracking:
         return f"tracking: skipped: {tracking['skipped']}"
-    key = f"match_{tracking['match_distance_m']:g}m"
+    key = match_key(tracking["match_distance_m"])
     parts = []
     for source, name in TRACKING_SOURCES.items():
         a, c = (tracking[source][v][key]["overall"] for v in ("all_objects", "confirmed"))
@@ -143,7 +145,7 @@ def tracking_lines(tracking: dict[str, Any] | None) -> list[str]:
               f"tracks. A track matches a true object within {tracking['match_distance_m']:g} m "
               f"({tracking['distance']}; {tracking['secondary_distance_m']:g} m in the last columns). Hypotheses: "
               + "; ".join(f"*{k}*: {v}" for k, v in tracking["variants"].items()) + ".", ""]
-    first, second = (f"match_{tracking[k]:g}m" for k in ("match_distance_m", "secondary_distance_m"))
+    first, second = (match_key(tracking[k]) for k in ("match_distance_m", "secondary_distance_m"))
     rows = []
     for source, name in TRACKING_SOURCES.items():
         for variant in tracking["variants"]:

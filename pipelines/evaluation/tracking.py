@@ -13,9 +13,12 @@ their own position, each labelled with the id of its track, in two variants: ``a
 of a frame with the id of the track it went to, new tracks included) and ``confirmed`` (only objects whose
 track is confirmed after that frame: what a consumer of confirmed tracks sees). CLEAR MOT and identity
 metrics come from py-motmetrics with a Euclidean match distance in Cartesian metres (``MATCH_DISTANCE_M``,
-and ``SECONDARY_DISTANCE_M``), overall (class agnostic) and per class (truth of the class against tracks
-voted that class). The velocity error compares a matched track's velocity vector with the simulator's from
-the track's ``VELOCITY_MIN_AGE``-th frame on; heading only for objects faster than ``HEADING_MIN_SPEED_MPS``.
+and ``SECONDARY_DISTANCE_M``, set for the 50 m road radars and scaled to the radar by
+:func:`radar.profiles.scene_settings.radar_scale` like the AP distances: :func:`match_distances`), overall (class
+agnostic) and per class (truth of the class against tracks voted that class). Scores at a distance ``d`` are under
+the key :func:`match_key` (``match_2m`` for every built-in preset). The velocity error compares a matched track's
+velocity vector with the simulator's from the track's ``VELOCITY_MIN_AGE``-th frame on; heading only for objects
+faster than ``HEADING_MIN_SPEED_MPS``.
 """
 
 from __future__ import annotations
@@ -30,9 +33,10 @@ import numpy as np
 
 from pipelines.datasets.store import OBJECT_COLUMN
 from radar.profiles import RadarProfile
+from radar.profiles.scene_settings import radar_scale
 from radar.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
 
-MATCH_DISTANCE_M = 2.0
+MATCH_DISTANCE_M = 2.0  # metres, for a radar of 50 m or more (match_distances scales both to the radar)
 SECONDARY_DISTANCE_M = 1.0
 VELOCITY_MIN_AGE = 3  # a track's third frame on
 HEADING_MIN_SPEED_MPS = 1.0
@@ -42,6 +46,19 @@ VARIANTS = {"all_objects": "every object of a frame, with the id of the track it
 MOT_METRICS = ("mota", "motp", "idf1", "idp", "idr", "precision", "recall", "num_switches", "num_fragmentations",
                "mostly_tracked", "partially_tracked", "mostly_lost", "num_unique_objects", "num_false_positives",
                "num_misses", "num_objects", "num_predictions")
+
+
+def match_distances(profile: RadarProfile) -> tuple[float, float]:
+    """The match distance and the secondary one (m) for ``profile``: ``MATCH_DISTANCE_M`` and
+    ``SECONDARY_DISTANCE_M`` times :func:`radar_scale`, to the millimetre (they name keys: :func:`match_key`).
+    2 and 1 m for every built-in preset, 0.25 and 0.125 m for OpenRadar's radar (6.246 m)."""
+    scale = radar_scale(profile)
+    return round(MATCH_DISTANCE_M * scale, 3), round(SECONDARY_DISTANCE_M * scale, 3)
+
+
+def match_key(distance_m: float) -> str:
+    """The key of the scores at match distance ``distance_m`` (m) in a variant's section: ``match_2m``."""
+    return f"match_{distance_m:g}m"
 
 
 @dataclass(frozen=True)
@@ -156,10 +173,11 @@ def evaluate_tracking(frames: Iterable[TrackingFrame], profile: RadarProfile,
                       config: TrackerConfig | None = None) -> dict[str, Any]:
     """The ``tracking`` section of metrics.json for these frames (any order)."""
     config = config or TrackerConfig.for_profile(profile)
+    match_m, secondary_m = match_distances(profile)
     sequences = by_sequence(frames)
     truth_ids = {(s, int(t)) for s, group in sequences.items() for f in group for t in f.truth.track_id}
     section: dict[str, Any] = {
-        "match_distance_m": MATCH_DISTANCE_M, "secondary_distance_m": SECONDARY_DISTANCE_M,
+        "match_distance_m": match_m, "secondary_distance_m": secondary_m,
         "distance": "Euclidean, Cartesian x-y (m); a pair farther apart never matches",
         "variants": VARIANTS, "velocity_min_age": VELOCITY_MIN_AGE, "heading_min_speed_mps": HEADING_MIN_SPEED_MPS,
         "sequences": len(sequences), "frames": sum(len(g) for g in sequences.values()),
@@ -173,9 +191,9 @@ def evaluate_tracking(frames: Iterable[TrackingFrame], profile: RadarProfile,
             seconds += step_seconds
         result: dict[str, Any] = {}
         for variant in VARIANTS:
-            result[variant] = {f"match_{d:g}m": _mot_scores(sequences, answers, variant, d, class_names)
-                               for d in (MATCH_DISTANCE_M, SECONDARY_DISTANCE_M)}
-        result["velocity"] = _velocity_errors(sequences, answers, class_names)
+            result[variant] = {match_key(d): _mot_scores(sequences, answers, variant, d, class_names)
+                               for d in (match_m, secondary_m)}
+        result["velocity"] = _velocity_errors(sequences, answers, class_names, match_m)
         ms = 1000 * np.asarray(seconds)
         result["tracker_ms_per_frame"] = {"mean": _num(ms.mean()), "median": _num(np.median(ms)),
                                           "p99": _num(np.percentile(ms, 99)), "frames": len(ms)} if len(ms) else {}
@@ -234,12 +252,12 @@ def _mot_summary(acc: Any) -> dict[str, Any]:
 
 
 def _velocity_errors(sequences: dict[int, list[TrackingFrame]], answers: dict[int, list[Hypotheses]],
-                     class_names: tuple[str, ...]) -> dict[str, Any]:
-    """RMSE of vx, vy (m/s) and heading (degrees) of tracks matched to truth (``all_objects`` hypotheses at
-    ``MATCH_DISTANCE_M``), from the track's ``VELOCITY_MIN_AGE``-th frame on, per class of the truth."""
+                     class_names: tuple[str, ...], match_m: float) -> dict[str, Any]:
+    """RMSE of vx, vy (m/s) and heading (degrees) of tracks matched to truth (``all_objects`` hypotheses within
+    ``match_m`` metres), from the track's ``VELOCITY_MIN_AGE``-th frame on, per class of the truth."""
     pairs: dict[int, list[tuple[float, float, float, float]]] = defaultdict(list)  # class -> (dvx, dvy, true v)
     for s, group in sequences.items():
-        events = _accumulator({s: group}, {s: answers[s]}, "all_objects", MATCH_DISTANCE_M, None).mot_events
+        events = _accumulator({s: group}, {s: answers[s]}, "all_objects", match_m, None).mot_events
         matched = events[events["Type"].isin(["MATCH", "SWITCH"])]
         frames = {f.frame_index: (f, h) for f, h in zip(group, answers[s], strict=True)}
         for (frame_index, _), event in matched.iterrows():

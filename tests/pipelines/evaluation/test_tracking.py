@@ -1,17 +1,24 @@
 """Tracking evaluation (pipelines/evaluation/tracking.py) on a tiny simulated store: the metrics are there, the
 true centres track almost perfectly, frame gaps are stepped over, a store without tracking truth is refused in
-one line."""
+one line; the match distances are 2 / 1 m for a preset and shrink with a radar that sees less than 50 m."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import zarr
 
 from pipelines.datasets.store import OBJECT_COLUMN, frames_of_split, open_store, store_profile, tracking_truth_problem
 from pipelines.evaluation.report import tracking_headline, tracking_lines
-from pipelines.evaluation.tracking import VARIANTS, TrackingTally
+from pipelines.evaluation.tracking import VARIANTS, TrackingFrame, TrackingTally, TruthObjects, evaluate_tracking
+from radar.profiles import get_profile, load_profile_file
+from radar.tracking import Measurements
+
+INDOOR_PROFILE = Path(__file__).resolve().parents[3] / "docs" / "profiles" / "openradar_ti_2tx4rx.toml"  # 6.25 m
 
 
 def truth_as_objects(table: np.ndarray, profile) -> list[SimpleNamespace]:
@@ -85,3 +92,45 @@ def test_objects_without_track_ids_are_no_truth(seq_store):
     tally = TrackingTally(profile)
     tally.add(0, 0, table, [])
     assert "no track ids" in tally.summary()["skipped"]
+
+
+def walking_person(offset_m: float) -> list[TrackingFrame]:
+    """One person walking away at 1 m/s from 3 m, 8 frames; the network's object ``offset_m`` to its right."""
+    frames = []
+    for i in range(8):
+        y = np.array([3.0 + 0.1 * i])
+        truth = TruthObjects(track_id=np.array([7]), class_id=np.array([1]), x=np.zeros(1), y=y, vx=np.zeros(1),
+                             vy=np.ones(1), radial_velocity=np.ones(1))
+        predicted = Measurements(np.full(1, offset_m), y, np.ones(1), np.ones(1, np.int64), np.ones(1))
+        frames.append(TrackingFrame(0, i, truth, predicted))
+    return frames
+
+
+def test_a_preset_matches_within_2_m():
+    section = json.loads(json.dumps(evaluate_tracking(walking_person(0.5), get_profile("small"))))  # metrics.json
+    assert section["match_distance_m"] == 2.0 and section["secondary_distance_m"] == 1.0
+    assert set(section["predicted"]["all_objects"]) == {"match_2m", "match_1m"}
+    assert section["predicted"]["all_objects"]["match_2m"]["overall"]["mota"] == 1.0  # 0.5 m off still matches
+    assert section["predicted"]["velocity"]["overall"]["n"] > 0
+    assert tracking_headline(section).startswith("tracking (2 m; all objects / confirmed)")
+    assert "within 2 m" in "\n".join(tracking_lines(section))
+
+
+def test_a_radar_of_6_m_matches_within_a_scaled_distance():
+    profile = load_profile_file(INDOOR_PROFILE)
+    assert profile.max_range == pytest.approx(6.25, abs=0.01)
+    section = json.loads(json.dumps(evaluate_tracking(walking_person(0.5), profile)))  # as in metrics.json
+    match_m, secondary_m = section["match_distance_m"], section["secondary_distance_m"]
+    assert match_m == pytest.approx(2.0 * profile.max_range / 50, abs=5e-4) and secondary_m == match_m / 2
+    keys = {f"match_{match_m:g}m", f"match_{secondary_m:g}m"}
+    assert keys == {"match_0.25m", "match_0.125m"}
+    for source in ("predicted", "truth_centres"):
+        for variant in VARIANTS:
+            assert set(section[source][variant]) == keys
+    assert section["truth_centres"]["all_objects"]["match_0.25m"]["overall"]["mota"] == 1.0
+    predicted = section["predicted"]["all_objects"]["match_0.25m"]["overall"]
+    assert predicted["mota"] < 0 and predicted["num_misses"] == 8  # 0.5 m off is two gates away indoors
+    assert section["predicted"]["velocity"]["overall"]["n"] == 0  # the velocity error takes the same distance
+    assert tracking_headline(section).startswith("tracking (0.25 m; all objects / confirmed)")
+    lines = "\n".join(tracking_lines(section))
+    assert "within 0.25 m" in lines and "0.125 m in the last columns" in lines and "MOTA 0.125m" in lines
