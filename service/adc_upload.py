@@ -37,11 +37,16 @@ class AdcFrameInput:
 
     def layout_of(self, header: NpyHeader) -> str | None:
         """The layout a .npy header's dtype and shape fit, None when they fit none."""
-        dtype = header.dtype.newbyteorder("=")
+        return self.layout_for(header.dtype, header.shape)
+
+    def layout_for(self, dtype: np.dtype, shape: tuple[int, ...]) -> str | None:
+        """The layout a frame of ``dtype`` and ``shape`` fits (complex, or 16-bit I/Q on a trailing axis of 2), None
+        when it fits none."""
+        dtype = dtype.newbyteorder("=")
         if dtype in [np.dtype(d) for d in COMPLEX_DTYPES]:
-            shape = header.shape
-        elif dtype in [np.dtype(d) for d in IQ_DTYPES] and header.shape[-1:] == (2,):
-            shape = header.shape[:-1]
+            shape = tuple(shape)
+        elif dtype in [np.dtype(d) for d in IQ_DTYPES] and tuple(shape[-1:]) == (2,):
+            shape = tuple(shape[:-1])
         else:
             return None
         return next((name for name, wanted in self.shapes().items() if wanted == shape), None)

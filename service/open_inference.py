@@ -20,7 +20,8 @@ HEADER_LENGTH = "Inference-Header-Content-Length"
 DATATYPES = {"BOOL": "?", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "INT8": "i1",
              "INT16": "<i2", "INT32": "<i4", "INT64": "<i8", "FP16": "<f2", "FP32": "<f4", "FP64": "<f8"}
 DATATYPE_OF = {np.dtype(code).newbyteorder("<").str: name for name, code in DATATYPES.items()}
-ExpectedInputs = dict[str, tuple[tuple[int, ...], tuple[str, ...]]]  # input name -> (shape, accepted datatypes)
+# input name -> (the shapes it may have, accepted datatypes)
+ExpectedInputs = dict[str, tuple[tuple[tuple[int, ...], ...], tuple[str, ...]]]
 MAX_HEADER_BYTES = 1 << 16  # a binary request's JSON header: names, shapes and parameters, never the data
 
 
@@ -78,9 +79,14 @@ def _tensor(spec: Any, binary: memoryview, offset: int, expected: ExpectedInputs
     name = spec["name"]
     if name not in expected:
         raise ProtocolError(400, f"unknown input {name!r}: the model takes one of {sorted(expected)}")
-    shape, datatypes = expected[name]
-    if spec.get("shape") != list(shape):
-        raise ProtocolError(400, f"input {name!r} has shape {spec.get('shape')!r}, expected {list(shape)}")
+    shapes, datatypes = expected[name]
+    given = spec.get("shape")
+    shape = next((s for s in shapes if given == list(s)), None)
+    if shape is None:
+        missing = (" (its trailing axis of 2 is missing: I and Q, or real and imaginary parts)"
+                   if isinstance(given, list) and given + [2] in [list(s) for s in shapes] else "")
+        raise ProtocolError(400, f"input {name!r} has shape {given!r}, expected "
+                                 f"{' or '.join(str(list(s)) for s in shapes)}{missing}")
     if spec.get("datatype") not in datatypes:
         raise ProtocolError(400, f"input {name!r} has datatype {spec.get('datatype')!r}, expected one of "
                                  f"{list(datatypes)}")
@@ -120,8 +126,8 @@ def _outputs(parsed: dict[str, Any], known: tuple[str, ...]) -> tuple[tuple[Requ
 
 def parse_request(body: bytes | bytearray, header_length: str | None, expected: ExpectedInputs,
                   outputs: tuple[str, ...]) -> InferRequest:
-    """The request in ``body``; ``expected``: input name -> (shape, accepted datatypes); ``outputs``: the names the
-    model answers."""
+    """The request in ``body``; ``expected``: input name -> (the shapes it may have, accepted datatypes);
+    ``outputs``: the names the model answers."""
     parsed, view = _json_header(body, header_length)
     offset, inputs = 0, {}
     for spec in parsed["inputs"]:

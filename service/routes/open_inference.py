@@ -8,6 +8,10 @@
     magnitude  FP16/FP32/FP64 [R, A, D] its linear magnitude
     log_power  FP16/FP32/FP64 [R, A, D] its log power in dB
     adc        FP32/FP64 [S, C, V, 2]   raw ADC samples (samples, chirps, virtual elements), real and imaginary
+    adc_iq     INT16 [S, C, V, 2] or [C, RX, S, 2]  the same samples as a TI radar gives them, int16 with I and Q on a
+               trailing axis of 2, in either layout /v1/segment?input=adc takes (service.adc_upload: "sck", or "ti"
+               (chirps, rx, samples), told apart by shape); UINT16 is read too, only to be refused as /v1 refuses
+               undecoded words
 
 and gets the outputs ``labels`` (UINT8 [R, A, D]), ``ra_mask`` (UINT8 [R, A]), ``rd_mask`` (UINT8 [R, D]),
 ``objects`` (FP32 [K, 8], columns in its parameters) and ``compute`` (BYTES [1]: the request's compute block, id and
@@ -31,12 +35,14 @@ from pydantic import BaseModel
 from starlette.requests import ClientDisconnect
 
 from models.erasenet.model import SegmentedObject
-from radar.adc import adc_shape
+from radar.adc import LAYOUTS, adc_shape
+from service.adc_upload import AXES, AdcFrameInput
 from service.deps import Caller, ServiceState, State
 from service.errors import ApiError
 from service.inference import ServedModel
 from service.open_inference import (
     HEADER_LENGTH,
+    ExpectedInputs,
     InferRequest,
     ProtocolError,
     RequestedOutput,
@@ -53,8 +59,11 @@ router = APIRouter(tags=["open inference protocol"])
 
 OUTPUTS = ("labels", "ra_mask", "rd_mask", "objects", "compute")
 OBJECT_COLUMNS = tuple(f.name for f in fields(SegmentedObject) if f.name != "class_name")
-_DATATYPES = {InputKind.complex: ("FP32", "FP64"), InputKind.adc: ("FP32", "FP64"),
-              InputKind.magnitude: ("FP16", "FP32", "FP64"), InputKind.log_power: ("FP16", "FP32", "FP64")}
+INPUTS = {"complex": InputKind.complex, "magnitude": InputKind.magnitude, "log_power": InputKind.log_power,
+          "adc": InputKind.adc, "adc_iq": InputKind.adc}  # input name -> the input kind it holds
+_DATATYPES = {"complex": ("FP32", "FP64"), "adc": ("FP32", "FP64"), "adc_iq": ("INT16", "UINT16"),
+              "magnitude": ("FP16", "FP32", "FP64"), "log_power": ("FP16", "FP32", "FP64")}
+UNDECLARED = ("UINT16",)  # read only to be refused (undecoded words, as on /v1): not in the model's metadata
 _COMPLEX = {np.dtype("<f4"): np.complex64, np.dtype("<f8"): np.complex128}
 ModelName = Path(max_length=64, description="a served model's name (GET /v1/models)")
 
@@ -83,12 +92,25 @@ def protocol_error(status: int, message: str, headers: dict[str, str] | None = N
     return JSONResponse({"error": message}, status_code=status, headers=headers)
 
 
-def _input_shapes(served: ServedModel) -> dict[str, tuple[tuple[int, ...], tuple[str, ...]]]:
-    """Input name (the input kind) -> (shape, accepted datatypes)."""
+def _input_shapes(served: ServedModel) -> ExpectedInputs:
+    """Input name -> (the shapes it may have, accepted datatypes); ``adc_iq``: a frame in each layout of
+    service.adc_upload, with I and Q on a trailing axis of 2."""
     profile = served.net.profile
-    shapes = {InputKind.complex: (*profile.shape, 2), InputKind.magnitude: profile.shape,
-              InputKind.log_power: profile.shape, InputKind.adc: (*adc_shape(profile), 2)}
-    return {kind.value: (tuple(shapes[kind]), _DATATYPES[kind]) for kind in InputKind}
+    shapes = {"complex": [(*profile.shape, 2)], "magnitude": [profile.shape], "log_power": [profile.shape],
+              "adc": [(*adc_shape(profile), 2)],
+              "adc_iq": [(*shape, 2) for shape in AdcFrameInput(profile).shapes().values()]}
+    return {name: (tuple(tuple(shape) for shape in shapes[name]), _DATATYPES[name]) for name in INPUTS}
+
+
+def _declared(name: str, shapes: tuple[tuple[int, ...], ...], datatypes: tuple[str, ...]) -> dict[str, Any]:
+    """An input as the model's metadata declares it: its first shape and datatype, every datatype it takes and, for
+    one of several shapes, each with its layout."""
+    declared = [datatype for datatype in datatypes if datatype not in UNDECLARED]
+    parameters = {"datatypes": ",".join(declared)}
+    if len(shapes) > 1:
+        parameters["shapes"] = " or ".join(f"{list(shape)} {layout} {AXES[layout]}"
+                                           for shape, layout in zip(shapes, LAYOUTS, strict=True))
+    return {"name": name, "datatype": declared[0], "shape": list(shapes[0]), "parameters": parameters}
 
 
 def _served(state: ServiceState, name: str, *, ready: bool = True) -> ServedModel:
@@ -140,9 +162,7 @@ def model_metadata(state: State, caller: Caller, name: str = ModelName) -> JSONR
         return protocol_error(exc.status, exc.message, exc.headers)
     profile = served.net.profile
     R, A, D = profile.shape
-    inputs = [{"name": kind, "datatype": datatypes[0], "shape": list(shape),
-               "parameters": {"datatypes": ",".join(datatypes)}}
-              for kind, (shape, datatypes) in _input_shapes(served).items()]
+    inputs = [_declared(name, shapes, datatypes) for name, (shapes, datatypes) in _input_shapes(served).items()]
     outputs = [{"name": "labels", "datatype": "UINT8", "shape": [R, A, D]},
                {"name": "ra_mask", "datatype": "UINT8", "shape": [R, A]},
                {"name": "rd_mask", "datatype": "UINT8", "shape": [R, D]},
@@ -181,16 +201,19 @@ async def _read_body(request: Request, state: ServiceState, tenant: str) -> byte
 
 
 def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndarray]:
-    """The one input as the cube /v1/segment would have read (complex from its trailing axis of 2), its values
-    checked as /v1/segment checks them."""
+    """The one input as the cube /v1/segment would have read (complex from its trailing axis of 2; an ADC frame
+    decoded to complex samples in the "sck" layout by service.adc_upload, as /v1/segment?input=adc decodes it), its
+    values checked as /v1/segment checks them."""
     if len(parsed.inputs) != 1:
-        raise ProtocolError(400, f"send exactly one input (one of {[k.value for k in InputKind]}), got "
-                                 f"{sorted(parsed.inputs)}")
+        raise ProtocolError(400, f"send exactly one input (one of {list(INPUTS)}), got {sorted(parsed.inputs)}")
     ((name, array),) = parsed.inputs.items()
-    kind = InputKind(name)
-    if kind in (InputKind.complex, InputKind.adc):
+    kind, frames = INPUTS[name], None
+    if name in ("complex", "adc"):  # real and imaginary parts on a trailing axis of 2
         array = np.ascontiguousarray(array).view(_COMPLEX[array.dtype])[..., 0]
-    expected = ExpectedCube(served.spec.name, array.shape, kind)
+    if kind is InputKind.adc:
+        frames = AdcFrameInput(served.net.profile)
+        array = frames.to_sck(array, frames.layout_for(array.dtype, array.shape))
+    expected = ExpectedCube(served.spec.name, array.shape, kind, frames)
     check_values(array, expected)
     return kind, array
 

@@ -50,7 +50,12 @@ def test_health_and_metadata(client, frame):
     R, A, D = frame.cube.shape
     assert inputs["complex"] == ([R, A, D, 2], "FP32,FP64")
     assert inputs["log_power"] == ([R, A, D], "FP16,FP32,FP64") and set(inputs) == {"complex", "magnitude",
-                                                                                    "log_power", "adc"}
+                                                                                    "log_power", "adc", "adc_iq"}
+    iq = next(i for i in metadata["inputs"] if i["name"] == "adc_iq")  # int16 I/Q, as a TI radar gives them
+    S, C, V = frame.extras["adc"].shape
+    assert (iq["datatype"], iq["shape"], iq["parameters"]["datatypes"]) == ("INT16", [S, C, V, 2], "INT16")
+    assert iq["parameters"]["shapes"].startswith(f"[{S}, {C}, {V}, 2] sck") and " ti (chirps, rx, samples)" in \
+        iq["parameters"]["shapes"]
     assert [o["name"] for o in metadata["outputs"]] == ["labels", "ra_mask", "rd_mask", "objects", "compute"]
     assert "binary_tensor_data" in client.get_server_metadata()["extensions"]
 
@@ -104,6 +109,91 @@ def test_json_tensors_and_log_power_input(client, server, frame):
     result = client.infer("tiny", [infer_input], outputs=outputs)
     _check_same_as_v1(result, _segment_v1(server, cube_db, "log_power"))
     assert result.as_numpy("compute") is None  # not asked for
+
+
+def _int16_iq(adc: np.ndarray) -> np.ndarray:
+    """Complex ADC samples at a 16-bit ADC's scale, as int16 with I and Q on a trailing axis of 2."""
+    decoded = np.round(adc / np.abs(adc).std() * 200)
+    return np.stack([decoded.real, decoded.imag], axis=-1).astype(np.int16)
+
+
+def _iq_input(iq: np.ndarray, datatype: str = "INT16") -> triton.InferInput:
+    infer_input = triton.InferInput("adc_iq", list(iq.shape), datatype)
+    infer_input.set_data_from_numpy(iq)
+    return infer_input
+
+
+@pytest.fixture(scope="module")
+def openradar_server(tmp_path_factory):
+    """The service with a model of the TI radar that recorded OpenRadar's frame (the tiny model of the simulated
+    radar finds nothing in ADC frames: a comparison of empty answers would not tell layouts apart)."""
+    from tests.service.openradar_model import save_openradar_checkpoints
+
+    root = tmp_path_factory.mktemp("v2-openradar")
+    det, seg = save_openradar_checkpoints(root)
+    models = [{"name": "openradar", "detector": str(det), "segmenter": str(seg), "score_threshold": 0.0,
+               "max_objects": 1}]
+    api = Server({"RADARSEG_MODELS": json.dumps(models), "RADARSEG_DATA_DIR": str(root / "data")},
+                 root / "server.log")
+    try:
+        api.wait_ready(timeout_s=400)
+        yield api
+    finally:
+        api.stop()
+
+
+def test_int16_iq_in_either_layout_answers_what_v1_segment_answers(openradar_server):
+    from tests.service.openradar_model import sck_frame, ti_frame_iq
+
+    ti_iq = ti_frame_iq()  # (chirps, rx, samples, 2) int16, as the radar recorded it
+    sck_iq = np.stack([sck_frame().real, sck_frame().imag], axis=-1).astype(np.int16)  # (samples, chirps, virtual, 2)
+    v1 = _segment_v1(openradar_server, ti_iq, "adc")
+    assert v1["objects"] and decode_array(v1["voxels"]["array"]).size, "an empty answer tells no layouts apart"
+    host = openradar_server.url.removeprefix("http://")
+    with triton.InferenceServerClient(host, network_timeout=120) as client:
+        iq = next(i for i in client.get_model_metadata("openradar")["inputs"] if i["name"] == "adc_iq")
+        assert (iq["datatype"], iq["shape"]) == ("INT16", list(sck_iq.shape)), iq
+        assert str(list(ti_iq.shape)) in iq["parameters"]["shapes"]
+        for what, tensor in {"ti": ti_iq, "sck": sck_iq}.items():
+            result = client.infer("openradar", [_iq_input(tensor)], outputs=[
+                triton.InferRequestedOutput(name) for name in ("labels", "ra_mask", "rd_mask", "objects", "compute")])
+            _check_same_as_v1(result, v1)
+            compute = json.loads(result.as_numpy("compute")[0])
+            assert compute["compute"]["macs"]["total"] == v1["compute"]["macs"]["total"], what
+
+
+def _binary_body(name: str, array: np.ndarray, datatype: str) -> tuple[bytes, dict[str, str]]:
+    header = json.dumps({"inputs": [{"name": name, "shape": list(array.shape), "datatype": datatype,
+                                     "parameters": {"binary_data_size": array.nbytes}}]}).encode()
+    return header + array.tobytes(), {"Inference-Header-Content-Length": str(len(header))}
+
+
+def test_int16_iq_that_does_not_fit_is_refused_with_what_was_expected(client, server, frame):
+    iq = _int16_iq(frame.extras["adc"])
+    S, C, V, _ = iq.shape
+    sck = f"[{S}, {C}, {V}, 2]"
+    words = iq.view(np.uint16)  # two's-complement samples read as unsigned words: undecoded
+    whole = _binary_body("adc_iq", iq, "INT16")
+    cases = {
+        "no I/Q axis": (_binary_body("adc_iq", iq[..., 0].copy(), "INT16"), 400, "trailing axis of 2 is missing"),
+        "wrong shape": (_binary_body("adc_iq", iq[:, :, :1].copy(), "INT16"), 400, f"expected {sck} or ["),
+        "three parts": (_binary_body("adc_iq", np.zeros((S, C, V, 3), np.int16), "INT16"), 400, f"expected {sck}"),
+        "FP32 pairs": (_binary_body("adc_iq", iq.astype(np.float32), "FP32"), 400, "datatype 'FP32', expected one "
+                                                                                   "of ['INT16'"),
+        "int16 as adc": (_binary_body("adc", iq, "INT16"), 400, "datatype 'INT16', expected one of ['FP32'"),
+        "undecoded words": (_binary_body("adc_iq", words, "UINT16"), 422, "((x + 32768) % 65536) - 32768"),
+        "nothing but DC": (_binary_body("adc_iq", np.full(iq.shape, 100, np.int16), "INT16"), 422, "offset"),
+        "too short": ((whole[0][:-2], whole[1]), 400, "binary_data_size"),
+    }
+    for case, ((body, headers), status, expected) in cases.items():
+        answer = _raw_infer(server, body, headers)
+        assert answer.status_code == status, (case, answer.text)
+        assert list(answer.json()) == ["error"] and expected in answer.json()["error"], (case, answer.json())
+    json_overflow = _request("adc_iq", [S, C, V, 2], "INT16", [40000] * (S * C * V * 2))
+    answer = _raw_infer(server, json_overflow)
+    assert answer.status_code == 400 and "not INT16 numbers" in answer.json()["error"], answer.text
+    with pytest.raises(InferenceServerException, match="raw unsigned 16-bit words"):
+        client.infer("tiny", [_iq_input(words, "UINT16")])
 
 
 def _raw_infer(server, body: bytes, headers: dict[str, str] | None = None, model: str = "tiny") -> httpx.Response:

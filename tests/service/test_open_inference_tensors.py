@@ -11,7 +11,8 @@ from tritonclient.http import InferResult
 
 from service.open_inference import ProtocolError, RequestedOutput, encode_response, parse_request
 
-EXPECTED = {"log_power": ((2, 3), ("FP16", "FP32")), "complex": ((2, 3, 2), ("FP32",))}
+EXPECTED = {"log_power": (((2, 3),), ("FP16", "FP32")), "complex": (((2, 3, 2),), ("FP32",)),
+            "adc_iq": (((4, 5, 2), (5, 4, 2)), ("INT16",))}
 OUTPUTS = ("labels", "objects", "compute")
 
 
@@ -57,6 +58,20 @@ def test_malformed_requests_are_refused_with_what_was_expected(body, length, wor
     with pytest.raises(ProtocolError, match=words) as refused:
         parse_request(body, length, EXPECTED, OUTPUTS)
     assert refused.value.status == 400
+
+
+def test_an_input_of_several_shapes_takes_each_and_names_them_all():
+    for shape in ((4, 5, 2), (5, 4, 2)):
+        iq = np.arange(40, dtype=np.int16).reshape(shape)
+        body, length = _binary("adc_iq", iq, "INT16")
+        np.testing.assert_array_equal(parse_request(body, length, EXPECTED, OUTPUTS).inputs["adc_iq"], iq)
+    body, length = _binary("adc_iq", np.zeros((4, 5), np.int16), "INT16")
+    with pytest.raises(ProtocolError, match=r"expected \[4, 5, 2\] or \[5, 4, 2\] \(its trailing axis of 2 is "
+                                            "missing"):
+        parse_request(body, length, EXPECTED, OUTPUTS)
+    body, length = _binary("adc_iq", np.zeros((4, 5, 2), np.float32), "FP32")
+    with pytest.raises(ProtocolError, match=r"datatype 'FP32', expected one of \['INT16'\]"):
+        parse_request(body, length, EXPECTED, OUTPUTS)
 
 
 def test_binary_sizes_must_add_up():
