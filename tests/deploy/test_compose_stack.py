@@ -190,13 +190,17 @@ def test_a_killed_ray_worker_does_not_lose_the_store(stack):
     assert found, log[-2000:]
     job_id = found.group(0)
     deadline = time.monotonic() + 300
-    while _job_status(stack, job_id) != "RUNNING":
-        assert time.monotonic() < deadline, f"job {job_id} not running within 300 s"
+    seen = [_job_status(stack, job_id)]  # every status polled, for the failure message
+    while seen[-1] in ("PENDING", "UNKNOWN"):
+        assert time.monotonic() < deadline, f"job {job_id} not started within 300 s: {seen}"
         time.sleep(1)
+        seen.append(_job_status(stack, job_id))
     victim = stack.containers("ray-worker")[0]
     run(["docker", "kill", victim], timeout_s=60)
+    # A poll can miss a short RUNNING spell on a loaded machine: what the kill met is recorded, not assumed.
+    TIMES["killed_worker_met"] = seen[-1]
     while (status := _job_status(stack, job_id)) not in ("SUCCEEDED", "FAILED", "STOPPED"):
-        assert time.monotonic() < deadline + 300, f"job {job_id} did not end: {status}"
+        assert time.monotonic() < deadline + 300, f"job {job_id} did not end: {status} (seen: {seen})"
         time.sleep(2)
     TIMES["killed_worker_job_status"] = status
     if status != "SUCCEEDED":  # a resubmission of the same command completes it
