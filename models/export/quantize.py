@@ -95,9 +95,15 @@ def simulated_calibration_frames(preset: Any, frames: int, *, seed: int = SIMULA
         for frame in simulate_sequence(preset, per_sequence, seed=seed, sequence_index=sequence):
             cubes.append(transforms.log_power(frame.cube))
     cubes = cubes[:frames]
-    name = getattr(preset, "name", preset)
-    return cubes, {"source": "simulated", "preset": str(name), "seed": seed, "sequences": SIMULATED_SEQUENCES,
-                   "frames": len(cubes), "note": "no store given: frames of the model's preset from radar.simulate"}
+    return cubes, simulated_calibration_description(preset, len(cubes), seed=seed)
+
+
+def simulated_calibration_description(preset: Any, frames: int, *, seed: int = SIMULATED_SEED) -> dict[str, Any]:
+    """What :func:`simulated_calibration_frames` says of its ``frames`` frames (the manifest's description; the
+    int8 calibration cache keys on it without simulating them)."""
+    return {"source": "simulated", "preset": str(getattr(preset, "name", preset)), "seed": seed,
+            "sequences": SIMULATED_SEQUENCES, "frames": frames,
+            "note": "no store given: frames of the model's preset from radar.simulate"}
 
 
 def calibration_digest(cubes: Sequence[np.ndarray]) -> str:

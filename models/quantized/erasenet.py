@@ -60,8 +60,7 @@ def calibration_key(net: EraseNet, detector: Checkpoint, segmenter: Checkpoint,
     from models.export.onnx_export import checkpoint_digest
 
     if calibration is None:  # what Int8Calibration.simulated(net.profile) would simulate
-        frames = {"source": "simulated", "preset": net.profile.name, "seed": quantize.SIMULATED_SEED,
-                  "sequences": quantize.SIMULATED_SEQUENCES, "frames": quantize.CALIBRATION_FRAMES}
+        frames = quantize.simulated_calibration_description(net.profile, quantize.CALIBRATION_FRAMES)
     else:
         frames = {"description": calibration.description,
                   "frames_sha256": quantize.calibration_digest(calibration.cubes)}
