@@ -13,7 +13,6 @@ benchmarks/results/int8_start.json with the CPU's flags and the load average bef
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -22,7 +21,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.harness import machine
+from benchmarks.harness import machine, print_json, write_with_load
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results" / "int8_start.json"
@@ -66,11 +65,8 @@ def main(argv: list[str] | None = None) -> dict:
         assert int8 is not None, problem
         results["kept_files"] = [p.name for p in Path(scratch).glob("*.json")]
         results["preset"] = net.profile.name
-    results["load_average_after"] = os.getloadavg()
-    print(json.dumps({k: v for k, v in results.items() if k != "machine"}, indent=2))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.out}")
+    write_with_load(results, args.out)
+    print_json({k: v for k, v in results.items() if k != "machine"})
     return results
 
 
