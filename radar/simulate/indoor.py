@@ -5,7 +5,8 @@ view as road users do (radar/simulate/scene.py), turn back at its edges, so each
 states. The room's static reflectors sit at zero Doppler: walls (a back wall facing the radar, or a side wall
 along the line of sight) as lines of point scatterers spaced at half the range resolution whose RCS falls off
 away from normal incidence, furniture as small clusters of strong points, weak diffuse returns from floor and
-ceiling, and the TX-RX coupling at the first range bins.
+ceiling, and the TX-RX coupling at the first range bins. The walls also reflect the walkers' echoes: multipath
+ghosts, unlabelled (radar/simulate/multipath.py).
 """
 
 from __future__ import annotations
@@ -23,7 +24,9 @@ TURN_SIGMA_RAD_S = 0.6  # how quickly a walker's heading wanders (rad/s, random 
 WALL_PEAK_RCS_DBSM = (-14.0, -2.0)  # a wall at normal incidence, per scatterer
 FURNITURE_RCS_DBSM = (-28.0, -8.0)
 DIFFUSE_RCS_DBSM = (-35.0, -20.0)
-COUPLING_RCS_DBSM = -30.0  # TX-RX coupling at 0.1 m: about 60 dB over the noise, as on a TI board
+COUPLING_RCS_DBSM = (-65.0, -30.0)  # TX-RX coupling at 0.1 m, per room: 60 to 95 dB over the noise (a recorded TI
+                                   # frame, tests/fixtures/openradar/, shows 63 dB)
+WALL_BOUNCE_LOSS_DB = (-20.0, -8.0)  # one bounce off a wall, for the multipath ghosts (radar/simulate/multipath.py)
 
 
 def _room_point(settings: SceneSettings, max_angle_deg: float, rng: np.random.Generator) -> tuple[float, float]:
@@ -89,7 +92,8 @@ class IndoorSceneGenerator:
 
 
 def _wall(profile: RadarProfile, settings: SceneSettings, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
-    """(x, y, rcs) of one wall: a back wall facing the radar, or a side wall along the line of sight."""
+    """(x, y, rcs) of one wall's scatterers, a back wall facing the radar or a side wall along the line of sight, and
+    the wall as a mirror: (unit normal x, y, distance from the radar, bounce loss dB)."""
     max_r = profile.max_range
     lo, hi = settings.wall_range_m or (min(settings.range_m[1], 0.9 * max_r), 0.97 * max_r)
     distance = rng.uniform(lo, hi)
@@ -100,24 +104,26 @@ def _wall(profile: RadarProfile, settings: SceneSettings, rng: np.random.Generat
         along = np.arange(-half, half, spacing)
         x = distance * np.sin(normal) + along * np.cos(normal)
         y = distance * np.cos(normal) - along * np.sin(normal)
+        mirror = (np.sin(normal), np.cos(normal), distance)
     else:  # side wall at lateral offset, from near the radar to the far end
         side = rng.choice([-1.0, 1.0]) * distance * np.sin(np.radians(rng.uniform(0.5, 0.9) * profile.max_angle_deg))
         y = np.arange(abs(side) * 0.3 + 0.3, max_r, spacing)
         x = np.full(len(y), side)
         normal = np.pi / 2 * np.sign(side)
+        mirror = (np.sign(side), 0.0, abs(side))
     incidence = np.arctan2(x, y) - normal  # between the line of sight and the wall's normal
     peak = rng.uniform(*WALL_PEAK_RCS_DBSM)
     rcs = peak + 10 * np.log10(np.cos(incidence) ** 8 + 1e-3) + rng.normal(0.0, 2.0, len(x))
     keep = np.hypot(x, y) < max_r * 0.99
-    return x[keep], y[keep], rcs[keep]
+    return x[keep], y[keep], rcs[keep], np.array([*mirror, rng.uniform(*WALL_BOUNCE_LOSS_DB)])
 
 
 def indoor_clutter(profile: RadarProfile, settings: SceneSettings, rng: np.random.Generator) -> StaticClutter:
-    """The static reflectors of one room (all at zero Doppler; the radar is static)."""
+    """The static reflectors of one room (all at zero Doppler; the radar is static), its walls also as mirrors."""
     max_r = profile.max_range
-    xs, ys, rcs = [], [], []
+    xs, ys, rcs, mirrors = [], [], [], []
     for _ in range(int(rng.integers(settings.walls[0], settings.walls[1] + 1))):
-        for part, value in zip((xs, ys, rcs), _wall(profile, settings, rng), strict=True):
+        for part, value in zip((xs, ys, rcs, mirrors), _wall(profile, settings, rng), strict=True):
             part.append(value)
     for _ in range(int(rng.integers(settings.furniture[0], settings.furniture[1] + 1))):
         n = int(rng.integers(3, 9))
@@ -131,5 +137,5 @@ def indoor_clutter(profile: RadarProfile, settings: SceneSettings, rng: np.rando
     a = np.radians(rng.uniform(-80, 80, n_diffuse))
     xs += [r * np.sin(a), np.array([0.0])]
     ys += [r * np.cos(a), np.array([0.1])]
-    rcs += [rng.uniform(*DIFFUSE_RCS_DBSM, n_diffuse), np.array([COUPLING_RCS_DBSM])]
-    return StaticClutter(np.concatenate(xs), np.concatenate(ys), np.concatenate(rcs))
+    rcs += [rng.uniform(*DIFFUSE_RCS_DBSM, n_diffuse), np.array([rng.uniform(*COUPLING_RCS_DBSM)])]
+    return StaticClutter(np.concatenate(xs), np.concatenate(ys), np.concatenate(rcs), np.array(mirrors).reshape(-1, 4))

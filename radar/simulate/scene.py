@@ -3,7 +3,7 @@ leaving the field of view, and the static clutter they move through (docs/design
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -57,6 +57,10 @@ class StaticClutter:
     x: np.ndarray
     y: np.ndarray
     rcs_dbsm: np.ndarray
+    # Flat reflecting surfaces that make multipath ghosts of the moving objects (radar/simulate/multipath.py), one
+    # row each: unit normal (nx, ny), distance d of the plane n . p = d from the radar (m), and the loss of one
+    # bounce off it (dB, <= 0). Road scenes have none.
+    mirrors: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
 
 def in_field_of_view(profile: RadarProfile, x: float, y: float, margin: float = 0.0) -> bool:

@@ -17,6 +17,7 @@ from radar.profiles import RadarProfile, get_profile
 from radar.simulate.fmcw import Scatterers, received_amplitude, synthesize_adc
 from radar.simulate.indoor import IndoorSceneGenerator, indoor_clutter
 from radar.simulate.labels import exact_labels
+from radar.simulate.multipath import multipath_ghosts
 from radar.simulate.scene import ObjectState, SceneGenerator, StaticClutter, static_clutter
 from radar.simulate.targets import class_model, object_scatterers
 from radar.simulate.version import SIMULATOR_VERSION
@@ -34,6 +35,7 @@ class SimulatorConfig:
     tdm_coupling: bool = True
     tdm_compensation: bool = True  # ... removed by the processing chain (only applies with coupling)
     clutter: bool = True
+    multipath: bool = True  # ghosts of the objects off the scene's walls (indoor scenes; road scenes have no mirrors)
     noise: bool = True
     rcs_fluctuation_db: float = 2.0  # per-scatterer RCS std from frame to frame
 
@@ -99,6 +101,8 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
         parts = list(per_object)
         if config.clutter and clutter is not None:
             parts.append(_clutter_scatterers(profile, clutter, rng))
+            if config.multipath and len(clutter.mirrors):
+                parts.append(multipath_ghosts(profile, per_object, clutter.mirrors, rng))
         adc = synthesize_adc(profile, Scatterers.concat(parts), tdm_coupling=config.tdm_coupling,
                              noise_rng=rng if config.noise else None)
     compensated = config.tdm_coupling and config.tdm_compensation

@@ -8,11 +8,13 @@ changes while the version stays. Stores and recordings made from the simulator r
 simulator made their data.
 """
 
-SIMULATOR_VERSION = 2
+SIMULATOR_VERSION = 3
 
 SIMULATOR_HISTORY = {
     1: "the first simulator (up to commit 7ca8875): ADC synthesised without TDM Doppler-angle coupling",
     2: "TDM Doppler-angle coupling on by default (a TX firing later in the chirp cycle sees the target moved "
        "further), compensated per Doppler bin by the processing chain (commit 811ae5d)",
+    3: "indoor scenes (a profile with a [scene] table) get multipath ghosts of the walkers off the room's walls "
+       "and a TX-RX coupling level drawn per room; road scenes (every built-in preset) are unchanged",
 }
 
