@@ -8,7 +8,9 @@ A file holds these tables (units in the key names; see radar/profiles/presets/*.
                   samples_per_chirp, chirps_per_frame (chirp cycles), chirp_cycle_s (per TX)
     [array]       n_tx, n_rx, tdm_order (TX firing order in a cycle; virtual element = tx * n_rx + rx)
     [processing]  range_pad, doppler_pad, angle_bins, window ("hann" or "rect")
-    [simulation]  noise_floor_db, snr_0dbsm_10m_db, objects_per_frame, max_angle_deg   (optional)
+    [simulation]  noise_floor_db, snr_0dbsm_10m_db, objects_per_frame, max_angle_deg,   (optional)
+                  channel_phase_error_deg, channel_gain_error_db (an uncalibrated radar's channel mismatch,
+                  standard deviations per virtual channel; radar/simulate/channels.py)
     [expect]      range_res_m, velocity_res_mps, max_range_m, max_velocity_mps          (optional)
     [region_growing]  distance_m, min_snr_db, intensity_ratio, bridge, seed_search      (optional; derive them
                   for a new radar with ``radarseg radar tune-growing PROFILE``)
@@ -53,7 +55,8 @@ _SCHEMA: dict[str, set[str]] = {
               "chirps_per_frame", "chirp_cycle_s"},
     "array": {"n_tx", "n_rx", "tdm_order"},
     "processing": {"range_pad", "doppler_pad", "angle_bins", "window"},
-    "simulation": {"noise_floor_db", "snr_0dbsm_10m_db", "objects_per_frame", "max_angle_deg"},
+    "simulation": {"noise_floor_db", "snr_0dbsm_10m_db", "objects_per_frame", "max_angle_deg",
+                   "channel_phase_error_deg", "channel_gain_error_db"},
     "expect": {"range_res_m", "velocity_res_mps", "max_range_m", "max_velocity_mps"},
     "region_growing": {"distance_m", "min_snr_db", "intensity_ratio", "bridge", "seed_search"},
 }
@@ -133,6 +136,13 @@ def _simulation_options(simulation: dict, source: str) -> dict[str, Any]:
         if not (isinstance(lo_hi, list) and len(lo_hi) == 2 and all(isinstance(v, int) for v in lo_hi)):
             raise ProfileError(f"{source}: objects_per_frame must be [min, max] integers")
         sim_kwargs["objects_per_frame"] = tuple(lo_hi)
+    for key, most in (("channel_phase_error_deg", 90.0), ("channel_gain_error_db", 10.0)):
+        if key in simulation:
+            value = float(_number(simulation, key, source, positive=False))
+            if not 0 <= value <= most:
+                raise ProfileError(f"{source}: [simulation] {key} = {value:g}, expected a standard deviation "
+                                   f"between 0 and {most:g}")
+            sim_kwargs[key] = value
     return sim_kwargs
 
 
@@ -325,6 +335,9 @@ def describe(profile: RadarProfile) -> list[tuple[str, str]]:
                               + ", ".join(f"{name} {lo}-{hi}" for name, (lo, hi) in scene.classes)
                               + f"; walls {scene.walls[0]}-{scene.walls[1]}, "
                               f"furniture {scene.furniture[0]}-{scene.furniture[1]}"))
+    if profile.channel_phase_error_deg or profile.channel_gain_error_db:
+        rows.append(("simulated channel errors", f"{profile.channel_phase_error_deg:g} deg, "
+                                                 f"{profile.channel_gain_error_db:g} dB (standard deviations)"))
     return rows + hardware.describe_rows(profile)
 
 
@@ -346,7 +359,9 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
         "processing": {"range_pad": profile.range_pad, "doppler_pad": profile.doppler_pad,
                        "angle_bins": profile.n_angle, "window": profile.window},
         "simulation": {"noise_floor_db": profile.noise_floor_db, "snr_0dbsm_10m_db": profile.snr_0dbsm_10m_db,
-                       "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg},
+                       "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg,
+                       **{key: getattr(profile, key) for key in ("channel_phase_error_deg", "channel_gain_error_db")
+                          if getattr(profile, key)}},
         **({"region_growing": {k: list(v) if isinstance(v, tuple) else v for k, v in profile.region_growing}}
            if profile.region_growing else {}),
         **({"tracking": dict(profile.tracking)} if profile.tracking else {}),

@@ -174,7 +174,7 @@ def check_profile(profile: Any) -> None:
         raise _refuse(source, "the ADC frame (samples x chirps x virtual elements)",
                       profile.n_samples * profile.n_chirps * profile.n_virtual, f"at most {MAX_ADC_SAMPLES}")
     for key in ("range_res", "velocity_res", "carrier_hz", "frame_rate_hz", "max_angle_deg", "snr_0dbsm_10m_db",
-                "noise_floor_db"):
+                "noise_floor_db", "channel_phase_error_deg", "channel_gain_error_db"):
         if not math.isfinite(getattr(profile, key)):
             raise _refuse(source, key, getattr(profile, key), "a finite number")
     if profile.objects_per_frame[1] > MAX_OBJECTS_PER_FRAME:

@@ -91,6 +91,10 @@ class RadarProfile:
     # mean where CARRADA's is (docs/design.md section 3.1).
     noise_floor_db: float = 58.0
     objects_per_frame: tuple[int, int] = (1, 4)
+    # Channel mismatch of the simulated radar (radar/simulate/channels.py): standard deviations of each virtual
+    # channel's phase (degrees) and gain (dB) errors, drawn per sequence. 0: ideal, calibrated channels.
+    channel_phase_error_deg: float = 0.0
+    channel_gain_error_db: float = 0.0
     window: str = "hann"  # on range, Doppler and the array
     chirp: ChirpParameters | None = None  # the waveform, when the profile came from a file
     # Region growing's settings for this radar (keys of radar.region_growing.RegionGrowingConfig), as stated in

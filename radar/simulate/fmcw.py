@@ -82,25 +82,30 @@ def _phasor_frequencies(profile: RadarProfile, scat: Scatterers) -> tuple[np.nda
     return f_range, f_doppler, scat.sin_theta
 
 
-def _element_phasors(profile: RadarProfile, f_doppler, sin_theta, tdm_coupling: bool) -> np.ndarray:
+def _element_phasors(profile: RadarProfile, f_doppler, sin_theta, tdm_coupling: bool,
+                     channel_gains: np.ndarray | None = None) -> np.ndarray:
     """(P, K) phasors over the virtual array (each element at its azimuth: the profile's stated positions, else
-    0 .. K-1 half wavelengths); a TX firing later in the cycle sees extra Doppler phase."""
+    0 .. K-1 half wavelengths); a TX firing later in the cycle sees extra Doppler phase; ``channel_gains`` (K,)
+    complex: each virtual channel's gain and phase error (radar/simulate/channels.py), None for ideal channels."""
     k = element_azimuths(profile)
     e = np.exp(1j * np.pi * sin_theta[:, None] * k[None, :])
     if tdm_coupling:
         e = e * np.exp(2j * np.pi * f_doppler[:, None] * tdm_slots(profile)[None, :] / profile.n_tx)
+    if channel_gains is not None:
+        e = e * channel_gains[None, :]
     return e
 
 
 def synthesize_adc(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool = False,
-                   noise_rng: np.random.Generator | None = None) -> np.ndarray:
-    """Beat signal (Ns, Nc, K) complex64 of the scatterers, with thermal noise when ``noise_rng``."""
+                   noise_rng: np.random.Generator | None = None, channel_gains: np.ndarray | None = None) -> np.ndarray:
+    """Beat signal (Ns, Nc, K) complex64 of the scatterers, with thermal noise when ``noise_rng`` and the virtual
+    channels' errors when ``channel_gains`` (K,)."""
     ns, nc, nk = profile.n_samples, profile.n_chirps, profile.n_virtual
     if len(scat):
         f_range, f_doppler, sin_t = _phasor_frequencies(profile, scat)
         e_range = np.exp(2j * np.pi * np.arange(ns)[:, None] * f_range[None, :]) * scat.amplitude  # (Ns, P)
         e_chirp = np.exp(2j * np.pi * f_doppler[:, None] * np.arange(nc)[None, :])  # (P, Nc)
-        e_elem = _element_phasors(profile, f_doppler, sin_t, tdm_coupling)  # (P, K)
+        e_elem = _element_phasors(profile, f_doppler, sin_t, tdm_coupling, channel_gains)  # (P, K)
         slow = (e_chirp[:, :, None] * e_elem[:, None, :]).reshape(len(scat), nc * nk)
         adc = (e_range.astype(np.complex64) @ slow.astype(np.complex64)).reshape(ns, nc, nk)
     else:
@@ -112,8 +117,8 @@ def synthesize_adc(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: boo
     return adc
 
 
-def axis_kernels(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool = False
-                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def axis_kernels(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool = False,
+                 channel_gains: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Exact 1-D responses of every scatterer after the FFT chain: (P, R), (P, A), (P, D) complex.
 
     The noiseless RAD response of the scatterers is ``sum_p amplitude_p * Kr[p] (x) Ka[p] (x) Kd[p]``.
@@ -127,7 +132,7 @@ def axis_kernels(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool 
         scipy.fft.fft(cc.window_doppler * np.exp(2j * np.pi * f_doppler[:, None] * m), n=profile.n_doppler, axis=1),
         axes=1,
     )
-    elements = cc.window_array * _element_phasors(profile, f_doppler, sin_t, tdm_coupling)  # (P, K)
+    elements = cc.window_array * _element_phasors(profile, f_doppler, sin_t, tdm_coupling, channel_gains)  # (P, K)
     k_angle = scipy.fft.fftshift(scipy.fft.fft(elements, n=profile.n_angle, axis=1), axes=1)
     return k_range, k_angle, k_doppler
 

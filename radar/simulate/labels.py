@@ -27,13 +27,14 @@ def _axis_window(centres: np.ndarray, margin: int, size: int) -> np.ndarray:
 
 
 def object_response_window(profile: RadarProfile, scat: Scatterers, *, tdm_coupling: bool = False,
-                           margin_cells: int = 4) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+                           margin_cells: int = 4, channel_gains: np.ndarray | None = None,
+                           ) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
     """Noiseless power |response|^2 of one object's scatterers inside its window.
 
     Returns ``((range_idx, angle_idx, doppler_idx), power)`` with ``power`` of shape
     (len(range_idx), len(angle_idx), len(doppler_idx)) float32.
     """
-    kr, ka, kd = axis_kernels(profile, scat, tdm_coupling=tdm_coupling)
+    kr, ka, kd = axis_kernels(profile, scat, tdm_coupling=tdm_coupling, channel_gains=channel_gains)
     range_bins = scat.range_m / profile.range_res
     angle_bins = profile.angle_bin_from_sin(scat.sin_theta)
     doppler_bins = profile.doppler_bin(scat.radial_velocity)
@@ -50,8 +51,9 @@ def object_response_window(profile: RadarProfile, scat: Scatterers, *, tdm_coupl
 
 def exact_labels(profile: RadarProfile, objects: list[Scatterers], class_ids: list[int], *,
                  snr_db: float = 6.0, peak_db: float = 20.0, tdm_coupling: bool = False,
-                 margin_cells: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Class cube and instance cube, both (R, A, D) uint8; object ``i`` gets instance id ``i + 1``."""
+                 margin_cells: int = 4, channel_gains: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Class cube and instance cube, both (R, A, D) uint8; object ``i`` gets instance id ``i + 1``. Each object's
+    response is the one the frame was synthesised with: its TDM coupling and channel errors (``channel_gains``)."""
     if len(objects) != len(class_ids):
         raise ValueError(f"{len(objects)} objects but {len(class_ids)} class ids")
     if len(objects) > 255:
@@ -64,7 +66,7 @@ def exact_labels(profile: RadarProfile, objects: list[Scatterers], class_ids: li
         if len(scat) == 0:
             continue
         (wr, wa, wd), power = object_response_window(profile, scat, tdm_coupling=tdm_coupling,
-                                                     margin_cells=margin_cells)
+                                                     margin_cells=margin_cells, channel_gains=channel_gains)
         ok = (power >= floor) & (power >= power.max() * 10 ** (-peak_db / 10))
         idx = np.ix_(wr, wa, wd)
         larger = power > best_power[idx]

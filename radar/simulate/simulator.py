@@ -14,6 +14,7 @@ from radar.adc import adc_to_rad
 from radar.frame import ObjectRecord, RadarFrame
 from radar.instances import instance_stats
 from radar.profiles import RadarProfile, get_profile
+from radar.simulate.channels import draw_channel_gains
 from radar.simulate.fmcw import Scatterers, received_amplitude, synthesize_adc
 from radar.simulate.indoor import IndoorSceneGenerator, indoor_clutter
 from radar.simulate.labels import exact_labels
@@ -83,14 +84,16 @@ def _clutter_scatterers(profile: RadarProfile, clutter: StaticClutter, rng: np.r
 
 def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: StaticClutter | None, *,
                    t: float, rng: np.random.Generator, config: SimulatorConfig, sequence: str = "seq_000",
-                   index: int = 0, timings: dict[str, float] | None = None) -> RadarFrame:
+                   index: int = 0, timings: dict[str, float] | None = None,
+                   channel_gains: np.ndarray | None = None) -> RadarFrame:
     """One labelled frame of the given object states at scene time ``t`` (s).
 
     ``timings`` (optional) accumulates seconds spent in ``synthesis``, ``fft`` and ``labels``.
     The frame's ``extras["simulator"]`` is the simulator's version and options
     (:meth:`SimulatorConfig.stamp`); ``extras["object_scatterers"]`` holds each object's scatterers (instance i+1 = list
     index i) so a response can be recomputed independently; ``extras["adc"]`` the raw ADC samples
-    (Ns, Nc, K) the cube was processed from.
+    (Ns, Nc, K) the cube was processed from. ``channel_gains`` (K,): the radar's channel errors
+    (radar/simulate/channels.py), in the samples and in the labels alike.
     """
     with _timed(timings, "synthesis"):
         per_object, rcs_totals = [], []
@@ -104,7 +107,7 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
             if config.multipath and len(clutter.mirrors):
                 parts.append(multipath_ghosts(profile, per_object, clutter.mirrors, rng))
         adc = synthesize_adc(profile, Scatterers.concat(parts), tdm_coupling=config.tdm_coupling,
-                             noise_rng=rng if config.noise else None)
+                             noise_rng=rng if config.noise else None, channel_gains=channel_gains)
     compensated = config.tdm_coupling and config.tdm_compensation
     with _timed(timings, "fft"):
         cube = adc_to_rad(profile, adc, tdm_compensation=compensated)
@@ -114,6 +117,7 @@ def simulate_frame(profile: RadarProfile, states: list[ObjectState], clutter: St
             # Compensation evaluated at each scatterer's own Doppler undoes its coupling exactly at its
             # Doppler peak (and to within a bin's phase elsewhere): labels then use uncoupled kernels.
             peak_db=config.label_peak_db, tdm_coupling=config.tdm_coupling and not compensated,
+            channel_gains=channel_gains,
         )
         stats = instance_stats(instances, profile, n_instances=len(states))
         objects = tuple(
@@ -160,6 +164,7 @@ def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, s
     else:
         scene = IndoorSceneGenerator(profile, settings, scene_rng)
         clutter = indoor_clutter(profile, settings, scene_rng)
+    gains = draw_channel_gains(profile, scene_rng)  # this sequence's radar: None (nothing drawn) for ideal channels
     name = sequence_name(sequence_index)
     index = 0
     for target in wanted:
@@ -170,4 +175,4 @@ def simulate_sequence(preset: str | RadarProfile, n_frames: int, *, seed: int, s
         index += 1
         frame_rng = np.random.default_rng([seed, sequence_index, 1, target])
         yield simulate_frame(profile, states, clutter, t=target * profile.frame_period_s, rng=frame_rng,
-                             config=config, sequence=name, index=target, timings=timings)
+                             config=config, sequence=name, index=target, timings=timings, channel_gains=gains)
