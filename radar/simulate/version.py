@@ -15,6 +15,8 @@ SIMULATOR_HISTORY = {
     2: "TDM Doppler-angle coupling on by default (a TX firing later in the chirp cycle sees the target moved "
        "further), compensated per Doppler bin by the processing chain (commit 811ae5d)",
     3: "indoor scenes (a profile with a [scene] table) get multipath ghosts of the walkers off the room's walls "
-       "and a TX-RX coupling level drawn per room; road scenes (every built-in preset) are unchanged",
+       "and a TX-RX coupling level drawn per room; a profile may state its channels' phase and gain errors "
+       "([simulation] channel_phase_error_deg, channel_gain_error_db), drawn per sequence; road scenes (every "
+       "built-in preset) are unchanged",
 }
 
