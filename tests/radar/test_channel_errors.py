@@ -71,7 +71,7 @@ def test_the_profile_file_states_and_keeps_them():
         profile_from_dict(data, source="bad")
 
 
-def test_a_profile_stating_no_errors_simulates_as_before():
+def test_the_errors_change_the_cubes_not_the_radar():
     profile = indoor_profile()
     ideal = dataclasses.replace(profile, channel_phase_error_deg=0.0, channel_gain_error_db=0.0)
     assert profile.fingerprint == ideal.fingerprint  # simulation settings, not the radar's bins
