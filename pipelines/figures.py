@@ -58,9 +58,11 @@ def draw_views(axes, log_power: np.ndarray, profile: RadarProfile, ra_mask: np.n
         _overlay(axes[1], rd_mask, rd_extent, p.num_classes)
     for n, (text, x, y, velocity) in enumerate(annotations):
         rng = float(np.hypot(x, y))
-        # labels point inwards (never cut at the right edge) and alternate up and down (fewer overlaps)
-        for ax, at, middle in ((axes[0], x / max(rng, 1e-6), 0.0), (axes[1], velocity, sum(rd_extent[:2]) / 2)):
-            right = at > middle
+        # labels point away from the middle, so two objects on either side of it keep their labels on their own
+        # side, but inwards within the outer fifth of a view (never cut at its edge); they alternate up and down
+        for ax, at, (lo, hi) in ((axes[0], x / max(rng, 1e-6), ra_extent[:2]), (axes[1], velocity, rd_extent[:2])):
+            edge = 0.2 * (hi - lo)
+            right = at > hi - edge or (lo + edge <= at < (lo + hi) / 2)  # text ends at the point (to its left)
             ax.annotate(text, (at, rng), color="white", fontsize=8, xytext=(-4 if right else 4, 4 if n % 2 else -10),
                         textcoords="offset points", ha="right" if right else "left", annotation_clip=True)
     # The RA image is uniform in sin(azimuth) (the angle FFT's bins); its axis is labelled in degrees, like the
