@@ -17,6 +17,8 @@ from radar.simulate import simulate_sequence
 
 ROOT = Path(__file__).resolve().parents[3]
 DETECTOR, SEGMENTER = ROOT / "checkpoints" / "detector.pt", ROOT / "checkpoints" / "segmenter.pt"
+# One worker runs the whole module, so the int8 export (about 40 CPU seconds) is built once, not once per worker.
+pytestmark = pytest.mark.xdist_group("int8_export")
 
 
 @pytest.fixture(scope="module")
