@@ -48,6 +48,7 @@ class ProfileError(UserError):
     """A radar profile file that is missing, malformed or physically inconsistent."""
 
 
+CHANNEL_ERROR_BOUNDS = {"channel_phase_error_deg": 90.0, "channel_gain_error_db": 10.0}  # [simulation], at most
 _SCHEMA: dict[str, set[str]] = {
     "": {"name", "class_names", "frame_rate_hz", "chirp", "array", "processing", "simulation", "expect",
          "region_growing", "tracking", "scene"},
@@ -56,7 +57,7 @@ _SCHEMA: dict[str, set[str]] = {
     "array": {"n_tx", "n_rx", "tdm_order"},
     "processing": {"range_pad", "doppler_pad", "angle_bins", "window"},
     "simulation": {"noise_floor_db", "snr_0dbsm_10m_db", "objects_per_frame", "max_angle_deg",
-                   "channel_phase_error_deg", "channel_gain_error_db"},
+                   *CHANNEL_ERROR_BOUNDS},
     "expect": {"range_res_m", "velocity_res_mps", "max_range_m", "max_velocity_mps"},
     "region_growing": {"distance_m", "min_snr_db", "intensity_ratio", "bridge", "seed_search"},
 }
@@ -136,7 +137,7 @@ def _simulation_options(simulation: dict, source: str) -> dict[str, Any]:
         if not (isinstance(lo_hi, list) and len(lo_hi) == 2 and all(isinstance(v, int) for v in lo_hi)):
             raise ProfileError(f"{source}: objects_per_frame must be [min, max] integers")
         sim_kwargs["objects_per_frame"] = tuple(lo_hi)
-    for key, most in (("channel_phase_error_deg", 90.0), ("channel_gain_error_db", 10.0)):
+    for key, most in CHANNEL_ERROR_BOUNDS.items():
         if key in simulation:
             value = float(_number(simulation, key, source, positive=False))
             if not 0 <= value <= most:
@@ -335,7 +336,7 @@ def describe(profile: RadarProfile) -> list[tuple[str, str]]:
                               + ", ".join(f"{name} {lo}-{hi}" for name, (lo, hi) in scene.classes)
                               + f"; walls {scene.walls[0]}-{scene.walls[1]}, "
                               f"furniture {scene.furniture[0]}-{scene.furniture[1]}"))
-    if profile.channel_phase_error_deg or profile.channel_gain_error_db:
+    if profile.has_channel_errors:
         rows.append(("simulated channel errors", f"{profile.channel_phase_error_deg:g} deg, "
                                                  f"{profile.channel_gain_error_db:g} dB (standard deviations)"))
     return rows + hardware.describe_rows(profile)
@@ -360,8 +361,7 @@ def profile_to_dict(profile: RadarProfile) -> dict[str, Any]:
                        "angle_bins": profile.n_angle, "window": profile.window},
         "simulation": {"noise_floor_db": profile.noise_floor_db, "snr_0dbsm_10m_db": profile.snr_0dbsm_10m_db,
                        "objects_per_frame": [lo, hi], "max_angle_deg": profile.max_angle_deg,
-                       **{key: getattr(profile, key) for key in ("channel_phase_error_deg", "channel_gain_error_db")
-                          if getattr(profile, key)}},
+                       **{key: getattr(profile, key) for key in CHANNEL_ERROR_BOUNDS if getattr(profile, key)}},
         **({"region_growing": {k: list(v) if isinstance(v, tuple) else v for k, v in profile.region_growing}}
            if profile.region_growing else {}),
         **({"tracking": dict(profile.tracking)} if profile.tracking else {}),

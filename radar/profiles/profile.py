@@ -261,6 +261,11 @@ class RadarProfile:
         x, y = self.xy(np.arange(self.n_range)[:, None], np.arange(self.n_angle)[None, :])
         return x.astype(np.float32), y.astype(np.float32)
 
+    @property
+    def has_channel_errors(self) -> bool:
+        """Whether the simulated radar's channels are mismatched (either standard deviation above 0)."""
+        return self.channel_phase_error_deg > 0 or self.channel_gain_error_db > 0
+
     @cached_property
     def fingerprint(self) -> str:
         """Short hash of everything that gives a bin its meaning (cube shape, spacings, array, window,

@@ -14,21 +14,17 @@ import numpy as np
 from radar.profiles import RadarProfile
 
 
-def has_channel_errors(profile: RadarProfile) -> bool:
-    return profile.channel_phase_error_deg > 0 or profile.channel_gain_error_db > 0
-
-
 def draw_channel_gains(profile: RadarProfile, rng: np.random.Generator) -> np.ndarray | None:
     """(K,) complex gain of each virtual channel, K = n_tx * n_rx (element ``tx * n_rx + rx``), or None when the
     profile states no errors (no random number is drawn then). Each TX and each RX chain draws half the variance,
     so a virtual channel's phase (degrees) and gain (dB) have the stated standard deviations."""
-    if not has_channel_errors(profile):
+    if not profile.has_channel_errors:
         return None
-    shape = (profile.n_tx, profile.n_rx)
-    half = 1 / np.sqrt(2)
-    phase_deg = (rng.normal(0, half, profile.n_tx)[:, None] + rng.normal(0, half, profile.n_rx)[None, :]) \
-        * profile.channel_phase_error_deg
-    gain_db = (rng.normal(0, half, profile.n_tx)[:, None] + rng.normal(0, half, profile.n_rx)[None, :]) \
-        * profile.channel_gain_error_db
-    gains = 10 ** (gain_db / 20) * np.exp(1j * np.radians(phase_deg))
-    return gains.reshape(shape[0] * shape[1])
+
+    def per_virtual_channel() -> np.ndarray:  # unit-variance error of each TX plus each RX chain, (n_tx * n_rx,)
+        half = 1 / np.sqrt(2)
+        return (rng.normal(0, half, profile.n_tx)[:, None] + rng.normal(0, half, profile.n_rx)[None, :]).ravel()
+
+    phase_deg = per_virtual_channel() * profile.channel_phase_error_deg
+    gain_db = per_virtual_channel() * profile.channel_gain_error_db
+    return 10 ** (gain_db / 20) * np.exp(1j * np.radians(phase_deg))

@@ -10,9 +10,10 @@ sit together:
 - **two bounces** (radar -> wall -> object -> wall -> radar): exactly the object's mirror image behind the wall,
   at ``r'`` with the image's radial velocity, attenuated by two reflections.
 
-Both are further from the radar than the object and move with it, at the image's radial velocity or the mean of the
-two: weak movers beyond a real one, as a recorded indoor frame shows (docs/guides/indoor-scenes.md). Ghosts are not labelled: a
-segmentation label marks the object itself, so they are background the networks learn to leave alone.
+Both are further from the radar than the object and move with it, at the image's radial velocity or the mean of
+the two: weak movers beyond a real one, as a recorded indoor frame shows (docs/guides/indoor-scenes.md). Ghosts are
+not labelled: a segmentation label marks the object itself, so they are background the networks learn to leave
+alone.
 """
 
 from __future__ import annotations
