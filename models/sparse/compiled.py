@@ -14,20 +14,27 @@ runtime runs its sparse convolutions on this setting's kernels. The earlier name
 `RADARSEG_SPARSE_ENGINE`, the values `native` and `torch`) are refused with the new ones.
 
 The extension is built on first use with torch's extension machinery (g++ and ninja) and cached under
-`$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of the sources,
-the compiler flags, torch's and Python's versions and the CPU's instruction-set flags (it is compiled with
-`-march=native`, so a cache shared between machines of different kinds never serves foreign code).
-torch's loader holds a file lock while it builds, so concurrent processes build it once.
+`$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of everything the
+compiled code depends on (`build_environment`): the sources, the compiler and its flags, the interpreter (its
+path and prefix: each venv has its own build), torch's version, location and C++ ABI, Python's version and the
+CPU's instruction-set flags (it is compiled with `-march=native`, so a cache shared between machines of
+different kinds never serves foreign code). Two clones with their own venvs on one machine therefore never
+rebuild over each other's kernels. Each build folder keeps what it was built for in `build.json`, and a build
+logs that it is building and why (which of those differs from the builds already cached). torch's loader holds a
+file lock while it builds, so concurrent processes build it once.
 """
 
 from __future__ import annotations
 
 import fcntl
+import functools
 import hashlib
+import json
 import logging
 import os
 import platform
 import shutil
+import subprocess
 import sys
 import threading
 import time
@@ -120,15 +127,84 @@ def cpu_flags() -> str:
     return platform.processor() or platform.machine()
 
 
+@functools.cache
+def compiler_identity() -> str:
+    """The C++ compiler torch's loader runs (`$CXX`, else `c++`): its path and the first line of `--version`."""
+    command = os.environ.get("CXX", "c++")
+    found = shutil.which(command)
+    if found is None:
+        return f"{command} (not found)"
+    try:
+        done = subprocess.run([found, "--version"], capture_output=True, text=True, timeout=30, check=False)
+        version = (done.stdout.strip().splitlines() or ["(no version)"])[0]
+    except (OSError, subprocess.SubprocessError) as error:
+        version = f"(--version failed: {type(error).__name__})"
+    return f"{os.path.realpath(found)}: {version}"
+
+
+def build_environment(instruction_set: str = "native", sources: tuple[Path, ...] = SOURCES) -> dict[str, str]:
+    """Everything the code compiled from `sources` for `instruction_set` depends on, by name (`build.json`).
+
+    Raises:
+        ValueError: an unknown instruction set.
+    """
+    if instruction_set not in INSTRUCTION_SETS:
+        raise ValueError(f"instruction set must be one of {tuple(INSTRUCTION_SETS)}, got {instruction_set!r}")
+    code = hashlib.sha256()
+    for source in sources + HEADERS:
+        code.update(source.read_bytes())
+        code.update(b"\0")
+    return {
+        "sources": code.hexdigest()[:16],
+        "flags": " ".join(CFLAGS + INSTRUCTION_SETS[instruction_set] + LDFLAGS),
+        "compiler": compiler_identity(),
+        # the interpreter: a venv's own path and prefix, so that two venvs never share (or overwrite) one build
+        "interpreter": sys.executable,
+        "prefix": sys.prefix,
+        "python": sys.version,
+        "torch": f"{torch.__version__} at {Path(torch.__file__).parent}",
+        "cxx11_abi": str(torch._C._GLIBCXX_USE_CXX11_ABI),
+        "cpu": hashlib.sha256(cpu_flags().encode()).hexdigest()[:16],
+        "machine": platform.machine(),
+    }
+
+
 def build_key(instruction_set: str = "native", sources: tuple[Path, ...] = SOURCES) -> str:
-    """Hash of everything the code compiled from `sources` depends on (see the module docstring)."""
-    digest = hashlib.sha256()
-    flags = CFLAGS + INSTRUCTION_SETS[instruction_set] + LDFLAGS
-    for part in (*(source.read_bytes() for source in sources + HEADERS), " ".join(flags).encode(),
-                 torch.__version__.encode(), sys.version.encode(), cpu_flags().encode(), platform.machine().encode()):
-        digest.update(part)
-        digest.update(b"\0")
-    return digest.hexdigest()[:16]
+    """Hash of `build_environment(instruction_set, sources)` (see the module docstring)."""
+    text = json.dumps(build_environment(instruction_set, sources), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def build_directory(prefix: str, instruction_set: str = "native", sources: tuple[Path, ...] = SOURCES) -> Path:
+    """The folder the extension `prefix` built from `sources` for `instruction_set` in this environment is
+    cached in: `build_root() / f"{prefix}_{build_key}"`."""
+    return build_root() / f"{prefix}_{build_key(instruction_set, sources)}"
+
+
+MANIFEST = "build.json"
+"""The file in each build folder that says what it was built for (`build_environment`)."""
+
+
+def build_reason(directory: Path, environment_now: dict[str, str]) -> str:
+    """Why the extension in `directory` must be built: no build of that kind yet, an unfinished one, or what
+    differs between this environment and the builds of the same extension already cached beside it."""
+    if directory.is_dir() and any(directory.iterdir()):
+        return "a build in this folder is under way in another process, or did not finish"
+    prefix = directory.name.rsplit("_", 1)[0]
+    differences = []
+    for manifest in sorted(directory.parent.glob(f"{prefix}_*/{MANIFEST}")):
+        if manifest.parent.name.rsplit("_", 1)[0] != prefix:
+            continue  # another extension whose name starts like this one's
+        try:
+            cached = json.loads(manifest.read_text())
+        except (OSError, json.JSONDecodeError):
+            continue
+        differences.append(sorted(k for k in environment_now if cached.get(k) != environment_now[k]))
+    if not differences:
+        return "no build of it is cached yet"
+    nearest = min(differences, key=len)
+    return (f"{len(differences)} cached build(s) are for other environments; the nearest differs in "
+            f"{', '.join(nearest)}")
 
 
 def build_root() -> Path:
@@ -211,13 +287,13 @@ def build_extension(prefix: str, sources: tuple[Path, ...], instruction_set: str
     """
     from torch.utils import cpp_extension  # noqa: PLC0415  (imports setuptools: only when needed)
 
-    if instruction_set not in INSTRUCTION_SETS:
-        raise ValueError(f"instruction set must be one of {tuple(INSTRUCTION_SETS)}, got {instruction_set!r}")
-    name = f"{prefix}_{build_key(instruction_set, sources)}"
-    directory = build_root() / name
+    environment_now = build_environment(instruction_set, sources)
+    directory = build_directory(prefix, instruction_set, sources)
+    name = directory.name
     cached = (directory / f"{name}.so").is_file()
-    if not cached:
-        logger.info("building %s (%s) in %s (first use with this CPU and source)", what, instruction_set, directory)
+    if not cached:  # a warning: minutes of compiling should never pass without a word, whatever the log level
+        logger.warning("building %s (%s) in %s, because %s (minutes; cached afterwards)", what, instruction_set,
+                       directory, build_reason(directory, environment_now))
     started = time.perf_counter()
     try:
         _ensure_ninja_on_path()
@@ -232,7 +308,8 @@ def build_extension(prefix: str, sources: tuple[Path, ...], instruction_set: str
         first_line = str(error).strip().splitlines()[0] if str(error).strip() else type(error).__name__
         raise RuntimeError(f"{what} did not build ({type(error).__name__}: {first_line})") from error
     if not cached:
-        logger.info("built %s in %.1f s", what, time.perf_counter() - started)
+        (directory / MANIFEST).write_text(json.dumps(environment_now, indent=2, sort_keys=True) + "\n")
+        logger.warning("built %s in %.1f s", what, time.perf_counter() - started)
     return module
 
 

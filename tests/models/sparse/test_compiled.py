@@ -220,7 +220,7 @@ def test_a_lock_left_by_a_killed_build_does_not_block_the_next_process():
     """torch's build lock is a plain file: a build killed halfway leaves it and the next load would wait forever.
     Under our OS lock the left-over file is removed (in a child process, so that a hang fails by its timeout)."""
     script = ("from models.sparse import compiled\n"
-              "d = compiled.build_root() / f'radarseg_sparse_{compiled.build_key(\"native\")}'\n"
+              "d = compiled.build_directory('radarseg_sparse', 'native')\n"
               "d.mkdir(parents=True, exist_ok=True)\n"
               "(d / 'lock').write_text('left by a killed build')\n"
               "compiled.build('native')\n"
