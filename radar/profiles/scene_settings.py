@@ -14,6 +14,8 @@ zero Doppler). A radar that sees 6 m then gets scenes of 6 m::
     furniture = [2, 5]                # pieces of furniture per scene (min, max)
 
 Without the table a radar gets the road scenes of the built-in presets (``radar/simulate/scene.py``), unchanged.
+:func:`default_scene` is the table ``radarseg radar from-ti`` writes for a radar that sees less than the road
+radars: people walking in a room that fills the radar's range.
 
 :func:`radar_scale` is the other half of "at the radar's own scale": settings stated in metres for a road radar
 of 50 m (region growing's search grid, the AP distance thresholds) shrink with a radar that sees less.
@@ -63,6 +65,21 @@ class SceneSettings:
         if self.wall_range_m is not None:
             table["wall_range_m"] = list(self.wall_range_m)
         return table
+
+
+def default_scene(profile: Any, person: str = "pedestrian") -> SceneSettings | None:
+    """Rooms at ``profile``'s scale for a radar that sees less than the 50 m road radars (None for one that sees
+    as far: road scenes suit it): 1 to 3 people (class ``person``) walking at 0.3 to 1.4 m/s (at most 90 % of the
+    radar's unambiguous velocity), from ``min(1 m, 16 %)`` to 88 % of its range, walls and furniture as the
+    table's defaults. For a radar of 6.25 m: people at 1.0 to 5.5 m, the scenes of ``checkpoints/openradar-indoor``.
+    """
+    if radar_scale(profile) >= 1.0:
+        return None
+    reach = float(profile.max_range)
+    fastest = min(1.4, 0.9 * float(profile.max_velocity))
+    return SceneSettings(range_m=(round(min(1.0, 0.16 * reach), 2), round(0.88 * reach, 2)),
+                         classes=((person, (1, 3)),), speed_mps=((person, (min(0.3, fastest), round(fastest, 2))),),
+                         min_separation_m=0.6, walls=(1, 3), furniture=(2, 6))
 
 
 def _pair(value: Any, what: str, *, integer: bool) -> tuple:

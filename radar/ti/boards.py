@@ -29,8 +29,9 @@ def board_name(name: str) -> str:
     if key[:3] in ("awr", "iwr"):
         key = "xwr" + key[3:]
     if key not in BOARDS:
-        raise TiConfigError(f"unknown board {name!r}; known: {sorted(BOARDS)} (or state the positions in the profile's "
-                            f"[array] virtual_azimuth / virtual_elevation)")
+        raise TiConfigError(f"unknown board {name!r}; known: {sorted(BOARDS)}, each also spelled with awr or iwr for "
+                            f"xwr (or state the positions in the profile's [array] virtual_azimuth / "
+                            f"virtual_elevation)")
     return key
 
 

@@ -19,11 +19,14 @@ The commands that fix the radar are read (argument orders from the mmWave SDK us
 Refused, naming the command: BPM-MIMO (``bpmCfg`` enabled), advanced frames (``dfeDataOutputMode 3``,
 ``advFrameCfg``), sub-frames (``subFrameCfg``), cascading, chirps of more than one profile, a chirp enabling two TX at
 once (or none), a TX firing twice in a loop, per-chirp variations. The rest of the processing chain's commands (CFAR,
-GUI, clutter removal, ...) say nothing about the ADC: ignored and listed; unknown commands too.
+GUI, clutter removal, ...) say nothing about the ADC: ignored and listed; unknown commands too. A configuration that
+cannot be read names its unknown commands in the error, with the known command each is likely a misspelling of
+(``profileCgf``: did you mean ``profileCfg``?).
 """
 
 from __future__ import annotations
 
+import difflib
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +45,9 @@ IGNORED = frozenset({
     "gatingParam", "stateParam", "allocationParam", "maxAcceleration", "trackingCfg", "presenceBoundaryBox",
     "sensorPosition", "bpmCfg", "dfeDataOutputMode", "idlePowerDown", "procChainCfg", "intfMitigCfg"})
 REFUSED = {"advFrameCfg": "advanced frames", "subFrameCfg": "sub-frames"}
+READ = frozenset({"channelCfg", "adcCfg", "adcbufCfg", "profileCfg", "chirpCfg", "frameCfg",
+                  "compRangeBiasAndRxChanPhase"})
+"""The commands that describe the radar (read into the profile)."""
 
 
 class TiConfigError(UserError):
@@ -189,9 +195,33 @@ def _tdm_order(commands, frame_where: str, frame: list[float], enabled_tx: tuple
     return tuple(fired), profiles[profile_id]
 
 
+def unknown_commands(commands: list[tuple[str, str, list[float]]]) -> list[str]:
+    """Each command neither read nor ignored, where it is, and the known command it likely misspells:
+    ``"cfg:5: profileCgf (did you mean profileCfg?)"``."""
+    known = sorted(READ | IGNORED | set(REFUSED))
+    found = []
+    for where, name, _ in commands:
+        if name in READ or name in IGNORED:
+            continue
+        close = difflib.get_close_matches(name, known, n=1, cutoff=0.75)
+        found.append(f"{where}" + (f" (did you mean {close[0]}?)" if close else ""))
+    return found
+
+
 def parse_cfg(text: str, source: str = "cfg") -> TiConfig:
-    """A :class:`TiConfig` from the text of a ``.cfg``; :class:`TiConfigError` naming the line when it cannot be one."""
+    """A :class:`TiConfig` from the text of a ``.cfg``; :class:`TiConfigError` naming the line when it cannot be one,
+    and the file's unknown commands (a misspelled ``profileCgf`` is why no ``profileCfg`` defines the profile)."""
     commands = read_commands(text, source)
+    try:
+        return _parse_commands(commands, source)
+    except TiConfigError as error:
+        unknown = unknown_commands(commands)
+        if not unknown:
+            raise
+        raise TiConfigError(f"{error}; the file has unknown command(s): {'; '.join(unknown)}") from None
+
+
+def _parse_commands(commands: list[tuple[str, str, list[float]]], source: str) -> TiConfig:
     _check_refusals(commands)
     _, channel = _last(commands, "channelCfg", source)
     adc_where, adc = _last(commands, "adcCfg", source)
@@ -221,9 +251,8 @@ def parse_cfg(text: str, source: str = "cfg") -> TiConfig:
     if unused:
         notes.append(f"TX {unused} enabled by channelCfg but fired by no chirp of the frame")
     bias, coefficients = _calibration(commands)
-    known = {"channelCfg", "adcCfg", "adcbufCfg", "profileCfg", "chirpCfg", "frameCfg", "compRangeBiasAndRxChanPhase"}
     ignored = sorted({name for _, name, _ in commands if name in IGNORED})
-    unknown = sorted({name for _, name, _ in commands if name not in IGNORED and name not in known})
+    unknown = sorted({name for _, name, _ in commands if name not in IGNORED and name not in READ})
     loops = _int(frame[2], frame_where, "numLoops")
     if loops <= 0 or frame[4] <= 0:
         raise TiConfigError(f"{frame_where}: numLoops and framePeriodicity must be > 0")

@@ -16,6 +16,7 @@ from typing import Any
 
 from radar.profiles import RadarProfile
 from radar.profiles.files import profile_from_dict
+from radar.profiles.scene_settings import default_scene
 from radar.ti.boards import virtual_positions
 from radar.ti.cfg import TiConfig, TiConfigError
 
@@ -108,6 +109,8 @@ def _toml_value(value: Any) -> str:
         return json.dumps(value)
     if isinstance(value, list | tuple):
         return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):  # an inline table inside a table ([scene] classes = {pedestrian = [1, 3]})
+        return "{" + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + "}"
     raise TypeError(f"no TOML form for {value!r}")
 
 
@@ -121,14 +124,21 @@ def to_toml(data: dict[str, Any], header: list[str] = ()) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_profile(cfg: TiConfig, out: str | Path, *, source: str, **options: Any) -> RadarProfile:
+def write_profile(cfg: TiConfig, out: str | Path, *, source: str, scene: bool = True,
+                  **options: Any) -> RadarProfile:
     """Write the profile file of ``cfg`` to ``out`` (.toml) and return the profile it loads as (checked before
-    anything is written)."""
+    anything is written). With ``scene`` a radar that sees less than the road radars gets a ``[scene]`` table at
+    its scale (:func:`radar.profiles.scene_settings.default_scene`: people walking in a room), so that ``simulate``
+    puts no car or cyclist at road speeds into a 6 m room; without it, the road scenes."""
     out = Path(out)
     if out.suffix != ".toml":
         raise TiConfigError(f"{out}: the profile is written as .toml")
     data = profile_table(cfg, **options)
     profile = profile_from_dict(data, source=f"{source} (as a profile)")
+    indoor = default_scene(profile, person=profile.class_names[0]) if scene else None
+    if indoor is not None:
+        data["scene"] = indoor.to_table()
+        profile = profile_from_dict(data, source=f"{source} (as a profile)")
     figures = ti_figures(cfg)
     header = [f"Radar profile written by `radarseg radar from-ti` from {source}.",
               "TI's figures: " + ", ".join(f"{k} {v:.5g}" for k, v in figures.items()) + "."]

@@ -100,6 +100,18 @@ def test_what_a_profile_cannot_represent_is_refused_naming_the_command(edit, nam
     assert "\n" not in str(info.value)
 
 
+def test_a_misspelled_command_is_named_as_unknown_with_the_command_it_misspells():
+    assert "profileCfg 0 77" in BASE
+    with pytest.raises(UserError) as info:
+        parse_cfg(BASE.replace("profileCfg 0 77", "profileCgf 0 77"), "awr.cfg")
+    message = str(info.value)
+    assert "no profileCfg defines" in message  # the failure itself, then its likely cause
+    assert "unknown command(s): awr.cfg:" in message and "profileCgf (did you mean profileCfg?)" in message
+    with pytest.raises(UserError) as info:  # a stranger with no near namesake is named, without a guess
+        parse_cfg(BASE.replace("profileCfg 0 77", "vendorThing 0 77"), "awr.cfg")
+    assert "vendorThing" in str(info.value) and "did you mean" not in str(info.value)
+
+
 def test_from_ti_then_show(tmp_path, capsys):
     out = tmp_path / "awr.toml"
     assert main(["radar", "from-ti", str(AWR1843), "--out", str(out), "--board", "awr1843boost",
@@ -112,6 +124,26 @@ def test_from_ti_then_show(tmp_path, capsys):
     shown = capsys.readouterr().out
     assert "TI timing" in shown and "ramp end 62 us" in shown
     assert main(["radar", "from-ti", str(tmp_path / "missing.cfg"), "--out", str(out)]) == 2
+
+
+def test_from_ti_gives_a_short_range_radar_rooms_at_its_scale(tmp_path, capsys):
+    """A 6 m radar's profile simulates people walking in a room, not cars and cyclists at road speeds."""
+    out = tmp_path / "awr.toml"
+    assert main(["radar", "from-ti", str(AWR1843), "--out", str(out), "--board", "xwr1843boost"]) == 0
+    assert "scene: rooms at the radar's scale" in capsys.readouterr().out
+    profile = get_profile(str(out))
+    scene = profile.extra["scene"]
+    assert 0 < scene.range_m[0] < scene.range_m[1] < profile.max_range < 7
+    assert dict(scene.classes) == {"pedestrian": (1, 3)}  # no cyclist, no car
+    assert scene.speed_range("pedestrian")[1] <= min(1.4, profile.max_velocity)
+    assert main(["radar", "from-ti", str(AWR1843), "--out", str(out), "--no-scene"]) == 0
+    assert get_profile(str(out)).extra.get("scene") is None
+
+
+def test_a_long_range_radar_keeps_the_road_scenes():
+    from radar.profiles.scene_settings import default_scene
+
+    assert default_scene(get_profile("small")) is None  # sees 50 m: the road radars' scenes suit it
 
 
 def test_hand_written_timing_must_agree(tmp_path):
