@@ -34,6 +34,15 @@ JOBS: dict[str, tuple[str, str]] = {
 }
 
 
+def job_parser_of(command: str) -> argparse.ArgumentParser:
+    """The parser that reads a job command's options (``radarseg train ...``): the job module's own
+    (:mod:`pipelines.jobs`). The top-level parser only names the jobs; the reference pages and their test walk
+    these for every option."""
+    from pipelines.jobs import job_module, job_parser
+
+    return job_parser(job_module(JOBS[command][0]), prog=f"radarseg {command}")
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.datasets.record import simulate_recording
 

@@ -65,6 +65,11 @@ def on_page_markdown(markdown, page, config, files):  # noqa: ANN001, ANN201
 # -- the command line ----------------------------------------------------------------------------------------------
 
 def _commands(parser: argparse.ArgumentParser, words: list[str]):  # noqa: ANN202
+    """Every command below ``parser`` with its parser; a job's own parser where the top level only names it."""
+    from pipelines.cli import JOBS, job_parser_of
+
+    if len(words) == 2 and words[1] in JOBS:
+        parser = job_parser_of(words[1])
     yield words, parser
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
