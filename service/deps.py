@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass, field
 from typing import Annotated
 
@@ -38,6 +39,8 @@ class ServiceState:
     stream_history: StreamHistory
     examples: ExampleCache
     stream_recordings: StreamRecordings = field(default_factory=StreamRecordings)  # the frames this replica ran
+    # bodies decoded off the event loop at once (V2 JSON tensors: the body, its text and its numbers in memory)
+    request_decoding: asyncio.Semaphore = field(default_factory=lambda: asyncio.Semaphore(2))
 
     @property
     def ledger_error(self) -> str | None:

@@ -16,6 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from service.json_tensors import JsonTensorError, NumericList, max_json_body, split_request
+
 HEADER_LENGTH = "Inference-Header-Content-Length"
 DATATYPES = {"BOOL": "?", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "INT8": "i1",
              "INT16": "<i2", "INT32": "<i4", "INT64": "<i8", "FP16": "<f2", "FP32": "<f4", "FP64": "<f8"}
@@ -49,98 +51,142 @@ class InferRequest:
     binary_output: bool
 
 
-def _json_header(body: bytes | bytearray, header_length: str | None) -> tuple[dict[str, Any], memoryview]:
+MAX_HEADER_LENGTH_DIGITS = len(str(MAX_HEADER_BYTES))
+
+
+def _json_header(body: bytes | bytearray | memoryview, header_length: str | None
+                 ) -> tuple[dict[str, Any], memoryview, dict[str, NumericList]]:
+    """The request's JSON (its numeric ``data`` lists cut out, see service.json_tensors), the binary tensor data
+    after it and the cut lists by marker."""
     view = memoryview(body)
     if header_length is None:
-        header, binary = body, view[len(body):]
+        try:
+            parsed, lists = split_request(body)
+        except JsonTensorError as exc:
+            raise ProtocolError(400, str(exc)) from None
+        binary = view[len(body):]
     else:
-        if not (header_length.isascii() and header_length.isdigit()) or int(header_length) > len(body):
+        digits = header_length.lstrip("0") if header_length.isascii() and header_length.isdigit() else None
+        if digits is None or len(digits) > MAX_HEADER_LENGTH_DIGITS or int(digits or "0") > len(body):
             raise ProtocolError(400, f"{HEADER_LENGTH} {header_length[:24]!r}: expected the JSON header's length in "
-                                     f"bytes, at most the body's {len(body)}")
-        n = int(header_length)
+                                     f"bytes, at most the body's {len(body)} and at most {MAX_HEADER_BYTES}")
+        n = int(digits or "0")
         if n > MAX_HEADER_BYTES:
             raise ProtocolError(400, f"{HEADER_LENGTH} {n}: a JSON header of at most {MAX_HEADER_BYTES} bytes is "
                                      "accepted with binary tensor data")
-        header, binary = bytes(view[:n]), view[n:]
-    try:
-        parsed = json.loads(header)
-    except (ValueError, RecursionError) as exc:
-        raise ProtocolError(400, f"the request is not a JSON inference request ({str(exc)[:120]})") from None
+        header, binary, lists = bytes(view[:n]), view[n:], {}
+        try:
+            parsed = json.loads(header)
+        except (ValueError, RecursionError) as exc:
+            raise ProtocolError(400, f"the request is not a JSON inference request ({str(exc)[:120]})") from None
     if not isinstance(parsed, dict) or not isinstance(parsed.get("inputs"), list) or not parsed["inputs"]:
         raise ProtocolError(400, "expected a JSON object with a non-empty list 'inputs'")
-    return parsed, binary
+    return parsed, binary, lists
 
 
-def _tensor(spec: Any, binary: memoryview, offset: int, expected: ExpectedInputs) -> tuple[str, np.ndarray, int]:
+def _parameters(spec: dict[str, Any], where: str) -> dict[str, Any]:
+    """``spec``'s "parameters": an object (absent or null: none); 400 for any other type."""
+    parameters = spec.get("parameters")
+    if parameters is None:
+        return {}
+    if not isinstance(parameters, dict):
+        raise ProtocolError(400, f"{where}'parameters' must be a JSON object, got {type(parameters).__name__} "
+                                 f"{str(parameters)[:40]!r}")
+    return parameters
+
+
+def _tensor(spec: Any, binary: memoryview, offset: int, expected: ExpectedInputs,
+            lists: dict[str, NumericList]) -> tuple[str, np.ndarray, int]:
     """One input as an array (its shape and datatype checked against ``expected`` before any data is read) and the
     binary bytes it took."""
     if not isinstance(spec, dict) or not isinstance(spec.get("name"), str):
         raise ProtocolError(400, "each input must be an object with a 'name'")
     name = spec["name"]
     if name not in expected:
-        raise ProtocolError(400, f"unknown input {name!r}: the model takes one of {sorted(expected)}")
+        raise ProtocolError(400, f"unknown input {name[:64]!r}: the model takes one of {sorted(expected)}")
     shapes, datatypes = expected[name]
     given = spec.get("shape")
     shape = next((s for s in shapes if given == list(s)), None)
     if shape is None:
         missing = (" (its trailing axis of 2 is missing: I and Q, or real and imaginary parts)"
                    if isinstance(given, list) and given + [2] in [list(s) for s in shapes] else "")
-        raise ProtocolError(400, f"input {name!r} has shape {given!r}, expected "
+        raise ProtocolError(400, f"input {name!r} has shape {str(given)[:80]}, expected "
                                  f"{' or '.join(str(list(s)) for s in shapes)}{missing}")
     if spec.get("datatype") not in datatypes:
-        raise ProtocolError(400, f"input {name!r} has datatype {spec.get('datatype')!r}, expected one of "
+        raise ProtocolError(400, f"input {name!r} has datatype {str(spec.get('datatype'))[:24]!r}, expected one of "
                                  f"{list(datatypes)}")
     dtype = np.dtype(DATATYPES[spec["datatype"]])
-    size = int(np.prod(shape)) * dtype.itemsize
-    parameters = spec.get("parameters") or {}
+    count = int(np.prod(shape))
+    size = count * dtype.itemsize
+    parameters = _parameters(spec, f"input {name!r}: ")
     if "binary_data_size" in parameters:
-        if parameters["binary_data_size"] != size or offset + size > len(binary):
-            raise ProtocolError(400, f"input {name!r}: binary_data_size {parameters['binary_data_size']!r} with "
+        declared = parameters["binary_data_size"]
+        if type(declared) is not int or declared != size or offset + size > len(binary):
+            raise ProtocolError(400, f"input {name!r}: binary_data_size {str(declared)[:24]} with "
                                      f"{len(binary) - offset} bytes left, expected {size} ({list(shape)} "
                                      f"{spec['datatype']})")
         return name, np.frombuffer(binary[offset:offset + size], dtype).reshape(shape), size
     data = spec.get("data")
-    if not isinstance(data, list):
-        raise ProtocolError(400, f"input {name!r}: expected 'data' (a list) or parameters.binary_data_size")
+    if not (isinstance(data, str) and data in lists):
+        what = ("'data' must be a list of JSON numbers (no strings, booleans or NaN)" if "data" in spec
+                else "expected 'data' (a list of numbers) or parameters.binary_data_size")
+        raise ProtocolError(400, f"input {name!r}: {what}")
     try:
-        array = np.asarray(data, dtype=dtype)
-    except (ValueError, TypeError, OverflowError) as exc:
-        raise ProtocolError(400, f"input {name!r}: 'data' is not {spec['datatype']} numbers ({exc})") from None
-    if array.size != int(np.prod(shape)):
-        raise ProtocolError(400, f"input {name!r}: 'data' holds {array.size} values, expected {int(np.prod(shape))}")
-    return name, array.reshape(shape), 0
+        values = lists[data].values(name, dtype, count)
+    except JsonTensorError as exc:
+        raise ProtocolError(400, str(exc)) from None
+    return name, values.reshape(shape), 0
 
 
 def _outputs(parsed: dict[str, Any], known: tuple[str, ...]) -> tuple[tuple[RequestedOutput, ...] | None, bool]:
-    binary_default = bool((parsed.get("parameters") or {}).get("binary_data_output", False))
+    binary_default = _parameters(parsed, "").get("binary_data_output", False)
+    if not isinstance(binary_default, bool):
+        raise ProtocolError(400, f"parameters.binary_data_output must be true or false, got {str(binary_default)[:24]}")
     if parsed.get("outputs") is None:
         return None, binary_default
     chosen = []
     for spec in parsed["outputs"] if isinstance(parsed["outputs"], list) else [None]:
         if not isinstance(spec, dict) or spec.get("name") not in known:
-            raise ProtocolError(400, f"unknown output {spec!r}: the model answers {list(known)}")
-        binary = (spec.get("parameters") or {}).get("binary_data", binary_default)
-        chosen.append(RequestedOutput(spec["name"], bool(binary)))
+            raise ProtocolError(400, f"unknown output {str(spec)[:80]}: the model answers {list(known)}")
+        binary = _parameters(spec, f"output {spec['name']!r}: ").get("binary_data", binary_default)
+        if not isinstance(binary, bool):
+            raise ProtocolError(400, f"output {spec['name']!r}: parameters.binary_data must be true or false, got "
+                                     f"{str(binary)[:24]}")
+        chosen.append(RequestedOutput(spec["name"], binary))
     return tuple(chosen), binary_default
 
 
-def parse_request(body: bytes | bytearray, header_length: str | None, expected: ExpectedInputs,
+def parse_request(body: bytes | bytearray | memoryview, header_length: str | None, expected: ExpectedInputs,
                   outputs: tuple[str, ...]) -> InferRequest:
     """The request in ``body``; ``expected``: input name -> (the shapes it may have, accepted datatypes);
-    ``outputs``: the names the model answers."""
-    parsed, view = _json_header(body, header_length)
+    ``outputs``: the names the model answers. CPU work of the size of the body: call it off the event loop."""
+    parsed, view, lists = _json_header(body, header_length)
+    chosen, binary_output = _outputs(parsed, outputs)  # the small fields first, before any tensor is read
     offset, inputs = 0, {}
     for spec in parsed["inputs"]:
-        name, array, used = _tensor(spec, view, offset, expected)
+        name, array, used = _tensor(spec, view, offset, expected, lists)
         if name in inputs:
             raise ProtocolError(400, f"input {name!r} given twice")
         inputs[name], offset = array, offset + used
     if offset != len(view):
         raise ProtocolError(400, f"the body holds {len(view) - offset} binary bytes no input's binary_data_size "
                                  "accounts for")
-    chosen, binary_output = _outputs(parsed, outputs)
     request_id = parsed.get("id")
     return InferRequest(request_id if isinstance(request_id, str) else None, inputs, chosen, binary_output)
+
+
+def max_input_values(expected: ExpectedInputs) -> int:
+    """The numbers of the model's largest input (one request sends one input)."""
+    return max(int(np.prod(shape)) for shapes, _ in expected.values() for shape in shapes)
+
+
+def max_request_bytes(expected: ExpectedInputs, *, binary: bool) -> int:
+    """The longest body a request for ``expected`` could need: with binary tensor data, the JSON header and the
+    largest input in its widest datatype; as JSON, the largest input's numbers (service.json_tensors)."""
+    if not binary:
+        return max_json_body(max_input_values(expected))
+    return MAX_HEADER_BYTES + max(int(np.prod(shape)) * max(np.dtype(DATATYPES[d]).itemsize for d in datatypes)
+                                  for shapes, datatypes in expected.values() for shape in shapes)
 
 
 def encode_response(model: str, request_id: str | None, tensors: dict[str, np.ndarray],

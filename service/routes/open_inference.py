@@ -32,6 +32,7 @@ import numpy as np
 from fastapi import APIRouter, Path, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel
+from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 
 from models.erasenet.model import SegmentedObject
@@ -40,6 +41,8 @@ from service.adc_upload import AXES, AdcFrameInput
 from service.deps import Caller, ServiceState, State
 from service.errors import ApiError
 from service.inference import ServedModel
+from service.json_body import declared_length
+from service.json_tensors import MAX_VALUE_CHARS, max_json_values
 from service.open_inference import (
     HEADER_LENGTH,
     ExpectedInputs,
@@ -47,6 +50,8 @@ from service.open_inference import (
     ProtocolError,
     RequestedOutput,
     encode_response,
+    max_input_values,
+    max_request_bytes,
     parse_request,
 )
 from service.routes.errors_doc import error_responses
@@ -66,6 +71,8 @@ _DATATYPES = {"complex": ("FP32", "FP64"), "adc": ("FP32", "FP64"), "adc_iq": ("
 UNDECLARED = ("UINT16",)  # read only to be refused (undecoded words, as on /v1): not in the model's metadata
 _COMPLEX = {np.dtype("<f4"): np.complex64, np.dtype("<f8"): np.complex128}
 ModelName = Path(max_length=64, description="a served model's name (GET /v1/models)")
+ModelVersion = Path(max_length=64, description="the model's version: each served model has one, '1'")
+VERSIONS = ("1",)
 
 
 class ProtocolErrorBody(BaseModel):
@@ -76,6 +83,8 @@ class ProtocolErrorBody(BaseModel):
 
 _WHY = {400: "not an inference request the model takes: JSON, inputs, shapes, datatypes, binary sizes",
         404: "no served model of that name", 408: "the body fell behind the upload pace",
+        413: "a body (or a JSON body's count of numbers) larger than the model's largest input could need",
+        415: "a Content-Type other than application/json or application/octet-stream",
         422: "NaN/Inf or values impossible for the input kind", 429: "the tenant's daily MAC quota",
         503: "not ready, every slot taken, uploads saturated or the ledger down (Retry-After)"}
 
@@ -169,21 +178,56 @@ def model_metadata(state: State, caller: Caller, name: str = ModelName) -> JSONR
                {"name": "objects", "datatype": "FP32", "shape": [-1, len(OBJECT_COLUMNS)],
                 "parameters": {"columns": ",".join(OBJECT_COLUMNS)}},
                {"name": "compute", "datatype": "BYTES", "shape": [1]}]
-    return JSONResponse({"name": name, "versions": ["1"], "platform": f"radarseg-erasenet-{served.spec.engine}",
+    return JSONResponse({"name": name, "versions": list(VERSIONS),
+                         "platform": f"radarseg-erasenet-{served.spec.engine}",
                          "inputs": inputs, "outputs": outputs,
                          "parameters": {"preset": profile.name, "class_names": ",".join(served.net.class_names)}})
 
 
-async def _read_body(request: Request, state: ServiceState, tenant: str) -> bytearray:
-    """The whole body, within the upload gate's bounds and the body pace (408 for a stalled upload)."""
-    declared = request.headers.get("content-length")
-    length = int(declared) if declared is not None and declared.isascii() and declared.isdigit() else None
-    body = bytearray(length or 0)  # a declared length is filled in place (no copy as the body grows)
-    received = 0
+MEDIA_TYPES = ("application/json", "application/octet-stream")  # or none: tritonclient sends no Content-Type
+
+
+def _check_media_type(request: Request) -> None:
+    media_type = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
+    if media_type and media_type not in MEDIA_TYPES:
+        raise ApiError(415, f"content type {media_type[:64]!r} is not accepted: send a JSON inference request as "
+                            f"{' or '.join(MEDIA_TYPES)} (or with no Content-Type)")
+
+
+def _too_large(what: str, limit: int, name: str, binary: bool) -> ApiError:
+    how = ("its JSON header and the binary tensor data of its largest input" if binary else
+           f"its largest input's numbers as JSON of at most {MAX_VALUE_CHARS} characters each, and the rest")
+    return ApiError(413, f"request body {what} is larger than any request model {name!r} takes: at most {limit} "
+                         f"bytes ({how})", headers={"Connection": "close"})
+
+
+async def _read_body(request: Request, state: ServiceState, tenant: str, served: ServedModel) -> memoryview:
+    """The whole body, within what the model's largest input could need (413 at once for a larger declared length,
+    as soon as the bytes or a JSON body's commas pass it), the upload gate's bounds and the body pace (408 for a
+    stalled upload)."""
+    expected = _input_shapes(served)
+    binary = request.headers.get(HEADER_LENGTH) is not None
+    limit = max_request_bytes(expected, binary=binary)
+    max_commas = None if binary else max_json_values(max_input_values(expected))
+    length = declared_length(request)
+    if length is not None and length > limit:
+        raise _too_large(f"of {length} bytes", limit, served.spec.name, binary)
+    # a declared length (bounded above) is filled in place, no copy as it grows; np.empty maps its pages as the
+    # bytes arrive (bytearray(n) wrote n zeros at once: four slow 64 MiB uploads held 164 MB before sending a byte)
+    body: np.ndarray | bytearray = np.empty(length, np.uint8) if length else bytearray()
+    received = commas = 0
     with state.uploads.admit(tenant, length) as ticket:
         try:
             async for chunk in paced(request.stream(), state.settings):
                 end = received + len(chunk)
+                if end > limit:
+                    raise _too_large(f"of more than {limit} bytes", limit, served.spec.name, binary)
+                if max_commas is not None:
+                    commas += chunk.count(b",")
+                    if commas > max_commas:
+                        raise ApiError(413, f"the JSON request holds more than {max_commas} values: model "
+                                            f"{served.spec.name!r}'s largest input has {max_input_values(expected)}",
+                                       headers={"Connection": "close"})
                 if length is None:
                     body += chunk
                     if end > ticket.bytes:
@@ -191,13 +235,13 @@ async def _read_body(request: Request, state: ServiceState, tenant: str) -> byte
                 elif end > length:
                     raise ApiError(400, f"the body is longer than its Content-Length of {length} bytes")
                 else:
-                    body[received:end] = chunk
+                    body[received:end] = np.frombuffer(chunk, np.uint8)
                 received = end
         except ClientDisconnect:
             raise ApiError(400, "client disconnected before sending the whole body") from None
     if received != len(body):
         raise ApiError(400, f"the body ended after {received} of its Content-Length of {length} bytes")
-    return body  # not copied again: the tensors are views of it
+    return memoryview(body)  # not copied again: the tensors are views of it
 
 
 def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndarray]:
@@ -218,6 +262,12 @@ def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndar
     return kind, array
 
 
+def _decode(body: memoryview, header_length: str | None, served: ServedModel
+            ) -> tuple[InferRequest, InputKind, np.ndarray]:
+    parsed = parse_request(body, header_length, _input_shapes(served), OUTPUTS)
+    return parsed, *_cube(parsed, served)
+
+
 def _tensors(billed: Any, name: str) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
     result = billed.result
     objects = np.array([[getattr(o, c) for c in OBJECT_COLUMNS] for o in result.objects], np.float32)
@@ -229,7 +279,7 @@ def _tensors(billed: Any, name: str) -> tuple[dict[str, np.ndarray], dict[str, d
 
 
 @router.post("/v2/models/{name}/infer", summary="Segment one cube (Open Inference Protocol)",
-             responses=protocol_errors(400, 404, 408, 422, 429, 503))
+             responses=protocol_errors(400, 404, 408, 413, 415, 422, 429, 503))
 async def infer(request: Request, state: State, caller: Caller, name: str = ModelName) -> Response:
     """Billed and limited as ``POST /v1/segment``: the model ready and the ledger up, the tenant's quota checked
     before the body is read, the upload gate, the cube's values, a model slot (503 when saturated)."""
@@ -246,12 +296,13 @@ async def _infer(request: Request, state: ServiceState, caller: Principal, name:
     if state.ledger_error is not None:
         raise ApiError(503, f"usage ledger unavailable ({state.ledger_error}); the request was not billed",
                        headers={"Retry-After": str(state.settings.retry_after_s)})
+    _check_media_type(request)
     await state.billing.check(caller.tenant, served)  # a tenant over its quota sends no body for nothing
     started = time.perf_counter()
-    body = await _read_body(request, state, caller.tenant)
-    parsed = parse_request(body, request.headers.get(HEADER_LENGTH), _input_shapes(served), OUTPUTS)
+    body = await _read_body(request, state, caller.tenant, served)
+    async with state.request_decoding:  # CPU work of the body's size, off the event loop, a few at a time
+        parsed, kind, cube = await run_in_threadpool(_decode, body, request.headers.get(HEADER_LENGTH), served)
     del body
-    kind, cube = _cube(parsed, served)
     decode_s = time.perf_counter() - started
     admitted = Admitted({"objects", "masks"}, served, ExpectedCube(served.spec.name, cube.shape, kind), None)
     billed = await run_billed(state, caller, admitted, cube, decode_s, kind, True, MaskEncoding.rle)
@@ -263,3 +314,30 @@ async def _infer(request: Request, state: ServiceState, caller: Principal, name:
         headers[HEADER_LENGTH] = str(header_length)
         return Response(payload, media_type="application/octet-stream", headers=headers)
     return Response(payload, media_type="application/json", headers=headers)
+
+
+def _unknown_version(name: str, version: str) -> JSONResponse | None:
+    if version in VERSIONS:
+        return None
+    return protocol_error(404, f"model {name!r} has no version {version[:64]!r}: its versions are {list(VERSIONS)}")
+
+
+@router.get("/v2/models/{name}/versions/{version}", summary="A model version's metadata (Open Inference Protocol)",
+            responses=protocol_errors(404, 503))
+def version_metadata(state: State, caller: Caller, name: str = ModelName,
+                     version: str = ModelVersion) -> JSONResponse:
+    return _unknown_version(name, version) or model_metadata(state, caller, name)
+
+
+@router.get("/v2/models/{name}/versions/{version}/ready", summary="A model version's readiness (Open Inference "
+            "Protocol)", responses=protocol_errors(404, 503))
+def version_ready(state: State, caller: Caller, name: str = ModelName, version: str = ModelVersion) -> JSONResponse:
+    return _unknown_version(name, version) or model_ready(state, caller, name)
+
+
+@router.post("/v2/models/{name}/versions/{version}/infer", summary="Segment one cube with a model version (Open "
+             "Inference Protocol)", responses=protocol_errors(400, 404, 408, 413, 415, 422, 429, 503))
+async def version_infer(request: Request, state: State, caller: Caller, name: str = ModelName,
+                        version: str = ModelVersion) -> Response:
+    """``POST /v2/models/{name}/infer`` for the model's one version, ``1``."""
+    return _unknown_version(name, version) or await infer(request, state, caller, name)

@@ -191,7 +191,7 @@ def test_int16_iq_that_does_not_fit_is_refused_with_what_was_expected(client, se
         assert list(answer.json()) == ["error"] and expected in answer.json()["error"], (case, answer.json())
     json_overflow = _request("adc_iq", [S, C, V, 2], "INT16", [40000] * (S * C * V * 2))
     answer = _raw_infer(server, json_overflow)
-    assert answer.status_code == 400 and "not INT16 numbers" in answer.json()["error"], answer.text
+    assert answer.status_code == 400 and "is not int16: integers in" in answer.json()["error"], answer.text
     with pytest.raises(InferenceServerException, match="raw unsigned 16-bit words"):
         client.infer("tiny", [_iq_input(words, "UINT16")])
 
