@@ -36,7 +36,15 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
         shape, what = adc_shape(profile), "ADC samples (samples, chirps, virtual elements)"
     else:
         shape, what = profile.shape, "RAD cube (range, angle, Doppler)"
-    cube = load_npy(cube_path, shape=shape, dtypes=(np.complexfloating, np.floating), what=what)
+    try:
+        cube = load_npy(cube_path, shape=shape, dtypes=(np.complexfloating, np.floating), what=what)
+    except DataError as exc:
+        if "has shape" not in str(exc):
+            raise
+        # a cube of another radar: say whose cubes these checkpoints read, and where a model for it comes from
+        hint = (f"these checkpoints were trained for the radar {profile.name!r}; a cube of another radar needs a "
+                f"model trained for its profile: docs/guides/own-radar.md")
+        raise DataError(None, f"{exc} ({hint})") from None
     try:
         kind = resolve_kind(cube.dtype, declared)
         check_values(cube, kind)

@@ -63,6 +63,14 @@ def test_segment_refuses_wrong_files_and_units(capsys, cubes, case, expected):
     _fails_clearly(capsys, ["segment", cube, "--detector", detector, "--segmenter", segmenter, *extra], *expected)
 
 
+def test_a_cube_of_another_radar_is_refused_naming_the_radar_the_model_is_for(capsys, tmp_path):
+    other = tmp_path / "ti.npy"
+    np.save(other, np.zeros((128, 64, 128), np.complex64))  # a TI radar's cube, not the small preset's
+    _fails_clearly(capsys, ["segment", str(other), "--detector", DET, "--segmenter", SEG],
+                   "has shape (128, 64, 128), expected (128, 128, 32)", "trained for the radar 'small'",
+                   "docs/guides/own-radar.md")
+
+
 def test_jobs_refuse_swapped_checkpoints_and_bad_options(capsys, tmp_path):
     recording = tmp_path / "rec"
     recording.mkdir()
