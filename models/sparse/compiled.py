@@ -15,11 +15,11 @@ runtime runs its sparse convolutions on this setting's kernels. The earlier name
 
 The extension is built on first use with torch's extension machinery (g++ and ninja) and cached under
 `$TORCH_EXTENSIONS_DIR/` or `~/.cache/radarseg/extensions/`, in a folder named by a hash of everything the
-compiled code depends on (`build_environment`): the sources, the compiler and its flags, the interpreter (its
-path and prefix: each venv has its own build), torch's version, location and C++ ABI, Python's version and the
-CPU's instruction-set flags (it is compiled with `-march=native`, so a cache shared between machines of
-different kinds never serves foreign code). Two clones with their own venvs on one machine therefore never
-rebuild over each other's kernels. Each build folder keeps what it was built for in `build.json`, and a build
+compiled code depends on (`build_environment`): the sources and where they are, the compiler and its flags, the
+interpreter (its path and prefix: each venv has its own build), torch's version, location and C++ ABI, Python's
+version and the CPU's instruction-set flags (it is compiled with `-march=native`, so a cache shared between machines
+of different kinds never serves foreign code). Two clones on one machine, with their own venvs or one, therefore
+never rebuild over each other's kernels. Each build folder keeps what it was built for in `build.json`, and a build
 logs that it is building and why (which of those differs from the builds already cached). torch's loader holds a
 file lock while it builds, so concurrent processes build it once.
 """
@@ -156,6 +156,9 @@ def build_environment(instruction_set: str = "native", sources: tuple[Path, ...]
         code.update(b"\0")
     return {
         "sources": code.hexdigest()[:16],
+        # where they are: torch's build.ninja names each source by its path, so one build folder shared by two
+        # clones (with one venv, or two) recompiles at every switch between them
+        "source_paths": " ".join(str(source) for source in sources),
         "flags": " ".join(CFLAGS + INSTRUCTION_SETS[instruction_set] + LDFLAGS),
         "compiler": compiler_identity(),
         # the interpreter: a venv's own path and prefix, so that two venvs never share (or overwrite) one build

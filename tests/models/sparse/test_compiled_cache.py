@@ -62,9 +62,16 @@ def test_two_venvs_on_one_machine_build_into_their_own_folders(tmp_path):
     assert "other environments" in reason and "interpreter" in reason and "sources" not in reason
 
 
-@pytest.mark.parametrize("part", ["torch_version", "cxx11_abi", "compiler", "flags", "interpreter"])
-def test_the_build_key_changes_with_each_part_of_the_environment(monkeypatch, part):
+@pytest.mark.parametrize("part", ["torch_version", "cxx11_abi", "compiler", "flags", "interpreter", "clone"])
+def test_the_build_key_changes_with_each_part_of_the_environment(monkeypatch, tmp_path, part):
     before = compiled.build_key("native")
+    if part == "clone":  # the same sources in a second clone: torch's build names them by path
+        copies = []
+        for source in compiled.SOURCES:
+            copies.append(tmp_path / source.name)
+            copies[-1].write_bytes(source.read_bytes())
+        assert compiled.build_key("native", tuple(copies)) != before
+        return
     if part == "torch_version":
         monkeypatch.setattr(torch, "__version__", torch.__version__ + ".other")
     elif part == "cxx11_abi":
