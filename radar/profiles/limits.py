@@ -36,6 +36,17 @@ MAX_TRACK_FRAMES = 1000  # confirm_hits, max_misses, tentative_max_misses (a tra
 MAX_CLASSES = 254  # foreground classes (labels are uint8, background 0)
 MAX_NAME_CHARS = 128  # the radar's name and each class name
 
+# (table, key): the range of a physical quantity in SI units ("" the top level), as wide as any FMCW radar goes; a
+# carrier of 1e-300 Hz gave range bins of 1.9e301 m. Slopes are bounded in magnitude (a down-chirp is negative).
+PHYSICAL_BOUNDS: dict[tuple[str, str], tuple[float, float, str]] = {
+    ("chirp", "carrier_hz"): (1e9, 3e11, "1 to 300 GHz"),
+    ("chirp", "slope_hz_per_s"): (1e9, 1e15, "1e-3 to 1e3 MHz/us in magnitude"),
+    ("chirp", "sweep_bandwidth_hz"): (1e5, 1e11, "0.1 MHz to 100 GHz"),
+    ("chirp", "sample_rate_hz"): (1e4, 1e10, "10 ksps to 10 Gsps"),
+    ("chirp", "chirp_cycle_s"): (1e-7, 1.0, "0.1 us to 1 s"),
+    ("", "frame_rate_hz"): (0.01, 1e4, "0.01 to 10,000 frames a second"),
+}
+
 # (table, key): the largest value it may hold (integers that size arrays)
 TABLE_BOUNDS: dict[tuple[str, str], int] = {
     ("chirp", "samples_per_chirp"): MAX_BINS, ("chirp", "chirps_per_frame"): MAX_BINS,
@@ -135,11 +146,23 @@ def _check_names(data: dict[str, Any], source: str) -> None:
             raise _refuse(source, key, name, f"at most {MAX_NAME_CHARS} characters")
 
 
+def check_physical(value: float, key: str, source: str) -> None:
+    """LimitError for a physical quantity (a key of :data:`PHYSICAL_BOUNDS`, SI units) out of its range."""
+    (low, high, described), = (bound for (_, name), bound in PHYSICAL_BOUNDS.items() if name == key)
+    if not low <= abs(value) <= high:
+        raise _refuse(source, key, value, f"{described} ([{low:g}, {high:g}])")
+
+
 def check_tables(data: dict[str, Any], source: str) -> None:
     """LimitError for a raw profile table value past its bound, or a cube or ADC frame too large, before the
     profile is derived (a tdm_order of n_tx entries is built from it)."""
     check_finite(data, source)
     _check_names(data, source)
+    for table, key in PHYSICAL_BOUNDS:
+        values = data.get(table) if table else data
+        value = values.get(key) if isinstance(values, dict) else None
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            check_physical(float(value), key, source)
     for (table, key), bound in TABLE_BOUNDS.items():
         value = _integer(data.get(table), key)
         if value is not None and value > bound:
@@ -177,6 +200,8 @@ def check_profile(profile: Any) -> None:
                 "noise_floor_db", "channel_phase_error_deg", "channel_gain_error_db"):
         if not math.isfinite(getattr(profile, key)):
             raise _refuse(source, key, getattr(profile, key), "a finite number")
+    check_physical(profile.carrier_hz, "carrier_hz", source)
+    check_physical(profile.frame_rate_hz, "frame_rate_hz", source)
     if profile.objects_per_frame[1] > MAX_OBJECTS_PER_FRAME:
         raise _refuse(source, "objects_per_frame", profile.objects_per_frame,
                       f"at most {MAX_OBJECTS_PER_FRAME} objects")

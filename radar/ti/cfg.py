@@ -32,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from radar.errors import UserError
+from radar.profiles.limits import MAX_BINS, PHYSICAL_BOUNDS
 
 ADC_BITS = {0: 12, 1: 14, 2: 16}
 ADC_FORMATS = {0: "real", 1: "complex 1x", 2: "complex 2x"}
@@ -45,6 +46,12 @@ IGNORED = frozenset({
     "gatingParam", "stateParam", "allocationParam", "maxAcceleration", "trackingCfg", "presenceBoundaryBox",
     "sensorPosition", "bpmCfg", "dfeDataOutputMode", "idlePowerDown", "procChainCfg", "intfMitigCfg"})
 REFUSED = {"advFrameCfg": "advanced frames", "subFrameCfg": "sub-frames"}
+MAX_CHIRP_INDEX = 511  # the chirp table's last entry (512 chirps, mmWave SDK)
+MAX_LOOPS = 255  # frameCfg numLoops (mmWave SDK: 1 to 255)
+MAX_CHANNEL_MASK = 0xFFFF  # channelCfg enable masks: 16 channels (one chip has 4 RX and 3 or 4 TX)
+# TI's units -> SI, for the physical bounds of radar.profiles.limits
+TI_UNITS = {"startFreq": ("carrier_hz", 1e9, "GHz"), "freqSlopeConst": ("slope_hz_per_s", 1e12, "MHz/us"),
+            "digOutSampleRate": ("sample_rate_hz", 1e3, "ksps")}
 READ = frozenset({"channelCfg", "adcCfg", "adcbufCfg", "profileCfg", "chirpCfg", "frameCfg",
                   "compRangeBiasAndRxChanPhase"})
 """The commands that describe the radar (read into the profile)."""
@@ -102,10 +109,25 @@ def _numbers(words: list[str], where: str) -> list[float]:
     return values
 
 
-def _int(value: float, where: str, name: str) -> int:
+def _int(value: float, where: str, name: str, low: int | None = None, high: int | None = None,
+         what: str = "") -> int:
+    """``value`` as a whole number, within [low, high] when given (checked before it counts or sizes anything)."""
     if value != int(value):
         raise TiConfigError(f"{where}: {name} must be a whole number, got {value:g}")
+    if (low is not None and value < low) or (high is not None and value > high):
+        shown = f"{int(value)}" if abs(value) < 1e18 else f"{value:g}"
+        raise TiConfigError(f"{where}: {name} = {shown} is out of bounds: {what or 'a whole number'} in [{low}, "
+                            f"{high}]")
     return int(value)
+
+
+def _physical(value: float, where: str, name: str) -> float:
+    """A profileCfg quantity in TI's units, within radar.profiles.limits' physical bounds."""
+    key, scale, unit = TI_UNITS[name]
+    low, high, described = PHYSICAL_BOUNDS[("chirp", key)]
+    if not low <= abs(value) * scale <= high:
+        raise TiConfigError(f"{where}: {name} = {value:g} {unit} is out of bounds: {described}")
+    return value
 
 
 def _bits(mask: int) -> tuple[int, ...]:
@@ -134,10 +156,11 @@ def read_commands(text: str, source: str) -> list[tuple[str, str, list[float]]]:
 
 
 def _profile(where: str, v: list[float]) -> TiProfile:
-    samples = _int(v[9], where, "numAdcSamples")
-    if samples <= 0 or v[10] <= 0 or v[7] == 0 or v[1] <= 0:
-        raise TiConfigError(f"{where}: numAdcSamples, digOutSampleRate, startFreq must be > 0 and freqSlopeConst "
-                            f"not 0")
+    samples = _int(v[9], where, "numAdcSamples", 1, MAX_BINS, "ADC samples per chirp")
+    if v[10] <= 0 or v[1] <= 0:
+        raise TiConfigError(f"{where}: digOutSampleRate and startFreq must be > 0")
+    for index, name in ((1, "startFreq"), (7, "freqSlopeConst"), (10, "digOutSampleRate")):
+        _physical(v[index], where, name)
     return TiProfile(_int(v[0], where, "profileId"), v[1], v[2], v[3], v[4], v[7], v[8], samples, v[10])
 
 
@@ -165,9 +188,13 @@ def _tdm_order(commands, frame_where: str, frame: list[float], enabled_tx: tuple
     table: dict[int, tuple[str, list[float]]] = {}
     for where, name, args in commands:
         if name == "chirpCfg":
-            for index in range(_int(args[0], where, "startIdx"), _int(args[1], where, "endIdx") + 1):
+            first = _int(args[0], where, "startIdx", 0, MAX_CHIRP_INDEX, "a chirp index")
+            if args[1] < first:
+                raise TiConfigError(f"{where}: endIdx = {args[1]:.0f} is out of bounds: at least startIdx {first}")
+            for index in range(first, _int(args[1], where, "endIdx", first, MAX_CHIRP_INDEX, "a chirp index") + 1):
                 table[index] = (where, args)
-    start, end = _int(frame[0], frame_where, "chirpStartIdx"), _int(frame[1], frame_where, "chirpEndIdx")
+    start = _int(frame[0], frame_where, "chirpStartIdx", 0, MAX_CHIRP_INDEX, "a chirp index")
+    end = _int(frame[1], frame_where, "chirpEndIdx", start, MAX_CHIRP_INDEX, "a chirp index from chirpStartIdx")
     fired, used_profiles = [], set()
     for index in range(start, end + 1):
         if index not in table:
@@ -223,11 +250,10 @@ def parse_cfg(text: str, source: str = "cfg") -> TiConfig:
 
 def _parse_commands(commands: list[tuple[str, str, list[float]]], source: str) -> TiConfig:
     _check_refusals(commands)
-    _, channel = _last(commands, "channelCfg", source)
+    channel_where, channel = _last(commands, "channelCfg", source)
     adc_where, adc = _last(commands, "adcCfg", source)
-    if int(adc[0]) not in ADC_BITS or int(adc[1]) not in ADC_FORMATS:
-        raise TiConfigError(f"{adc_where}: numADCBits must be 0/1/2 and adcOutputFmt 0/1/2, got {adc[0]:g} {adc[1]:g}")
-    adc_format = ADC_FORMATS[int(adc[1])]
+    adc_bits = ADC_BITS[_int(adc[0], adc_where, "numADCBits", 0, 2, "0/1/2 (12/14/16 bits)")]
+    adc_format = ADC_FORMATS[_int(adc[1], adc_where, "adcOutputFmt", 0, 2, "0/1/2 (real, complex 1x, 2x)")]
     sample_swap, notes = 1, []
     buffers = [(where, args) for where, name, args in commands if name == "adcbufCfg"]
     if buffers:
@@ -243,7 +269,8 @@ def _parse_commands(commands: list[tuple[str, str, list[float]]], source: str) -
             profile = _profile(where, args)
             profiles[profile.profile_id] = profile
     frame_where, frame = _last(commands, "frameCfg", source)
-    rx, enabled_tx = _bits(int(channel[0])), _bits(int(channel[1]))
+    rx = _bits(_int(channel[0], channel_where, "rxChannelEn", 0, MAX_CHANNEL_MASK, "an enable mask"))
+    enabled_tx = _bits(_int(channel[1], channel_where, "txChannelEn", 0, MAX_CHANNEL_MASK, "an enable mask"))
     if not rx or not enabled_tx:
         raise TiConfigError(f"{source}: channelCfg enables no RX or no TX")
     fired, profile = _tdm_order(commands, frame_where, frame, enabled_tx, profiles)
@@ -253,10 +280,12 @@ def _parse_commands(commands: list[tuple[str, str, list[float]]], source: str) -
     bias, coefficients = _calibration(commands)
     ignored = sorted({name for _, name, _ in commands if name in IGNORED})
     unknown = sorted({name for _, name, _ in commands if name not in IGNORED and name not in READ})
-    loops = _int(frame[2], frame_where, "numLoops")
-    if loops <= 0 or frame[4] <= 0:
-        raise TiConfigError(f"{frame_where}: numLoops and framePeriodicity must be > 0")
-    return TiConfig(rx, fired, ADC_BITS[int(adc[0])], adc_format, sample_swap, profile, loops, frame[4], bias,
+    loops = _int(frame[2], frame_where, "numLoops", 1, MAX_LOOPS, "chirp loops per frame")
+    low, high, described = PHYSICAL_BOUNDS[("", "frame_rate_hz")]
+    if not 1e3 / high <= frame[4] <= 1e3 / low:
+        raise TiConfigError(f"{frame_where}: framePeriodicity = {frame[4]:g} ms is out of bounds: {1e3 / high:g} to "
+                            f"{1e3 / low:g} ms ({described})")
+    return TiConfig(rx, fired, adc_bits, adc_format, sample_swap, profile, loops, frame[4], bias,
                     coefficients, tuple(ignored), tuple(unknown), tuple(notes))
 
 
