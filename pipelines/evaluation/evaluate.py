@@ -15,7 +15,9 @@ split and writes ``DIR/metrics.json``, ``DIR/report.md`` (:mod:`pipelines.evalua
 - cost: parameters and MACs per stage (mean per frame), seconds per stage (mean per frame);
 - tracking: the tracker (radar.tracking) per sequence over the predicted objects and over the true centres,
   CLEAR MOT / identity metrics and velocity errors against the simulator's tracks
-  (:mod:`pipelines.evaluation.tracking`); a store without tracking truth gets a one-line reason instead;
+  (:mod:`pipelines.evaluation.tracking`); a store without tracking truth gets a one-line reason instead. With
+  ``--trackers`` the named trackers (ours, Stone Soup's) run on the same objects and are scored with GOSPA, HOTA,
+  MOTA / IDF1 and velocity error (:mod:`pipelines.evaluation.tracker_comparison`, ``tracking.trackers``);
 - pictures: PR curves, the RA/RD confusion matrices, and RA/RD maps of ``--pictures`` frames with the
   ground truth above the prediction.
 
@@ -52,7 +54,14 @@ from pipelines.datasets.store import (
 )
 from pipelines.evaluation.report import tracking_headline
 from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
-from pipelines.evaluation.tracking import TrackingTally
+from pipelines.evaluation.tracker_comparison import (
+    TRACKERS,
+    compare_trackers,
+    parse_trackers,
+    plot_gospa_by_frame,
+    save_frames,
+)
+from pipelines.evaluation.tracking import TrackingTally, by_sequence
 from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from pipelines.progress import progress
 from radar.centres import SCORE_THRESHOLD, Centres
@@ -89,6 +98,7 @@ class EvaluateConfig:
     threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default); per-stage seconds with these
     progress: bool = True
     single_cube: bool = False  # a detector that reads earlier frames sees each frame alone (no history)
+    trackers: tuple[str, ...] = ()  # also compare these trackers on the same objects (tracker_comparison.TRACKERS)
 
     def __post_init__(self) -> None:
         if self.max_frames < 0 or self.pictures < 0 or self.sweep_frames < 0:
@@ -97,6 +107,8 @@ class EvaluateConfig:
             raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
         if self.engine not in ENGINES:
             raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
+        if unknown := [name for name in self.trackers if name not in TRACKERS]:
+            raise ValueError(f"trackers must be among {tuple(TRACKERS)}, got {unknown}")
 
 
 def _int8_calibration(store: str, profile: Any) -> Any:
@@ -201,9 +213,23 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
         metrics["segmentation_truth_seeds"] = {view.upper(): summary for view, summary
                                                in tallies.oracle_confusion.summary(net.class_names).items()}
     metrics["tracking"] = tracking.summary(TrackerConfig.for_profile(net.profile))
+    if cfg.trackers and tracking.problem is None:
+        _compare_trackers(cfg.trackers, tracking, net, metrics, out)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
     write_report(metrics, out / "report.md")
     return metrics
+
+
+def _compare_trackers(names: tuple[str, ...], tracking: TrackingTally, net: EraseNet, metrics: dict[str, Any],
+                      out: Path) -> None:
+    """Trackers ``names`` on the tracked objects: ``tracking.trackers`` in ``metrics``, the GOSPA plot, and the
+    objects in ``tracking_frames.npz`` (to compare or tune trackers again without the network:
+    ``python -m experiments.studies.stonesoup_tuning``)."""
+    save_frames(tracking.frames, out / "tracking_frames.npz")  # first: the network's work is kept whatever follows
+    metrics["tracking"]["trackers"] = compare_trackers(by_sequence(tracking.frames), names,
+                                                       TrackerConfig.for_profile(net.profile), net.class_names,
+                                                       metrics["tracking"]["match_distance_m"])
+    metrics["pictures"].append(plot_gospa_by_frame(metrics["tracking"]["trackers"], out / "tracking_gospa.png"))
 
 
 def store_frames(store: str | Path, profile: Any, split: str | None, max_frames: int = 0) -> tuple[Any, np.ndarray]:
@@ -354,6 +380,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--single-cube", action="store_true",
                         help="a detector that reads earlier frames of the sequence sees each frame alone")
+    parser.add_argument("--trackers", type=parse_trackers, default=defaults.trackers,
+                        help=f"also run these trackers on the same objects and score them with GOSPA, HOTA, MOTA, "
+                             f"IDF1 and velocity error (comma-separated: {','.join(TRACKERS)}; Stone Soup's and "
+                             f"HOTA need the 'tracking' extra)")
 
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
@@ -364,7 +394,8 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           score_threshold=args.score_threshold, oracle=not args.no_oracle,
                           doppler_refinement=not args.no_doppler_refinement, device=args.device, engine=args.engine,
                           precision=args.precision,
-                          threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube)
+                          threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube,
+                          trackers=tuple(args.trackers))
 
 
 def main(cfg: EvaluateConfig) -> dict[str, Any]:

@@ -156,7 +156,31 @@ def tracking_lines(tracking: dict[str, Any] | None) -> list[str]:
                          str(o["num_false_positives"]), str(o["num_misses"]), fmt_num(p["mota"]), fmt_num(p["idf1"])])
     lines += md_table(["source", "hypotheses", "MOTA", "MOTP (m)", "IDF1", "ID switches", "per 100 tracks",
                        "mostly tracked / lost", "FP", "FN", f"MOTA {second[6:]}", f"IDF1 {second[6:]}"], rows)
-    return lines + _tracking_per_class(tracking, first) + _tracking_velocity(tracking)
+    return (lines + _tracking_per_class(tracking, first) + _tracking_velocity(tracking)
+            + tracker_comparison_lines(tracking.get("trackers")))
+
+
+def tracker_comparison_lines(comparison: dict[str, Any] | None) -> list[str]:
+    """The trackers compared on the same objects (``tracking.trackers``): GOSPA, HOTA, MOTA, IDF1, velocity, cost."""
+    if not comparison:
+        return []
+    g = comparison["gospa"]
+    rows = []
+    for name in comparison["names"]:
+        r = comparison[name]
+        gospa, hota, mot, velocity = r["gospa"], r["hota"], r["mot"], r["velocity"]
+        rows.append([name, fmt_num(gospa.get("mean_m")), fmt_num(gospa.get("missed_per_frame"), ".2f"),
+                     fmt_num(gospa.get("false_per_frame"), ".2f"), fmt_num(hota["hota"]), fmt_num(hota["deta"]),
+                     fmt_num(hota["assa"]), fmt_num(mot["mota"]), fmt_num(mot["idf1"]), str(mot["num_switches"]),
+                     fmt_num(velocity["vx_rmse_mps"], ".2f"), fmt_num(velocity["vy_rmse_mps"], ".2f"),
+                     fmt_num(r["tracker_ms_per_frame"].get("median"), ".3f")])
+    return ["", "### Trackers on the same objects", "",
+            f"Each tracker's reported tracks ({comparison['reported']}) against the truth. GOSPA: alpha 2, "
+            f"p = {g['p']:g}, c = {g['c_m']:g} m, mean per frame; HOTA with similarity "
+            f"{comparison['hota_similarity']}.",
+            "",
+            *md_table(["tracker", "GOSPA (m)", "missed / frame", "false / frame", "HOTA", "DetA", "AssA", "MOTA",
+                       "IDF1", "ID switches", "vx RMSE (m/s)", "vy RMSE (m/s)", "ms / frame"], rows)]
 
 
 def _tracking_per_class(tracking: dict[str, Any], key: str) -> list[str]:

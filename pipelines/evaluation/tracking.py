@@ -193,10 +193,9 @@ def evaluate_tracking(frames: Iterable[TrackingFrame], profile: RadarProfile,
         for variant in VARIANTS:
             result[variant] = {match_key(d): _mot_scores(sequences, answers, variant, d, class_names)
                                for d in (match_m, secondary_m)}
-        result["velocity"] = _velocity_errors(sequences, answers, class_names, match_m)
+        result["velocity"] = velocity_errors(sequences, answers, class_names, match_m)
         ms = 1000 * np.asarray(seconds)
-        result["tracker_ms_per_frame"] = {"mean": _num(ms.mean()), "median": _num(np.median(ms)),
-                                          "p99": _num(np.percentile(ms, 99)), "frames": len(ms)} if len(ms) else {}
+        result["tracker_ms_per_frame"] = milliseconds_summary(ms)
         section[source] = result
     return section
 
@@ -209,7 +208,7 @@ def _distances(truth_xy: np.ndarray, hyp_xy: np.ndarray, max_distance: float) ->
 _ID_STRIDE = 1_000_000  # ids and frame numbers of sequence s are s * _ID_STRIDE + its own: one accumulator
 
 
-def _accumulator(sequences: dict[int, list[TrackingFrame]], answers: dict[int, list[Hypotheses]], variant: str,
+def mot_accumulator(sequences: dict[int, list[TrackingFrame]], answers: dict[int, list[Hypotheses]], variant: str,
                  distance: float, class_id: int | None) -> Any:
     """One motmetrics accumulator over every sequence (ids and frames made unique per sequence), of one class
     (truth of that class against tracks voted it) or of every class (``None``)."""
@@ -232,32 +231,32 @@ def _accumulator(sequences: dict[int, list[TrackingFrame]], answers: dict[int, l
 def _mot_scores(sequences: dict[int, list[TrackingFrame]], answers: dict[int, list[Hypotheses]], variant: str,
                 distance: float, class_names: tuple[str, ...]) -> dict[str, Any]:
     """CLEAR MOT and identity metrics, overall and per class."""
-    out = {"overall": _mot_summary(_accumulator(sequences, answers, variant, distance, None))}
-    out["per_class"] = {name: _mot_summary(_accumulator(sequences, answers, variant, distance, c))
+    out = {"overall": mot_summary(mot_accumulator(sequences, answers, variant, distance, None))}
+    out["per_class"] = {name: mot_summary(mot_accumulator(sequences, answers, variant, distance, c))
                         for c, name in enumerate(class_names, start=1)}
     return out
 
 
-def _mot_summary(acc: Any) -> dict[str, Any]:
+def mot_summary(acc: Any) -> dict[str, Any]:
     import motmetrics as mm
 
     row = mm.metrics.create().compute(acc, metrics=list(MOT_METRICS), name="all").iloc[0]
-    summary = {name: _num(row[name]) for name in MOT_METRICS}
+    summary = {name: json_number(row[name]) for name in MOT_METRICS}
     for name in MOT_METRICS:
         if name.startswith(("num_", "mostly_", "partially_")) and summary[name] is not None:
             summary[name] = int(summary[name])
     tracks = summary["num_unique_objects"] or 0
-    summary["switches_per_100_tracks"] = _num(100 * summary["num_switches"] / tracks) if tracks else None
+    summary["switches_per_100_tracks"] = json_number(100 * summary["num_switches"] / tracks) if tracks else None
     return summary
 
 
-def _velocity_errors(sequences: dict[int, list[TrackingFrame]], answers: dict[int, list[Hypotheses]],
+def velocity_errors(sequences: dict[int, list[TrackingFrame]], answers: dict[int, list[Hypotheses]],
                      class_names: tuple[str, ...], match_m: float) -> dict[str, Any]:
     """RMSE of vx, vy (m/s) and heading (degrees) of tracks matched to truth (``all_objects`` hypotheses within
     ``match_m`` metres), from the track's ``VELOCITY_MIN_AGE``-th frame on, per class of the truth."""
     pairs: dict[int, list[tuple[float, float, float, float]]] = defaultdict(list)  # class -> (dvx, dvy, true v)
     for s, group in sequences.items():
-        events = _accumulator({s: group}, {s: answers[s]}, "all_objects", match_m, None).mot_events
+        events = mot_accumulator({s: group}, {s: answers[s]}, "all_objects", match_m, None).mot_events
         matched = events[events["Type"].isin(["MATCH", "SWITCH"])]
         frames = {f.frame_index: (f, h) for f, h in zip(group, answers[s], strict=True)}
         for (frame_index, _), event in matched.iterrows():
@@ -282,12 +281,21 @@ def _rmse(rows: list[tuple[float, float, float, float]]) -> dict[str, Any]:
     fast = np.hypot(true_v[:, 0], true_v[:, 1]) > HEADING_MIN_SPEED_MPS
     heading = np.arctan2(estimate[fast, 1], estimate[fast, 0]) - np.arctan2(true_v[fast, 1], true_v[fast, 0])
     heading = np.degrees((heading + np.pi) % (2 * np.pi) - np.pi)
-    return {"vx_rmse_mps": _num(np.sqrt(np.mean(a[:, 0] ** 2))), "vy_rmse_mps": _num(np.sqrt(np.mean(a[:, 1] ** 2))),
-            "heading_rmse_deg": _num(np.sqrt(np.mean(heading**2))) if fast.any() else None,
+    return {"vx_rmse_mps": json_number(np.sqrt(np.mean(a[:, 0] ** 2))),
+            "vy_rmse_mps": json_number(np.sqrt(np.mean(a[:, 1] ** 2))),
+            "heading_rmse_deg": json_number(np.sqrt(np.mean(heading**2))) if fast.any() else None,
             "n": len(a), "n_heading": int(fast.sum())}
 
 
-def _num(value: Any) -> float | int | None:
+def milliseconds_summary(ms: np.ndarray) -> dict[str, Any]:
+    """Mean, median and 99th percentile of per-frame milliseconds, and the frames counted ({} for none)."""
+    if not len(ms):
+        return {}
+    return {"mean": json_number(ms.mean()), "median": json_number(np.median(ms)),
+            "p99": json_number(np.percentile(ms, 99)), "frames": len(ms)}
+
+
+def json_number(value: Any) -> float | int | None:
     """A JSON number (None for NaN)."""
     value = value.item() if hasattr(value, "item") else value
     if isinstance(value, float) and not np.isfinite(value):
