@@ -166,25 +166,25 @@ class CentreDetector(nn.Module):
         return tuple(self.cartesian.shape[-2:])
 
     def forward(self, log_power: torch.Tensor, history: torch.Tensor | None = None,
-                history_present: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                history_present: torch.Tensor | None = None,
+                window_origins: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         """``(B, D, R, A)`` normalised log power -> dict of ``(B, ., ceil(R/4), ceil(A/4))`` outputs.
 
         With ``history_frames`` H > 0, ``history`` (B, H, D, R, A) holds the earlier frames of the sequence
         (normalised alike, the latest first) and ``history_present`` (B, H) which of them exist (default all);
         without ``history`` every earlier frame counts as absent, so a single cube runs as it is.
+
+        ``window_origins`` (B, 2) int: the inputs are range x angle windows of the frame (crop training), of any
+        size up to the grid, starting at these (range, angle) bins, multiples of the output stride; each window
+        reads the Cartesian channels of its own place on the grid. None: the inputs are whole frames.
         """
-        if (
-            log_power.ndim != 4
-            or log_power.shape[1] != self.doppler_bins
-            or log_power.shape[-2:] != self.cartesian.shape[-2:]
-        ):
-            raise ValueError(
-                f"expected log power (B, {self.doppler_bins}, {self.grid_shape[0]}, {self.grid_shape[1]}), "
-                f"got {tuple(log_power.shape)}"
-            )
+        self._check_input(log_power, window_origins)
         batch, _, n_range, n_angle = log_power.shape
+        cartesian = (self.cartesian.expand(batch, -1, -1, -1) if window_origins is None
+                     else torch.cat([self.cartesian[..., r:r + n_range, a:a + n_angle]
+                                     for r, a in window_origins.tolist()]))  # (B, 2, R, A)
         image = torch.cat(
-            [self.doppler_compress(log_power), self.cartesian.expand(batch, -1, -1, -1),
+            [self.doppler_compress(log_power), cartesian,
              *self._history_channels(log_power, history, history_present)], dim=1
         )  # (B, C + 2 [+ H (C + 1)], R, A)
         if self.history_frames and history is None:
@@ -199,6 +199,24 @@ class CentreDetector(nn.Module):
         out_range = -(-n_range // self.output_stride)
         out_angle = -(-n_angle // self.output_stride)
         return {name: value[..., :out_range, :out_angle] for name, value in outputs.items()}
+
+    def _check_input(self, log_power: torch.Tensor, window_origins: torch.Tensor | None) -> None:
+        grid_range, grid_angle = self.grid_shape
+        if log_power.ndim != 4 or log_power.shape[1] != self.doppler_bins or (
+                window_origins is None and tuple(log_power.shape[-2:]) != self.grid_shape):
+            raise ValueError(f"expected log power (B, {self.doppler_bins}, {grid_range}, {grid_angle}), "
+                             f"got {tuple(log_power.shape)}")
+        if window_origins is None:
+            return
+        n_range, n_angle = log_power.shape[-2:]
+        if tuple(window_origins.shape) != (log_power.shape[0], 2):
+            raise ValueError(f"window_origins must be (B, 2) = ({log_power.shape[0]}, 2) (range, angle) bins, got "
+                             f"{tuple(window_origins.shape)}")
+        for r, a in window_origins.tolist():
+            if r % self.output_stride or a % self.output_stride or not (
+                    0 <= r <= grid_range - n_range and 0 <= a <= grid_angle - n_angle):
+                raise ValueError(f"a {n_range} x {n_angle} window at bins ({r}, {a}) must start on a multiple of "
+                                 f"{self.output_stride} and fit the {grid_range} x {grid_angle} grid")
 
     def _history_channels(self, log_power: torch.Tensor, history: torch.Tensor | None,
                           history_present: torch.Tensor | None) -> list[torch.Tensor]:

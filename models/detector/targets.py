@@ -184,3 +184,42 @@ def build_centre_targets(
             weight[b][:, indices[b, :n]] = np.asarray(frame_weights, np.float32)[:n]
         targets["peak_weight"] = torch.from_numpy(weight.reshape(batch, heatmap_classes, height, width))
     return targets
+
+
+def crop_centre_targets(targets: CentreTargets, origins: Sequence[tuple[int, int]], window_cells: tuple[int, int],
+                        ) -> CentreTargets:
+    """The targets of range x angle windows of the frames, cut from the whole frames' ``targets``.
+
+    ``origins[b]``: the window's first (range, angle) output cell in frame ``b``; ``window_cells``: its size
+    ``(h, w)`` in cells. The heatmap (and ``peak_weight``) is that window of the whole frame's, so a Gaussian of
+    an object just outside the window reaches in as it does on the whole frame; an object keeps its slot, offset
+    and Doppler when its centre cell lies inside the window (its index then counts on the ``w``-wide window
+    grid) and is masked out otherwise. A window of the whole grid returns the targets unchanged.
+    """
+    heatmap = targets["heatmap"]
+    batch, _, height, width = heatmap.shape
+    h, w = window_cells
+    if len(origins) != batch:
+        raise ValueError(f"one origin per frame: {batch} frames, got {len(origins)} origins")
+    for row, col in origins:
+        if not (0 <= row <= height - h and 0 <= col <= width - w):
+            raise ValueError(f"window at cell ({row}, {col}) of {h} x {w} cells does not fit the {height} x "
+                             f"{width} grid")
+    rows = targets["indices"] // width
+    cols = targets["indices"] % width
+    start = torch.as_tensor(origins, dtype=torch.int64).reshape(batch, 1, 2)
+    inside = ((rows >= start[..., 0]) & (rows < start[..., 0] + h) & (cols >= start[..., 1])
+              & (cols < start[..., 1] + w))
+    mask = targets["mask"] & inside
+    indices = torch.where(mask, (rows - start[..., 0]) * w + (cols - start[..., 1]), 0)
+    cropped = CentreTargets(
+        heatmap=torch.stack([heatmap[b, :, r:r + h, c:c + w] for b, (r, c) in enumerate(origins)]),
+        indices=indices,
+        offsets=torch.where(mask[..., None], targets["offsets"], 0.0),
+        doppler=torch.where(mask, targets["doppler"], 0.0),
+        mask=mask,
+    )
+    if "peak_weight" in targets:
+        cropped["peak_weight"] = torch.stack([targets["peak_weight"][b, :, r:r + h, c:c + w]
+                                              for b, (r, c) in enumerate(origins)])
+    return cropped

@@ -8,7 +8,9 @@ The worker that owns shard ``i`` writes whole shard files (or whole chunks) and 
 concurrent writes into one shard would lose data. Its progress marker ``progress/shard_NNNNN`` (a
 group whose attributes hold the shard's summary) is written atomically after all of its arrays, and
 the root attribute ``complete`` only after every shard and the final attributes: an interrupted job
-leaves no marker for a half-written shard and no ``complete`` store. Encoding: zstd level 1, no shuffle.
+leaves no marker for a half-written shard and no ``complete`` store. Encoding (:func:`compressor_for`): zstd level 1;
+floating-point arrays through Blosc's byte shuffle first (a ``carrada`` frame's float16 log power: 4.7 MB instead
+of 6.0 MB without the shuffle, of 8.4 MB raw, and faster to write; docs/reference/data.md).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import zarr
-from zarr.codecs import ZstdCodec
+from zarr.codecs import BloscCodec, ZstdCodec
 
 from radar.errors import UserError
 from radar.io.errors import DataError
@@ -100,6 +102,15 @@ def check_resumable_out(out: Path, *, store_format: str, identity: Any, what: st
 
 
 # --------------------------------------------------------------------------- writing
+def compressor_for(dtype: str) -> BloscCodec | ZstdCodec:
+    """The codec of an array of ``dtype``: floats byte-shuffled (their exponent bytes, alike from value to value,
+    then sit together and compress) before zstd; integers (labels, counts: long runs already) plain zstd."""
+    kind = np.dtype(dtype)
+    if kind.kind == "f":
+        return BloscCodec(cname="zstd", clevel=ZSTD_LEVEL, shuffle="shuffle", typesize=kind.itemsize)
+    return ZstdCodec(level=ZSTD_LEVEL)
+
+
 def create_sharded_store(path: str | Path, layout: Sharded, attributes: dict[str, Any], *, store_format: str,
                          version: int) -> zarr.Group:
     """Create the group, every (empty) array and the progress group; ``complete`` starts False."""
@@ -110,7 +121,7 @@ def create_sharded_store(path: str | Path, layout: Sharded, attributes: dict[str
         else:
             chunks, shards = (layout.shard_frames, *shape), None
         root.create_array(name, shape=(layout.n_frames, *shape), dtype=dtype, chunks=chunks, shards=shards,
-                          compressors=ZstdCodec(level=ZSTD_LEVEL), fill_value=fill)
+                          compressors=compressor_for(dtype), fill_value=fill)
     root.create_group(PROGRESS)
     root.attrs.update({**attributes, "format": store_format, "version": version, "layout": layout.to_dict(),
                        "complete": False})

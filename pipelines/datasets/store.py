@@ -21,7 +21,7 @@ owns a shard writes it whole, then its progress marker, and ``complete`` comes l
 both of our stores: :mod:`pipelines.datasets.sharded_store`).
 
 Objects with no labelled voxel (``n_voxels == 0``) are not in the table: they are not targets.
-Encoding uses zstd level 1 without shuffle (noise-like log power barely compresses; docs/design.md section 4).
+Encoding: zstd level 1, floats byte-shuffled first (:func:`pipelines.datasets.sharded_store.compressor_for`).
 """
 
 from __future__ import annotations
@@ -188,15 +188,16 @@ def frames_of_split(root: zarr.Group, split: str | None) -> np.ndarray:
     return np.flatnonzero(valid & (root["split"][:] == SPLIT_CODE[split]))
 
 
-def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: int = OUTPUT_STRIDE) -> dict[str, Any]:
+def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: int = OUTPUT_STRIDE,
+               doppler_last: bool = False) -> dict[str, Any]:
     """Mirror a sample left-right (x -> -x), in place of a copy; range and Doppler never flip.
 
     Angle bin ``a`` (``sin(theta) = (a - A/2)/(A/2)``) mirrors to ``(A - a) mod A``: bin A/2
     (broadside) stays, bin 0 (endfire, sin = -1) maps to itself as it has no +1 partner. Fractional
     centres map to ``A - a``, ``x`` to ``-x``; sub-cell offsets and the heatmap are recomputed from
     the mirrored centres (flipping the stored heatmap would be off by a cell, as floor() is not
-    symmetric). Array axes: ``input`` (D, R, A), ``history`` (H, D, R, A), ``labels``/``instances`` (R, A, D),
-    ``ra_mask`` (R, A).
+    symmetric). Array axes: ``input`` (D, R, A), or (R, A, D) with ``doppler_last``, ``history`` (H, D, R, A),
+    ``labels``/``instances`` (R, A, D), ``ra_mask`` (R, A).
     """
     n_angle = profile.n_angle
     out = dict(sample)
@@ -209,7 +210,8 @@ def flip_angle(sample: dict[str, Any], profile: RadarProfile, *, output_stride: 
         first[axis], rest[axis] = slice(0, 1), slice(None, 0, -1)
         return torch.from_numpy(np.concatenate([a[tuple(first)], a[tuple(rest)]], axis=axis))
 
-    for name, axis in (("input", 2), ("history", 3), ("labels", 1), ("instances", 1), ("ra_mask", 1)):
+    for name, axis in (("input", 1 if doppler_last else 2), ("history", 3), ("labels", 1), ("instances", 1),
+                       ("ra_mask", 1)):
         if name in sample:
             out[name] = mirror(sample[name], axis)
     if "objects" in sample:
@@ -246,6 +248,9 @@ class StoreDataset(torch.utils.data.Dataset):
       (:mod:`pipelines.datasets.history`); ``history_drop`` > 0 drops a sample's whole history at random
       (reproducibly from ``seed`` and the slot), so that a model trained on it also runs on a single cube.
 
+    ``doppler_last``: ``input`` float32 (R, A, D) as stored, never normalised (what region growing reads; no
+    transposition, which dominated a ``carrada`` ROI sample's time).
+
     ``flip_prob`` > 0 mirrors samples left-right at random (:func:`flip_angle`), reproducibly from
     ``seed`` and the sample index. Arrays are opened lazily in each process (zarr's I/O thread does
     not survive a fork), so the dataset works in DataLoader workers.
@@ -255,7 +260,7 @@ class StoreDataset(torch.utils.data.Dataset):
 
     def __init__(self, path: str | Path, split: str | None = "train", *, fields: Sequence[str] = ALL_FIELDS,
                  normalise: bool = True, flip_prob: float = 0.0, seed: int = 0, history: int = 0,
-                 history_drop: float = 0.0):
+                 history_drop: float = 0.0, doppler_last: bool = False):
         unknown = set(fields) - set(self.ALL_FIELDS)
         if unknown:
             raise ValueError(f"unknown fields {sorted(unknown)}; expected a subset of {self.ALL_FIELDS}")
@@ -265,6 +270,8 @@ class StoreDataset(torch.utils.data.Dataset):
             raise ValueError(f"history_drop must be in [0, 1], got {history_drop}")
         if history and "input" not in fields:
             raise ValueError("history needs the 'input' field")
+        if doppler_last and (normalise or history):
+            raise ValueError("doppler_last gives the stored (R, A, D) log power: not normalised, without history")
         self.path = Path(path)
         root = open_store(self.path)
         attrs = root.attrs.asdict()
@@ -278,6 +285,7 @@ class StoreDataset(torch.utils.data.Dataset):
         self.seed = seed
         self.history = earlier_slots(root, history) if history else None
         self.history_drop = history_drop
+        self.doppler_last = doppler_last
         stats = attrs["normalisation"]
         self.mean = torch.tensor(stats["mean_per_doppler"], dtype=torch.float32)[:, None, None]  # (D, 1, 1)
         self.std = torch.tensor(stats["std_per_doppler"], dtype=torch.float32)[:, None, None]
@@ -321,12 +329,16 @@ class StoreDataset(torch.utils.data.Dataset):
         if self.flip_prob > 0:
             rng = np.random.default_rng([self.seed, slot])
             if rng.random() < self.flip_prob:
-                sample = flip_angle(sample, self.profile, output_stride=self.output_stride)
+                sample = flip_angle(sample, self.profile, output_stride=self.output_stride,
+                                    doppler_last=self.doppler_last)
                 sample["flipped"] = True
         return sample
 
     def _input(self, value: np.ndarray) -> torch.Tensor:
-        """A stored (R, A, D) log-power cube as the model's (D, R, A) float32, normalised if asked."""
+        """A stored (R, A, D) log-power cube as the model's (D, R, A) float32, normalised if asked (or as it is
+        stored, in float32, with ``doppler_last``)."""
+        if self.doppler_last:
+            return torch.from_numpy(value.astype(np.float32))
         tensor = torch.from_numpy(np.ascontiguousarray(value.astype(np.float32).transpose(2, 0, 1)))
         return (tensor - self.mean) / self.std if self.normalise else tensor
 

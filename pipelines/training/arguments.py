@@ -9,7 +9,7 @@ from typing import Any
 
 from pipelines.jobs import field_defaults
 from pipelines.renamed_options import add_renamed
-from pipelines.training.config import OPTIMIZERS, TrainConfig
+from pipelines.training.config import OPTIMIZERS, RECIPE_NAMES, TrainConfig
 
 
 def add_common_arguments(parser: argparse.ArgumentParser) -> None:
@@ -17,8 +17,9 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--store", required=True, help="preprocessed store (zarr)")
     parser.add_argument("--out", required=True, help="run directory (keep it outside the repository, or under "
                                                      "runs/, which git and ray job submit ignore)")
-    parser.add_argument("--recipe", choices=("quick", "paper"), default=defaults.recipe,
-                        help="training recipe (hyperparameters): quick (2-core CPU) or paper (GPUs)")
+    parser.add_argument("--recipe", choices=RECIPE_NAMES, default=defaults.recipe,
+                        help="training recipe (hyperparameters): quick (2-core CPU), crops (paper-size radars on a "
+                             "CPU: the detector on windows) or paper (GPUs)")
     add_renamed(parser, "--profile", "--recipe", " (a profile is a radar's; training takes a recipe)")
     parser.add_argument("--model-config", type=json.loads, help="builder keyword arguments as JSON")
     parser.add_argument("--epochs", type=int, help="epochs (default: the recipe's)")

@@ -4,7 +4,8 @@ a config field that is not None replaces the recipe's value.
 Recipes (:data:`RECIPES`): ``paper`` is the paper's (detector: Adam 1e-4 divided by 10 every
 10 epochs, 300 epochs; segmenter: SGD from 0.24 with cosine decay, 300 epochs; baselines: the
 reference's Adam 1e-4 x0.9 every 20 epochs, batch 6); ``quick`` converges on a 2-core CPU on the
-``small`` preset (detector 12 epochs, segmenter MinkUNet ratio 0.25 for 3 epochs, baselines 8 epochs).
+``small`` preset (detector 12 epochs, segmenter MinkUNet ratio 0.25 for 3 epochs, baselines 8 epochs); ``crops``
+trains paper-size radars (``carrada``) on a CPU: the detector on range x angle windows, the segmenter as ``quick``.
 """
 
 from __future__ import annotations
@@ -50,6 +51,9 @@ class Hyper:
     lovasz_weight: float = 0.0  # segmenter: weight of the Lovasz-softmax term beside weighted cross entropy
     class_weights: tuple[float, ...] = ()  # detector: the focal loss's weight at each foreground class's centres
     history_drop: float = 0.25  # detector reading history (model_config history_frames): share trained on one cube
+    crop: tuple[int, ...] = ()  # detector: train on (range, angle) windows of this many bins (): whole frames)
+    crop_object_share: float = 0.8  # detector crops: the share of windows drawn around an object (the rest clutter)
+    channels_last: bool = False  # detector: NHWC activations (faster window steps: benchmarks.detector_crops)
 
 
 RECIPES: dict[str, dict[str, Hyper]] = {
@@ -58,12 +62,18 @@ RECIPES: dict[str, dict[str, Hyper]] = {
         "paper": Hyper("centre_detector", {}, epochs=300, batch_size=16, lr=1e-4, step_every=10),
         "quick": Hyper("centre_detector", {}, epochs=12, batch_size=8, lr=2e-3, milestones=(0.67, 0.88),
                        val_frames=96),
+        # Paper-size radars on a CPU: 64 x 128 (range x angle) windows, an eighth of a 256 x 256 frame
+        # (docs/guides/carrada-cpu.md); the 12-channel Doppler compression of the shipped small detector.
+        "crops": Hyper("centre_detector", {"doppler_channels": 12}, epochs=8, batch_size=8, lr=2e-3,
+                       milestones=(0.67, 0.88), val_frames=48, crop=(64, 128), channels_last=True),
     },
     "segmenter": {
         "paper": Hyper("minkunet", {"ratio": 0.37}, epochs=300, batch_size=8, lr=0.24, optimizer="sgd",
                        weight_decay=1e-4, schedule="cosine"),
         "quick": Hyper("minkunet", {"ratio": 0.25}, epochs=3, batch_size=2, lr=0.05, optimizer="sgd",
                        weight_decay=1e-4, schedule="cosine", val_frames=48),
+        "crops": Hyper("minkunet", {"ratio": 0.25}, epochs=3, batch_size=2, lr=0.05, optimizer="sgd",
+                       weight_decay=1e-4, schedule="cosine", val_frames=24),
     },
     "baseline": {
         "paper": Hyper("", {}, epochs=300, batch_size=6, lr=1e-4, step_every=20, gamma=0.9),
@@ -119,6 +129,7 @@ class TrainConfig:
     class_weights: tuple[float, ...] | None = None  # detector: focal weight per foreground class at its centres
     val_frames: int | None = None  # validation frames per epoch instead of the recipe's (0 = all)
     curve_every: int = 0  # validate every this many steps too, into curve.jsonl (learning curves; 0 = off)
+    crop: tuple[int, int] | None = None  # detector: (range, angle) window in bins instead of the recipe's
 
     def __post_init__(self) -> None:
         if self.stage not in tuple(Stage):
@@ -151,6 +162,10 @@ class TrainConfig:
         if self.class_weights is not None and (self.stage != "detector" or not all(w > 0 for w in self.class_weights)):
             raise ValueError(f"class_weights are positive weights of the detector's centre loss, got "
                              f"{self.class_weights} for the {self.stage} stage")
+        if self.crop is not None and (self.stage != "detector" or len(self.crop) != 2
+                                      or not all(int(n) > 0 for n in self.crop)):
+            raise ValueError(f"crop is the detector's (range, angle) window in bins, two positive numbers, got "
+                             f"{self.crop} for the {self.stage} stage")
         if not self.slim_lambda >= 0:
             raise ValueError(f"slim_lambda must be >= 0, got {self.slim_lambda}")
         if self.ray_workers < 0 or self.workers < 0:
@@ -187,6 +202,8 @@ class TrainConfig:
             overrides["jitter_std"] = tuple(self.jitter_std)
         if self.class_weights is not None:
             overrides["class_weights"] = tuple(self.class_weights)
+        if self.crop is not None:
+            overrides["crop"] = tuple(self.crop)
         return dataclasses.replace(base, **overrides)
 
     def to_dict(self) -> dict[str, Any]:
@@ -200,7 +217,7 @@ class TrainConfig:
         if unknown:
             raise ValueError(f"unknown training config keys {sorted(unknown)}")
         data = dict(data)
-        for key in ("jitter_std", "class_weights"):
+        for key in ("jitter_std", "class_weights", "crop"):
             if data.get(key) is not None:
                 data[key] = tuple(data[key])
         return cls(**data)
@@ -209,5 +226,9 @@ class TrainConfig:
         """What a resumed run must share with the run it continues."""
         keep = ("stage", "store", "recipe", "model", "view", "model_config", "batch_size", "lr", "seed",
                 "train_split", "jitter_from", "jitter_std", "slim_lambda", "init", "optimizer", "lovasz_weight",
-                "class_weights")
+                "class_weights", "crop")
         return {k: v for k, v in self.to_dict().items() if k in keep}
+
+
+RECIPE_NAMES = tuple(dict.fromkeys(name for stage in RECIPES.values() for name in stage))
+"""Every recipe name, for the command line (a stage without one refuses it: :meth:`TrainConfig.__post_init__`)."""

@@ -164,7 +164,7 @@ class _Curve:
 
 
 def _checkpoint(task: Task, model: nn.Module, extra: dict[str, Any]) -> Checkpoint:
-    state = {k: v.detach().cpu().clone() for k, v in unwrap(model).state_dict().items()}
+    state = {k: v.detach().cpu().contiguous().clone() for k, v in unwrap(model).state_dict().items()}
     return Checkpoint(model_name=task.hyper.model, config=task.model_config(), state_dict=state,
                       preset=task.store.profile.name, class_names=task.store.class_names,
                       normalisation=task.normalisation(),

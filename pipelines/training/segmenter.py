@@ -58,7 +58,7 @@ class RoiDataset(Dataset):
                  seed: int = 0, limit: int = 0):
         self.store = store
         self.frames = StoreDataset(store.path, split, fields=("input", "labels", "instances", "objects"),
-                                   normalise=False, flip_prob=flip_prob, seed=seed)
+                                   normalise=False, flip_prob=flip_prob, seed=seed, doppler_last=True)
         n_objects = open_store(store.path)["n_objects"][:]
         keep = [i for i, slot in enumerate(self.frames.frames) if n_objects[slot] > 0]
         self.indices = [keep[i] for i in subset(len(keep), limit)]
@@ -74,7 +74,7 @@ class RoiDataset(Dataset):
 
     def __getitem__(self, item: int) -> dict[str, Any]:
         sample = self.frames[self.indices[item]]
-        log_power = sample["input"].permute(1, 2, 0).numpy()  # (R, A, D) dB
+        log_power = sample["input"].numpy()  # (R, A, D) dB
         seeds = frame_centres(sample)
         if self.jitter is not None:
             rng = np.random.default_rng([self.seed, self.epoch, sample["frame"], 1])

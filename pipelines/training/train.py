@@ -81,6 +81,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             sub.add_argument("--class-weights", type=float, nargs="+", metavar="W",
                              help="the centre loss's weight at each foreground class's centres, in the store's "
                                   "class order (e.g. 3 1 1: pedestrians' peaks count 3x; default: 1 each)")
+            sub.add_argument("--crop", type=int, nargs=2, metavar=("RANGE", "ANGLE"),
+                             help="train on range x angle windows of this many bins (multiples of 4; the whole "
+                                  "Doppler axis), most around an object, some clutter only; validation stays on "
+                                  "whole frames (default: the recipe's; the crops recipe: 64 128)")
         if stage is Stage.SEGMENTER:
             sub.add_argument("--jitter-from", help="detector checkpoint whose errors (measured on the validation "
                                                    "split) jitter the training seeds")
@@ -136,6 +140,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | C
                        jitter_std=tuple(jitter_std) if jitter_std else None,
                        lovasz_weight=getattr(args, "lovasz_weight", None),
                        class_weights=tuple(args.class_weights) if getattr(args, "class_weights", None) else None,
+                       crop=tuple(args.crop) if getattr(args, "crop", None) else None,
                        **common_config(args))
 
 
