@@ -342,7 +342,7 @@ def _cmd_process_adc(args: argparse.Namespace) -> int:
 
     from radar.adc import adc_shape, layout_hint, process_adc
     from radar.io.errors import DataError
-    from radar.io.npy import load_npy
+    from radar.io.npy import load_npy, read_npy_header
     from radar.profiles import get_profile
 
     if args.adc.endswith(".bin"):  # a TI capture file
@@ -350,11 +350,12 @@ def _cmd_process_adc(args: argparse.Namespace) -> int:
 
         return process_capture(args)
     profile = get_profile(args.profile)
-    adc = load_npy(args.adc, dtypes=(np.complexfloating,), what=f"ADC samples ({args.layout} layout)")
-    expected = adc_shape(profile, args.layout)
-    if adc.shape != expected:
+    what, expected = f"ADC samples ({args.layout} layout)", adc_shape(profile, args.layout)
+    found = read_npy_header(args.adc, what=what).shape  # checked before the data is read (a 16 GiB header was read)
+    if found != expected:
         raise DataError(args.adc, f"ADC samples of profile {profile.name!r} in layout {args.layout!r} have shape "
-                                  f"{expected}, got {adc.shape}{layout_hint(adc.shape, profile, args.layout)}")
+                                  f"{expected}, got {found}{layout_hint(found, profile, args.layout)}")
+    adc = load_npy(args.adc, shape=expected, dtypes=(np.complexfloating,), what=what)
     recorded = _recorded_coupling(args.adc)
     coupled = {"tdm": True, "none": False, "auto": True if recorded is None else recorded}[args.coupling]
     cube = process_adc(adc, profile, layout=args.layout, tdm_compensation=coupled)

@@ -120,14 +120,20 @@ def decode_npy(payload: bytes, *, shape: tuple[int, ...] | None = None, dtypes: 
     return check_array(array, source=source, shape=shape, dtypes=dtypes, finite=finite)
 
 
-def load_npy(path: str | Path, *, shape: tuple[int, ...] | None = None, dtypes: tuple[type, ...] | None = None,
-             finite: bool = True, what: str = "array") -> np.ndarray:
-    """Load a .npy file after checking its header, size, dtype, shape and values."""
+def read_npy_header(path: str | Path, *, what: str = "array") -> NpyHeader:
+    """The checked header of a .npy file (its first bytes only: check the shape before reading the data)."""
     path = Path(path)
     if not path.is_file():
         raise DataError(path, f"missing file (expected the {what})")
     with path.open("rb") as fh:
-        header = parse_npy_header(fh.read(MAX_HEADER_LEN + 12), source=path)
+        return parse_npy_header(fh.read(MAX_HEADER_LEN + 12), source=path)
+
+
+def load_npy(path: str | Path, *, shape: tuple[int, ...] | None = None, dtypes: tuple[type, ...] | None = None,
+             finite: bool = True, what: str = "array") -> np.ndarray:
+    """Load a .npy file after checking its header, size, dtype, shape and values."""
+    path = Path(path)
+    header = read_npy_header(path, what=what)
     if shape is not None and header.shape != tuple(shape):
         raise DataError(path, f"{what} has shape {header.shape}, expected {tuple(shape)}")
     size = path.stat().st_size

@@ -27,6 +27,11 @@ from radar.ti.dca1000 import CaptureFormat, FrameGeometry, decode_frame
 RAW_FILE = re.compile(r"^(?P<prefix>.*)_Raw_(?P<index>\d+)\.bin$")
 PACKET_HEADER = 14  # bytes: sequence number (4), payload length (4), byte count (6)
 MAX_PACKET = 65_536
+# A DCA1000 packet carries 1456 payload bytes by default, all of one length but a file's last: a file of 16-byte
+# packets would index a million packets for 16 MiB. Lengths change at most MAX_LENGTH_CHANGES times in a file.
+MIN_PACKET = 64
+MAX_LENGTH_CHANGES = 4096
+_FIRST_RUN, _MAX_RUN = 64, 1 << 16  # packets of one length looked for at once, doubled while they keep coming
 
 
 def _likely_cause(size: int, geometry: FrameGeometry) -> str:
@@ -123,27 +128,60 @@ class _StudioPackets:
             raise DataError(first, f"a mmWave Studio capture starts at {prefix}_Raw_0.bin, which is missing")
         self.maps = [np.memmap(f, dtype=np.uint8, mode="r") if f.stat().st_size else np.zeros(0, np.uint8)
                      for f in self.files]
-        rows = [row for number, data in enumerate(self.maps) for row in self._headers(number, data)]
-        table = np.array(rows, dtype=np.int64).reshape(-1, 4)  # (file, payload offset, length, stream position)
-        self.table = table[np.argsort(table[:, 3], kind="stable")]
+        tables = [self._headers(number, data) for number, data in enumerate(self.maps)]
+        # (file, payload offset, length, stream position) of every packet, by stream position
+        table = tables[0] if len(tables) == 1 else np.concatenate(tables)
+        if table.shape[0] > 1 and (np.diff(table[:, 3]) < 0).any():
+            table = table[np.argsort(table[:, 3], kind="stable")]
+        self.table = table
         self.stream_bytes = int((self.table[:, 3] + self.table[:, 2]).max(initial=0))
 
-    def _headers(self, number: int, data: np.ndarray) -> list[tuple[int, int, int, int]]:
-        rows, pos, size = [], 0, data.size
+    def _refuse(self, number: int, message: str) -> DataError:
+        return DataError(self.files[number], message)
+
+    def _header_fields(self, data: np.ndarray, starts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Payload lengths and byte counts of the packet headers at ``starts`` (numpy gathers, little-endian)."""
+        lengths = data[starts[:, None] + np.arange(4, 8)].copy().view("<u4")[:, 0].astype(np.int64)
+        counts = np.zeros((starts.size, 8), np.uint8)
+        counts[:, :6] = data[starts[:, None] + np.arange(8, 14)]
+        return lengths, counts.view("<u8")[:, 0].astype(np.int64)
+
+    def _headers(self, number: int, data: np.ndarray) -> np.ndarray:
+        """(packets, 4) int64 rows of one file: runs of packets of one payload length are found with numpy (the
+        headers of a run read at once), so no Python object is made per packet."""
+        pos, size, window, changes, count = 0, data.size, _FIRST_RUN, 0, 0
+        # as many rows as packets of MIN_PACKET bytes could fill the file: pages are touched only as rows are written
+        rows = np.empty((size // (PACKET_HEADER + MIN_PACKET) + 1, 4), np.int64)
         while pos < size:
             if pos + PACKET_HEADER > size:
-                raise DataError(self.files[number], f"{size - pos} bytes at offset {pos}: a packet header takes "
-                                                    f"{PACKET_HEADER}; likely cause: the file was cut short")
-            header = bytes(data[pos:pos + PACKET_HEADER])
-            length = int.from_bytes(header[4:8], "little")
-            position = int.from_bytes(header[8:14], "little")
+                raise self._refuse(number, f"{size - pos} bytes at offset {pos}: a packet header takes "
+                                           f"{PACKET_HEADER}; likely cause: the file was cut short")
+            (length,), _ = self._header_fields(data, np.array([pos]))
             if not 0 < length <= MAX_PACKET or pos + PACKET_HEADER + length > size:
-                raise DataError(self.files[number], f"packet at offset {pos} claims {length} payload bytes, "
-                                                    f"{size - pos - PACKET_HEADER} remain; likely cause: not a mmWave "
-                                                    f"Studio Raw file (an adc_data.bin?), or a file cut short")
-            rows.append((number, pos + PACKET_HEADER, length, position))
-            pos += PACKET_HEADER + length
-        return rows
+                raise self._refuse(number, f"packet at offset {pos} claims {length} payload bytes, "
+                                           f"{size - pos - PACKET_HEADER} remain; likely cause: not a mmWave Studio "
+                                           f"Raw file (an adc_data.bin?), or a file cut short")
+            stride = PACKET_HEADER + length
+            if length < MIN_PACKET and pos + stride < size:
+                raise self._refuse(number, f"packet at offset {pos} carries {length} payload bytes, a DCA1000 packet "
+                                           f"carries at least {MIN_PACKET} (1456 by default) unless it is a file's "
+                                           f"last; likely cause: not a mmWave Studio Raw file")
+            starts = pos + stride * np.arange(min(window, (size - pos) // stride))
+            lengths, positions = self._header_fields(data, starts)
+            same = int(np.argmin(lengths == length)) if (lengths != length).any() else starts.size
+            rows[count:count + same] = np.column_stack([np.full(same, number), starts[:same] + PACKET_HEADER,
+                                                        np.full(same, length), positions[:same]])
+            pos, count = pos + same * stride, count + same
+            if same < starts.size:
+                changes += 1
+                window = _FIRST_RUN
+                if changes > MAX_LENGTH_CHANGES:
+                    raise self._refuse(number, f"packet lengths change more than {MAX_LENGTH_CHANGES} times; a "
+                                               f"DCA1000 stream's packets have one length; likely cause: not a "
+                                               f"mmWave Studio Raw file")
+            else:
+                window = min(2 * window, _MAX_RUN)
+        return rows[:count]
 
     def read(self, start: int, size: int) -> tuple[bytes, int]:
         """Stream bytes [start, start + size), zero where no packet carried them, and how many those are."""
