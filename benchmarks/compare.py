@@ -5,9 +5,10 @@ side, as ratios to ERASE-Net. Prints a table and writes benchmarks/results/compa
 
 ERASE-Net runs end to end (:meth:`models.erasenet.model.EraseNet.segment` on a simulated frame's log-power cube:
 normalisation, detector, decoding, region growing, sparse segmenter, projections). At ``small`` it is the
-shipped model (checkpoints/detector.pt, checkpoints/segmenter.pt); at ``carrada`` the same architectures
-with random weights and the detector's top-K seeds (K = true objects, threshold 0, as
-benchmarks/end_to_end.py), since the checkpoints are for ``small``. Its MACs are the mean per frame of
+shipped pair of the preset (:data:`SHIPPED`: checkpoints/detector.pt + segmenter.pt at ``small``,
+checkpoints/carrada/ at ``carrada``); with ``--random-weights`` (asked for, never a fallback) the small pair's
+architectures with random weights and the detector's top-K seeds (K = true objects, threshold 0, as
+benchmarks/end_to_end.py). Its MACs are the mean per frame of
 detector + segmenter (the segmenter's depend on the ROI). The baselines (U-Net RD and RA, TMVA-Net,
 SMVA-Net) run one forward pass at batch 1 with random weights and inputs (their cost does not depend on
 either; :mod:`benchmarks.baselines`), their MACs analytic by both counters (correct, and the paper's,
@@ -51,11 +52,18 @@ CHECKPOINTS = REPO / "checkpoints"
 ROWS = {"unet_rd": "U-Net RD", "unet_ra": "U-Net RA", "tmvanet": "TMVA-Net", "smvanet": "SMVA-Net"}
 
 
-def build_erasenet(preset: str, first_log_power: np.ndarray) -> EraseNet:
-    """The shipped model at ``small``; its architectures with random weights at another preset."""
+SHIPPED = {"small": (CHECKPOINTS / "detector.pt", CHECKPOINTS / "segmenter.pt"),
+           "carrada": (CHECKPOINTS / "carrada" / "detector.pt", CHECKPOINTS / "carrada" / "segmenter.pt")}
+"""The shipped pair of each preset: what the comparison runs unless random weights are asked for."""
+
+
+def build_erasenet(preset: str, first_log_power: np.ndarray, *, random_weights: bool = False) -> EraseNet:
+    """The preset's shipped pair; with ``random_weights``, the small pair's architectures built for ``preset``
+    with random weights (its seeds then the top-K detector peaks, threshold 0)."""
+    if not random_weights:
+        detector_path, segmenter_path = SHIPPED[preset]
+        return EraseNet.from_checkpoints(load_checkpoint(detector_path), load_checkpoint(segmenter_path))
     det, seg = load_checkpoint(CHECKPOINTS / "detector.pt"), load_checkpoint(CHECKPOINTS / "segmenter.pt")
-    if preset == det.preset:
-        return EraseNet.from_checkpoints(det, seg)
     torch.manual_seed(0)
     detector = create_model(det.model_name, **{**det.config, "preset": preset})
     segmenter = create_model(seg.model_name, **{**seg.config, "preset": preset})
@@ -68,12 +76,11 @@ SPARSE_ENGINE = {"native": "compiled", "torch": "reference"}  # models.sparse.co
 
 
 @torch.no_grad()
-def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
+def erasenet_run(preset: str, n_frames: int, repeats: int, *, random_weights: bool = False) -> dict:
     """ERASE-Net end to end on the compiled engine, with ``torch_engine``: the same on the pure-PyTorch one."""
     frames = list(simulate_sequence(preset, n_frames, seed=5))
     cubes = [frame.log_power() for frame in frames]
-    net = build_erasenet(preset, cubes[0])
-    random_weights = net.score_threshold == 0.0
+    net = build_erasenet(preset, cubes[0], random_weights=random_weights)
     for engine in ENGINES:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
         with compiled.using_kernels(SPARSE_ENGINE[engine]):
             net.segment(cubes[0], kind=InputKind.log_power)
@@ -103,7 +110,8 @@ def erasenet_run(preset: str, n_frames: int, repeats: int) -> dict:
             "macs": float(np.mean(macs)), "macs_paper": float(np.mean(macs_paper)),
             "executed_macs": float(np.mean(executed)),
             "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute.roi_voxels),
-            "weights": "random, top-K seeds" if random_weights else "checkpoints/detector.pt + segmenter.pt"}
+            "weights": "random, top-K seeds" if random_weights else " + ".join(
+                str(path.relative_to(REPO)) for path in SHIPPED[preset])}
 
 
 @torch.no_grad()
@@ -142,11 +150,13 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=8, help="ERASE-Net: simulated frames")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--random-weights", action="store_true",
+                        help="ERASE-Net with random weights and top-K seeds instead of the preset's shipped pair")
     parser.add_argument("--out", default=str(Path(__file__).parent / "results" / "compare.json"))
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
-    rows = {"erasenet": erasenet_run(args.preset, args.frames, args.repeats)}
+    rows = {"erasenet": erasenet_run(args.preset, args.frames, args.repeats, random_weights=args.random_weights)}
     for key in ROWS:
         rows[key] = baseline_run(key, args.preset, args.repeats)
     unet = {k: rows["unet_rd"][k] + rows["unet_ra"][k]

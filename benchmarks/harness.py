@@ -53,6 +53,7 @@ REGISTRY: tuple[Benchmark, ...] = (
     Benchmark("tracking"), Benchmark("fused_segmenter"), Benchmark("kernel_maps"), Benchmark("frame_profile"),
     Benchmark("segmenter_train"), Benchmark("streams"), Benchmark("recording_export"), Benchmark("open_inference"),
     Benchmark("nxp_scale"), Benchmark("int8_engine"), Benchmark("int8_start"), Benchmark("detector_crops"),
+    Benchmark("roi_samples", needs="--store STORE: a store of the radar whose ROI samples are timed"),
     Benchmark("edge", needs="--store STORE --calibration STORE: a fresh evaluation store and a calibration store"),
     Benchmark("onnx_profile", needs="--store STORE: the store whose frames are timed"),
     Benchmark("learning_curves", needs="training runs with curve.jsonl (LABEL=RUN_DIR ...)"),

@@ -64,7 +64,7 @@ RECIPES: dict[str, dict[str, Hyper]] = {
                        val_frames=96),
         # Paper-size radars on a CPU: 64 x 128 (range x angle) windows, an eighth of a 256 x 256 frame
         # (docs/guides/carrada-cpu.md); the 12-channel Doppler compression of the shipped small detector.
-        "crops": Hyper("centre_detector", {"doppler_channels": 12}, epochs=8, batch_size=8, lr=2e-3,
+        "crops": Hyper("centre_detector", {"doppler_channels": 12}, epochs=12, batch_size=8, lr=2e-3,
                        milestones=(0.67, 0.88), val_frames=48, crop=(64, 128), channels_last=True),
     },
     "segmenter": {
