@@ -108,10 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     result = run(args.store, args.frames, args.threads, args.batch_size)
     for name, seconds in result["cpu_s_median"].items():
         print(f"{name:16s} {seconds * 1e3:8.1f} ms")
-    print(f"a ROI sample {result['sample_cpu_s'] * 1e3:.0f} ms (transposed layout {result['sample_cpu_s_transposed'] * 1e3:.0f} "
-          f"ms, {result['sample_speedup']:.2f}x); a step of {result['batch_size']} ROIs "
-          f"{result['step_cpu_s_median'] * 1e3:.0f} ms; {result['roi_voxels_median']:.0f} voxels a ROI (median); "
-          f"{result['preset']}, flags {' '.join(result['machine']['flags'])}")
+    print(f"a ROI sample {result['sample_cpu_s'] * 1e3:.0f} ms (transposed layout "
+          f"{result['sample_cpu_s_transposed'] * 1e3:.0f} ms, {result['sample_speedup']:.2f}x)")
+    print(f"a step of {result['batch_size']} ROIs {result['step_cpu_s_median'] * 1e3:.0f} ms; "
+          f"{result['roi_voxels_median']:.0f} voxels a ROI (median); {result['preset']}, "
+          f"flags {' '.join(result['machine']['flags'])}")
     write_with_load(result, args.out)
     return 0
 
