@@ -14,15 +14,14 @@ import os
 import re
 import subprocess
 import time
-from pathlib import Path
 
 import httpx
-import numpy as np
 import pytest
 import zarr
 
 from tests.deploy.compose_stack import APP_UID, IMAGE, Stack, build_images, engine_or_skip, run
 from tests.pipelines.conftest import BIN, REPO, TRANSIENT_SUBMIT_ERRORS, ray_env
+from tests.pipelines.datasets.store_agreement import assert_blas_promise, assert_same_store
 from tests.service.conftest import NPY, npy_bytes
 
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(os.environ.get("RADARSEG_DEPLOY_LANE") != "1",
@@ -96,20 +95,6 @@ def _job_status(stack: Stack, job_id: str) -> str:
     return found[-1].upper() if found else "UNKNOWN"
 
 
-def _store_arrays(path: Path) -> dict[str, np.ndarray]:
-    """Every array of a zarr store by its path in the store (progress markers left out)."""
-    group = zarr.open_group(str(path), mode="r")
-    return {name: np.asarray(member[...]) for name, member in group.members(max_depth=None)
-            if isinstance(member, zarr.Array) and not name.startswith("progress")}
-
-
-def _assert_same_arrays(left: Path, right: Path) -> None:
-    a, b = _store_arrays(left), _store_arrays(right)
-    assert a and sorted(a) == sorted(b), (sorted(a), sorted(b))
-    for name in a:
-        np.testing.assert_array_equal(a[name], b[name], err_msg=name)
-
-
 def test_stack_up_every_service_healthy_as_non_root(stack):
     services = {name: len(stack.containers(name)) for name in ("postgres", "ray-head", "ray-worker", "api")}
     assert services == {"postgres": 1, "ray-head": 1, "ray-worker": 2, "api": 2}, services
@@ -137,7 +122,10 @@ def test_jobs_from_the_host_write_the_shared_volume_like_a_run_outside_docker(st
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, (proc.stdout + proc.stderr)[-4000:]
     data = stack.volume_path("radarseg-data")
-    _assert_same_arrays(data / "stores" / "pre.zarr", local)
+    # The containers do not inherit the host's OpenBLAS settings (OPENBLAS_CORETYPE on some CI machines): the
+    # promise across BLAS configurations (docs/reference/data.md), not bit for bit.
+    differences = assert_blas_promise(data / "stores" / "pre.zarr", local)
+    TIMES["input_values_differing_from_host"] = differences["input"].differing
 
     started = time.monotonic()
     seg = _job_result(_submit(stack, *SEGMENT, "--out", "/data/predictions/pre.zarr"))
@@ -206,7 +194,7 @@ def test_a_killed_ray_worker_does_not_lose_the_store(stack):
     if status != "SUCCEEDED":  # a resubmission of the same command completes it
         _job_result(_submit(stack, *PREPROCESS, "--out", out))
     data = stack.volume_path("radarseg-data")
-    _assert_same_arrays(data / "stores" / "killed.zarr", data / "stores" / "pre.zarr")
+    assert_same_store(data / "stores" / "killed.zarr", data / "stores" / "pre.zarr")  # one image, one machine
     run(["docker", "start", victim], timeout_s=60)
     stack.wait_healthy(6)
 
