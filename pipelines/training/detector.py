@@ -7,6 +7,7 @@ frame's. Validation (loss and detection AP at 1/3/5 m) is always on whole frames
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -16,11 +17,15 @@ from torch.utils.data import Dataset
 
 from models.capabilities import Stage
 from models.detector.targets import crop_centre_targets
+from pipelines.datasets.spread import subset
 from pipelines.datasets.store import OBJECT_COLUMN, StoreDataset
 from pipelines.evaluation.scoring import centre_targets, score_detector
 from pipelines.training.task import Task, unwrap
-from pipelines.training.windows import WindowDataset, WindowSampler
+from pipelines.training.windows import WindowDataset, WindowSampler, whole_frame_batch_norms
 from radar.errors import UserError
+
+BATCH_NORM_FRAMES = 64
+"""Whole train frames whose statistics a crop-trained detector's BatchNorms take before each validation."""
 
 
 class DetectorTask(Task):
@@ -92,6 +97,19 @@ class DetectorTask(Task):
         return [table[np.asarray(s["objects"][:int(s["n_objects"]), OBJECT_COLUMN["class_id"]], np.int64)]
                 for s in samples]
 
+    def _whole_frames(self, device: torch.device) -> Iterator[dict[str, torch.Tensor]]:
+        """Batches of whole train frames, evenly spread, normalised as in training (no flips, no history): what
+        a crop-trained detector's BatchNorm statistics are taken from."""
+        frames = StoreDataset(self.store.path, self.cfg.train_split, fields=("input",), normalise=False)
+        indices = subset(len(frames), BATCH_NORM_FRAMES)
+        stats = self.store.normalisation
+        for start in range(0, len(indices), self.hyper.batch_size):
+            log_power = torch.stack([frames[i]["input"] for i in indices[start:start + self.hyper.batch_size]])
+            log_power = ((log_power - stats["mean"]) / stats["std"]).to(device)
+            if self.hyper.channels_last:
+                log_power = log_power.contiguous(memory_format=torch.channels_last)
+            yield {"log_power": log_power}
+
     def loss(self, model: nn.Module, batch: dict[str, Any], device: torch.device) -> dict[str, torch.Tensor]:
         history = {k: batch[k].to(device) for k in ("history", "history_present", "window_origins") if k in batch}
         outputs = model(batch["input"].to(device), **history)
@@ -99,6 +117,8 @@ class DetectorTask(Task):
         return unwrap(model).compute_loss(outputs, targets)
 
     def validate(self, model: nn.Module, device: torch.device) -> dict[str, float]:
+        if self.hyper.crop:  # the checkpoint taken after validation carries these statistics too
+            whole_frame_batch_norms(unwrap(model), self._whole_frames(device))
         if not self.cfg.val_split:
             return {}
         scores = score_detector(model, self.store.path, self.cfg.val_split, self.store.profile,

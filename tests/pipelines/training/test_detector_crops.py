@@ -12,7 +12,7 @@ from models.detector.targets import build_centre_targets, crop_centre_targets
 from models.registry import create_model
 from pipelines.cli import main as cli
 from pipelines.datasets.store import StoreDataset
-from pipelines.training.windows import WindowDataset, WindowSampler
+from pipelines.training.windows import WindowDataset, WindowSampler, whole_frame_batch_norms
 
 
 def _targets_of(centres: np.ndarray, grid: tuple[int, int]):
@@ -133,3 +133,30 @@ def test_a_crop_for_another_stage_or_off_the_grid_is_refused(small_store, tmp_pa
     assert cli(["train", "detector", "--store", str(small_store), "--out", str(tmp_path / "a"), "--model",
                 "centre_detector_tiny", "--crop", "30", "64", "--max-steps", "1", "--no-progress"]) == 2
     assert not (tmp_path / "a").exists()
+
+
+class _ConvNorm(torch.nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.conv = torch.nn.Conv2d(3, 4, 1)
+        self.norm = torch.nn.BatchNorm2d(4, momentum=0.3)
+
+    def forward(self, log_power):
+        return self.norm(self.conv(log_power))
+
+
+def test_whole_frame_batch_norms_take_the_frames_statistics_and_leave_the_weights():
+    torch.manual_seed(0)
+    model = _ConvNorm().eval()
+    weights = {k: v.clone() for k, v in model.state_dict().items() if "running" not in k and "num_batches" not in k}
+    batches = [{"log_power": torch.randn(2, 3, 8, 8) * 3 + 1} for _ in range(3)]
+    assert whole_frame_batch_norms(model, batches) == 6
+    with torch.no_grad():
+        features = torch.cat([model.conv(b["log_power"]) for b in batches])  # (6, 4, 8, 8)
+    per_batch = [model.conv(b["log_power"]).detach() for b in batches]
+    assert torch.allclose(model.norm.running_mean, features.mean(dim=(0, 2, 3)), atol=1e-5)
+    expected_var = torch.stack([f.var(dim=(0, 2, 3), unbiased=True) for f in per_batch]).mean(0)
+    assert torch.allclose(model.norm.running_var, expected_var, atol=1e-4)
+    assert model.norm.momentum == 0.3 and not model.training
+    for name, value in weights.items():
+        assert torch.equal(model.state_dict()[name], value), name
