@@ -4,9 +4,9 @@ side, as ratios to ERASE-Net. Prints a table and writes benchmarks/results/compa
     .venv/bin/python -m benchmarks.compare [--preset small|carrada] [--frames 8] [--repeats 3] [--threads 1]
 
 ERASE-Net runs end to end (:meth:`models.erasenet.model.EraseNet.segment` on a simulated frame's log-power cube:
-normalisation, detector, decoding, region growing, sparse segmenter, projections). At ``small`` it is the
-shipped pair of the preset (:data:`SHIPPED`: checkpoints/detector.pt + segmenter.pt at ``small``,
-checkpoints/carrada/ at ``carrada``); with ``--random-weights`` (asked for, never a fallback) the small pair's
+normalisation, detector, decoding, region growing, sparse segmenter, projections). It is the preset's shipped pair
+(:data:`benchmarks.harness.SHIPPED_PAIRS`: checkpoints/detector.pt + segmenter.pt at ``small``, checkpoints/carrada/
+at ``carrada``); with ``--random-weights`` (asked for, never a fallback) the small pair's
 architectures with random weights and the detector's top-K seeds (K = true objects, threshold 0, as
 benchmarks/end_to_end.py). Its MACs are the mean per frame of
 detector + segmenter (the segmenter's depend on the ROI). The baselines (U-Net RD and RA, TMVA-Net,
@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from benchmarks.baselines import MODELS, input_shapes, latency
+from benchmarks.harness import SHIPPED_PAIRS
 from benchmarks.timing import time_call
 from models.checkpoint import load_checkpoint
 from models.compute import count_macs
@@ -52,16 +53,11 @@ CHECKPOINTS = REPO / "checkpoints"
 ROWS = {"unet_rd": "U-Net RD", "unet_ra": "U-Net RA", "tmvanet": "TMVA-Net", "smvanet": "SMVA-Net"}
 
 
-SHIPPED = {"small": (CHECKPOINTS / "detector.pt", CHECKPOINTS / "segmenter.pt"),
-           "carrada": (CHECKPOINTS / "carrada" / "detector.pt", CHECKPOINTS / "carrada" / "segmenter.pt")}
-"""The shipped pair of each preset: what the comparison runs unless random weights are asked for."""
-
-
 def build_erasenet(preset: str, first_log_power: np.ndarray, *, random_weights: bool = False) -> EraseNet:
     """The preset's shipped pair; with ``random_weights``, the small pair's architectures built for ``preset``
     with random weights (its seeds then the top-K detector peaks, threshold 0)."""
     if not random_weights:
-        detector_path, segmenter_path = SHIPPED[preset]
+        detector_path, segmenter_path = SHIPPED_PAIRS[preset]
         return EraseNet.from_checkpoints(load_checkpoint(detector_path), load_checkpoint(segmenter_path))
     det, seg = load_checkpoint(CHECKPOINTS / "detector.pt"), load_checkpoint(CHECKPOINTS / "segmenter.pt")
     torch.manual_seed(0)
@@ -111,7 +107,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int, *, random_weights: bo
             "executed_macs": float(np.mean(executed)),
             "params": int(sum(net.params.values())), "roi_voxels_last": int(result.compute.roi_voxels),
             "weights": "random, top-K seeds" if random_weights else " + ".join(
-                str(path.relative_to(REPO)) for path in SHIPPED[preset])}
+                str(path.relative_to(REPO)) for path in SHIPPED_PAIRS[preset])}
 
 
 @torch.no_grad()

@@ -60,6 +60,11 @@ REGISTRY: tuple[Benchmark, ...] = (
 )
 BY_NAME = {benchmark.name: benchmark for benchmark in REGISTRY}
 
+SHIPPED_PAIRS = {"small": (REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt"),
+                 "carrada": (REPO / "checkpoints" / "carrada" / "detector.pt",
+                             REPO / "checkpoints" / "carrada" / "segmenter.pt")}
+"""The shipped detector and segmenter of each preset that has a pair: what the benchmarks run by default."""
+
 
 def benchmark_modules() -> list[str]:
     """The module names of this folder that are benchmarks (every one must be registered)."""

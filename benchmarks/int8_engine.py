@@ -10,20 +10,24 @@ calibrated on simulated frames of the preset at ``models.export.quantize``'s see
 benchmarks/results/int8_engine.json with the CPU model and flags, the int8 kernels' path and the load average.
 Never asserts a time.
 
-    .venv/bin/python -m benchmarks.int8_engine [--frames 16] [--seed 52] [--repeats 3]
+    .venv/bin/python -m benchmarks.int8_engine [--frames 16] [--seed 52] [--repeats 3] [--preset small|carrada]
+
+``--preset carrada`` runs the shipped ``carrada`` pair (checkpoints/carrada/) on ``carrada`` frames.
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from benchmarks.harness import Table, int_options_main, print_load
+from benchmarks.harness import SHIPPED_PAIRS, Table, int_options_main, print_load
 from models.erasenet.engines import load_erasenet
 from models.heap import freeze_loaded_heap
 from models.quantized.calibration import roi_label_agreement, segmenter_inputs
@@ -33,7 +37,6 @@ from radar.simulate import simulate_sequence
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "int8_engine.json"
-PAIR = ("checkpoints/detector.pt", "checkpoints/segmenter.pt")
 WARM_UP = 2
 PRECISIONS = ("float", "int8")
 
@@ -62,8 +65,8 @@ def _network_cpu_ms(nets: dict, cube: np.ndarray, repeats: int) -> dict[str, flo
     return {precision: 1e3 * seconds for precision, seconds in best.items()}
 
 
-def compare(frames: list, repeats: int) -> dict:
-    nets = {precision: load_erasenet(*(REPO / p for p in PAIR), precision=precision) for precision in PRECISIONS}
+def compare(frames: list, repeats: int, preset: str = "small") -> dict:
+    nets = {precision: load_erasenet(*SHIPPED_PAIRS[preset], precision=precision) for precision in PRECISIONS}
     freeze_loaded_heap()
     num_classes = nets["float"].profile.num_classes
     stages: dict[str, list[dict]] = {precision: [] for precision in PRECISIONS}
@@ -103,13 +106,13 @@ STAGES = Table((("stage (ms, wall median)", "<28"), ("float", "9.1f"), ("int8", 
                separator="")
 
 
-def run(frames: int, seed: int, repeats: int) -> dict:
+def run(frames: int, seed: int, repeats: int, preset: str = "small") -> dict:
     """Both precisions over ``frames`` simulated frames of scene ``seed`` (after the warm-up frames)."""
     torch.set_num_threads(1)
-    simulated = list(simulate_sequence("small", frames + WARM_UP, seed=seed))
+    simulated = list(simulate_sequence(preset, frames + WARM_UP, seed=seed))
     load_before = os.getloadavg()
-    figures = compare(simulated, repeats)
-    return {**figures, "threads": 1, "seed": seed, "load_average_before": load_before,
+    figures = compare(simulated, repeats, preset)
+    return {**figures, "preset": preset, "threads": 1, "seed": seed, "load_average_before": load_before,
             "load_average_after": os.getloadavg(), "cpu": _cpu(), "when": time.strftime("%Y-%m-%d %H:%M:%S")}
 
 
@@ -127,8 +130,18 @@ def report(result: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return int_options_main(RESULTS, run, __doc__, argv, report=report, positive=("frames", "repeats"), frames=16,
-                            seed=52, repeats=3)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    preset = "small"
+    if "--preset" in argv:  # the one option that is not a number
+        at = argv.index("--preset")
+        preset = argv[at + 1] if at + 1 < len(argv) else ""
+        del argv[at:at + 2]
+        if preset not in SHIPPED_PAIRS:
+            raise SystemExit(f"--preset must be one of {', '.join(SHIPPED_PAIRS)} (a preset with a shipped pair), "
+                             f"got {preset!r}")
+    results = RESULTS if preset == "small" else RESULTS.with_name(f"int8_engine_{preset}.json")
+    return int_options_main(results, functools.partial(run, preset=preset), __doc__, argv, report=report,
+                            positive=("frames", "repeats"), frames=16, seed=52, repeats=3)
 
 
 if __name__ == "__main__":
