@@ -34,10 +34,11 @@ class DetectorTask(Task):
 
     def train_dataset(self) -> Dataset:
         """Training frames with their log power in dB (normalised in :meth:`collate`)."""
+        sampler = self.window_sampler()
         frames = StoreDataset(self.store.path, self.cfg.train_split, fields=("input", "objects"), normalise=False,
                               flip_prob=self.hyper.flip_prob, seed=self.cfg.seed, history=self._history_frames(),
-                              history_drop=self.hyper.history_drop)
-        sampler = self.window_sampler()
+                              history_drop=self.hyper.history_drop,
+                              doppler_last=sampler is not None and not self._history_frames())
         return frames if sampler is None else WindowDataset(frames, sampler, seed=self.cfg.seed)
 
     def build_model(self) -> nn.Module:

@@ -89,7 +89,8 @@ class WindowSampler:
 
 
 class WindowDataset(Dataset):
-    """The samples of ``frames`` cut to windows: ``input`` (D, h, w) and ``history`` (H, D, h, w) cut alike,
+    """The samples of ``frames`` cut to windows: ``input`` (D, h, w) and ``history`` (H, D, h, w) cut alike (from
+    frames read in either layout: read ``doppler_last``, only the window is transposed),
     ``window_origin`` int64 (2,) bins and ``window_holds_object`` added; the object table stays the whole
     frame's (targets are built whole, then cut). Call :meth:`set_epoch` before each epoch."""
 
@@ -115,7 +116,10 @@ class WindowDataset(Dataset):
         r, a = window.range_start, window.angle_start
         h, w = self.sampler.size
         out = dict(sample)
-        out["input"] = sample["input"][:, r:r + h, a:a + w].contiguous()
+        if self.frames.doppler_last:  # (R, A, D) as stored: only the window is transposed to (D, h, w)
+            out["input"] = sample["input"][r:r + h, a:a + w].permute(2, 0, 1).contiguous()
+        else:
+            out["input"] = sample["input"][:, r:r + h, a:a + w].contiguous()
         if "history" in sample:
             out["history"] = sample["history"][..., r:r + h, a:a + w].contiguous()
         out["window_origin"] = torch.tensor([r, a], dtype=torch.int64)

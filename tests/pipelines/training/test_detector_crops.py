@@ -83,6 +83,17 @@ def test_a_window_size_off_the_stride_or_the_grid_is_refused(size):
         WindowSampler(size, (128, 128))
 
 
+def test_windows_of_frames_read_in_the_stored_layout_are_the_same(small_store):
+    stored = StoreDataset(small_store, "train", fields=("input", "objects"), normalise=False, flip_prob=0.5,
+                          doppler_last=True)
+    model_layout = StoreDataset(small_store, "train", fields=("input", "objects"), normalise=False, flip_prob=0.5)
+    sampler = WindowSampler((32, 64), (128, 128))
+    windows = [WindowDataset(frames, sampler, seed=5) for frames in (stored, model_layout)]
+    for a, b in zip(*([w[i] for i in range(len(w))] for w in windows), strict=True):
+        assert torch.equal(a["window_origin"], b["window_origin"]) and a["flipped"] == b["flipped"]
+        assert torch.equal(a["input"], b["input"]) and a["input"].shape == (32, 32, 64)
+
+
 def test_window_samples_cut_the_input_and_keep_the_object_table(small_store):
     frames = StoreDataset(small_store, "train", fields=("input", "objects"), normalise=False)
     windows = WindowDataset(frames, WindowSampler((32, 64), (128, 128)), seed=3)
