@@ -3,8 +3,9 @@ that the test cuts (the database is gone) and turns into a black hole (connectio
 and a SQLite ledger whose file another process holds locked.
 
 What a client sees: 503 with ``ledger_unavailable`` (never a 500, never a hung request: at most 10 s), ``/healthz``
-within a second throughout, ``/readyz`` 503 within 5 s of the fault and 200 within 10 s of recovery, a tenant with
-quota left served at once after it (no lease left behind), and as many ledger rows as answers of 200.
+within a second throughout (on a loaded machine: twice what it took beside the same requests before the fault),
+``/readyz`` 503 within 5 s of the fault and 200 within 10 s of recovery, a tenant with quota left served at once
+after it (no lease left behind), and as many ledger rows as answers of 200.
 """
 
 from __future__ import annotations
@@ -60,20 +61,36 @@ def _wait_for(predicate, timeout_s: float) -> float:
     return time.monotonic() - started
 
 
-def _fault_checks(client, cube_body, auth) -> None:
-    """During a fault: /readyz 503 within 5 s, 503s (not 5xx else) within 10 s, /healthz within 1 s."""
-    _wait_for(lambda: client.get("/readyz").status_code == 503, 5)
-    assert "ledger" in client.get("/readyz").json() and client.get("/readyz").json()["ledger"]
+def _busy(client, cube_body, auth) -> tuple[list, list]:
+    """Four /v1/usage and two /v1/segment requests in flight, and three /healthz timed meanwhile: (answers, health),
+    each a list of (response, seconds)."""
     with ThreadPoolExecutor(6) as pool:
         usage = [pool.submit(_timed, lambda: client.get("/v1/usage", headers=auth)) for _ in range(4)]
         segment = [pool.submit(_timed, lambda: client.post("/v1/segment", content=cube_body, headers={**NPY, **auth}))
                    for _ in range(2)]
         health = [_timed(lambda: client.get("/healthz")) for _ in range(3)]
-        answers = [f.result() for f in usage + segment]
+        return [f.result() for f in usage + segment], health
+
+
+def _health_limit_s(client, cube_body, auth) -> float:
+    """How long /healthz may take during a fault: 1 s, or on a loaded machine twice what it took here beside the same
+    requests with the ledger up (measured, so that load alone never fails the check; a /healthz that waited for the
+    ledger would take its 2 s timeout more)."""
+    answers, health = _busy(client, cube_body, auth)
+    assert all(answer.status_code == 200 for answer, _ in answers), [a.text for a, _ in answers]
+    assert all(r.status_code == 200 for r, _ in health), health
+    return max(1.0, 2 * max(seconds for _, seconds in health))
+
+
+def _fault_checks(client, cube_body, auth, health_limit_s: float) -> None:
+    """During a fault: /readyz 503 within 5 s, 503s (not 5xx else) within 10 s, /healthz within its limit."""
+    _wait_for(lambda: client.get("/readyz").status_code == 503, 5)
+    assert "ledger" in client.get("/readyz").json() and client.get("/readyz").json()["ledger"]
+    answers, health = _busy(client, cube_body, auth)
     for answer, seconds in answers:
         assert answer.status_code == 503 and answer.json()["error"] == "ledger_unavailable", answer.text
         assert seconds < 10
-    assert all(r.status_code == 200 and seconds < 1.0 for r, seconds in health), health
+    assert all(r.status_code == 200 and seconds < health_limit_s for r, seconds in health), (health, health_limit_s)
 
 
 def test_postgresql_cut_then_black_holed_then_back(make_settings, client_for, postgres_url, pg_prefix, proxy,
@@ -90,9 +107,11 @@ def test_postgresql_cut_then_black_holed_then_back(make_settings, client_for, po
         ok += 1
 
     serve_one()
+    health_limit_s = _health_limit_s(client, cube_body, auth)
+    ok += 2  # its two segment requests
     for fault in ("down", "hole"):
         proxy.set_mode(fault)
-        _fault_checks(client, cube_body, auth)
+        _fault_checks(client, cube_body, auth, health_limit_s)
         proxy.set_mode("forward")
         _wait_for(lambda: client.get("/readyz").status_code == 200, 10)
         serve_one()  # at once: no lease left behind holds the tenant's quota
@@ -102,7 +121,7 @@ def test_postgresql_cut_then_black_holed_then_back(make_settings, client_for, po
     with ledger.engine.connect() as conn:
         rows = conn.execute(select(func.count()).select_from(ledger.requests)
                             .where(ledger.requests.c.tenant == TENANT)).scalar_one()
-    assert rows == ok == 3
+    assert rows == ok == 5
 
 
 def test_the_service_starts_without_its_database_and_becomes_ready_when_it_returns(make_settings, client_for,
