@@ -7,15 +7,18 @@ from __future__ import annotations
 import io
 import os
 import subprocess
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
-from pipelines.demo.serve_process import free_port, serve_command, stop_process, wait_ready
+from deploy.healthcheck import process_stats
+from pipelines.demo.serve_process import free_port, serve_command, stop_process
 from radar.simulate import simulate_sequence
 from service.settings import ModelSpec, Settings
 
@@ -97,6 +100,43 @@ def pg_prefix(postgres_url) -> Iterator[str]:
     ledger.dispose()
 
 
+class StartWatch:
+    """When to give up on a server that is starting. A loaded machine stretches a start-up's wall time without
+    bound (more than 270 s seen for one that takes 10 s on a quiet machine), not the work it does; so the deadline is
+    what the server itself used: ``cpu_s`` seconds of CPU time (its process tree's: a first build of the sparse
+    engine runs the compiler in children), or ``stall_s`` seconds of wall time in which it used none (hung)."""
+
+    def __init__(self, pid: int, *, cpu_s: float, stall_s: float = 120.0) -> None:
+        self.pid, self.cpu_s, self.stall_s = pid, cpu_s, stall_s
+        self.cpu = self.cpu_seconds()
+        self.progressed = time.monotonic()
+
+    def cpu_seconds(self) -> float:
+        """CPU seconds (user and system) of the process, its children and their waited-for children."""
+        stats = {pid: fields for pid, _, fields in process_stats()}
+        children: dict[int, list[int]] = {}
+        for pid, fields in stats.items():
+            children.setdefault(int(fields[1]), []).append(pid)
+        ticks, tree = 0, [self.pid]
+        while tree:
+            pid = tree.pop()
+            if pid in stats:  # /proc/PID/stat after the name: utime, stime, cutime, cstime at 11..14
+                ticks += sum(int(v) for v in stats[pid][11:15])
+                tree.extend(children.get(pid, []))
+        return ticks / os.sysconf("SC_CLK_TCK")
+
+    def gave_up(self) -> str | None:
+        """Why to stop waiting, or None while the server may still come up."""
+        cpu, now = self.cpu_seconds(), time.monotonic()
+        if cpu > self.cpu:
+            self.cpu, self.progressed = cpu, now
+        if cpu > self.cpu_s:
+            return f"was not ready after {cpu:.0f} s of its CPU time (the limit: {self.cpu_s:.0f} s)"
+        if now - self.progressed > self.stall_s:
+            return f"used no CPU for {self.stall_s:.0f} s and was not ready (hung)"
+        return None
+
+
 class ApiProcess:
     """An API process on loopback (any command that serves ``service.main:create_app``), stopped by pid."""
 
@@ -109,7 +149,19 @@ class ApiProcess:
                                      env={**os.environ, **env, "PYTHONUNBUFFERED": "1", "OMP_NUM_THREADS": "1"})
 
     def wait_ready(self, timeout_s: float = 150.0) -> None:
-        wait_ready(self.url, self.proc, self.log_path, timeout_s=timeout_s, poll_s=0.3)
+        """Poll ``/readyz`` until it answers 200; RuntimeError with the log's tail when the process exits first or
+        :class:`StartWatch` gives up on it (``timeout_s``: seconds of the server's own CPU time)."""
+        watch = StartWatch(self.proc.pid, cpu_s=timeout_s)
+        while self.proc.poll() is None:
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.HTTPError:
+                pass
+            if reason := watch.gave_up():
+                raise RuntimeError(f"the service {reason}:\n{self.log_path.read_text()[-3000:]}")
+            time.sleep(0.3)
+        raise RuntimeError(f"the service exited with {self.proc.returncode}:\n{self.log_path.read_text()[-3000:]}")
 
     def stop(self) -> None:
         """SIGTERM by pid (uvicorn shuts down gracefully), SIGKILL if it lingers."""

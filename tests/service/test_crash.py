@@ -5,6 +5,7 @@ every 200 received is billed, and nothing else but the requests cut off after bi
 from __future__ import annotations
 
 import json
+import math
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -12,14 +13,19 @@ import httpx
 import pytest
 
 from service.ledger import Ledger
-from tests.service.conftest import KEYS, NPY, GuardedServer, server_env
+from tests.service.conftest import KEYS, NPY, ApiProcess, GuardedServer, server_env
 
 pytestmark = pytest.mark.slow
 
 ACME_KEY, _, ADMIN_KEY = KEYS
 ACME = {"authorization": f"Bearer {ACME_KEY}"}
 ADMIN = {"authorization": f"Bearer {ADMIN_KEY}"}
-LEASE_S = 30  # longer than a restart takes on a loaded 2-core machine (about 10 s)
+# The leases must outlive the restart (one start-up and a few seconds), and a loaded machine stretches a start-up
+# without bound (leases of 30 s expired during one). So the lease time is measured, not guessed: this many start-ups
+# of a server started just before on the same machine (the margin for a load that grows meanwhile; the test then
+# waits about one more start-up for the leases to expire), at least LEASE_MIN_S.
+LEASE_STARTS = 2
+LEASE_MIN_S = 30
 
 
 def _post(url: str, body: bytes) -> httpx.Response | None:
@@ -33,18 +39,34 @@ def _held(url: str) -> dict:
     return httpx.get(f"{url}/v1/usage", headers=ACME, timeout=30).json()["tenants"][0]["held"]
 
 
+def _started(env: dict[str, str], log_path) -> tuple[ApiProcess, float]:
+    """A server started and ready, and how many seconds that took."""
+    started = time.monotonic()
+    server = GuardedServer(env, log_path)
+    try:
+        server.wait_ready()
+    except BaseException:
+        server.stop()
+        raise
+    return server, time.monotonic() - started
+
+
 def test_kill_minus_9_mid_request_then_restart(tiny_checkpoints, tmp_path, cube_body):
     data = tmp_path / "data"
     base = server_env(tiny_checkpoints, RADARSEG_DATA_DIR=str(data), RADARSEG_API_KEYS=json.dumps(KEYS),
-                      RADARSEG_ADMIN_TENANTS='["ops"]', RADARSEG_LEASE_S=str(LEASE_S), RADARSEG_MAX_QUEUE="16")
-    first = GuardedServer({**base, "RADARSEG_DAILY_MAC_QUOTA": str(10**15)}, tmp_path / "first.log")
+                      RADARSEG_ADMIN_TENANTS='["ops"]', RADARSEG_MAX_QUEUE="16")
+    probe, start_s = _started(base, tmp_path / "probe.log")  # how long a start takes here, now
+    probe.stop()
+    lease_s = max(LEASE_MIN_S, math.ceil(LEASE_STARTS * start_s))
+    base["RADARSEG_LEASE_S"] = str(lease_s)
+    first, _ = _started({**base, "RADARSEG_DAILY_MAC_QUOTA": str(10**15)}, tmp_path / "first.log")
     try:
-        first.wait_ready()
         with ThreadPoolExecutor(16) as pool:
             burst = [pool.submit(_post, first.url, cube_body) for _ in range(16)]
             for _ in range(400):  # until requests hold leases (queued behind the one replica), then kill -9
                 if _held(first.url)["leases"] >= 2:
                     first.proc.kill()
+                    killed = time.monotonic()
                     break
             else:
                 pytest.fail("no request ever held a lease")
@@ -63,22 +85,21 @@ def test_kill_minus_9_mid_request_then_restart(tiny_checkpoints, tmp_path, cube_
 
     # Restart with a quota that only the leases left behind block: used + held, so no room while they are held.
     quota = used.macs + used.reserved_macs
-    second = GuardedServer({**base, "RADARSEG_DAILY_MAC_QUOTA": str(quota)}, tmp_path / "second.log")
+    second, restart_s = _started({**base, "RADARSEG_DAILY_MAC_QUOTA": str(quota)}, tmp_path / "second.log")
     try:
-        second.wait_ready()
         held = _held(second.url)  # restarted within the deadline: the leases are shown and block the tenant
-        assert held["leases"] > 0 and held["lease_seconds"] == LEASE_S, held
+        assert held["leases"] > 0 and held["lease_seconds"] == lease_s, (held, start_s, restart_s)
         blocked = _post(second.url, cube_body)
         assert blocked is not None and blocked.status_code == 429 and blocked.json()["reserved_macs"] > 0
-        for _ in range(2 * LEASE_S):  # until every lease has passed its deadline
-            if _held(second.url)["leases"] == 0:
-                break
+        # every lease was taken before the kill, so every one has passed its deadline lease_s after it
+        while _held(second.url)["leases"] > 0:
+            assert time.monotonic() < killed + lease_s + 60, ("leases held past their deadline", lease_s)
             time.sleep(1)
         after = _post(second.url, cube_body)  # reclaims the expired leases, then fits
         assert after is not None and after.status_code == 200, after.text if after is not None else None
         received.append(after)
         assert _held(second.url) == {"leases": 0, "macs": 0, "expired_leases": 0, "expired_macs": 0,
-                                     "lease_seconds": LEASE_S}
+                                     "lease_seconds": lease_s}
     finally:
         second.stop()
 
