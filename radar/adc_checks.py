@@ -8,6 +8,9 @@ Each check names the likely mistake:
   the spread many times: small negative samples became values near 65535): refused, "decode with
   ((x + 32768) % 65536) - 32768";
 - **offset-binary words** (whole numbers within 0..65535 clustered around 32768): refused, "subtract 32768";
+- **offset-binary words decoded as two's complement** (a capture read without ``--offset-binary``: whole numbers
+  crowded at both ends of the ADC's full scale, and flipping their top bit shrinks the spread many times; the
+  clipping check would call them clipped): refused, naming ``--offset-binary``;
 - **a dominant DC** (a channel's mean over its samples larger than its spread about that mean): warned; refused
   when the mean is :data:`DC_REFUSE_RATIO` times the spread (nothing but an offset: every frame would show one
   range-0 peak and its window's leakage);
@@ -39,6 +42,8 @@ FULL_SCALE = 32767  # int16 full scale
 CLIP_WARN_SHARE = 1e-3  # share of parts at full scale (or piled on the extreme) that is warned
 PLATEAU_MIN_VALUE = 127  # a pile-up on the frame's extreme counts as clipping only above this magnitude
 PLATEAU_MIN_COUNT = 8
+FULL_SCALES = (2048, 8192, 32768)  # 12-, 14- and 16-bit ADCs: half their range
+FAR_SHARE = 0.5  # offset-binary words decoded as two's complement: at least this share beyond half full scale
 
 
 class AdcCheckError(UserError):
@@ -49,7 +54,7 @@ class AdcCheckError(UserError):
 class AdcFinding:
     """One check's verdict: ``refuse`` or warn, with the line a user reads."""
 
-    check: str  # "twos_complement_words", "offset_binary_words", "dc", "clipping"
+    check: str  # "twos_complement_words", "offset_binary_words", "offset_binary_decoded", "dc", "clipping"
     refuse: bool
     message: str
 
@@ -77,6 +82,26 @@ def _word_findings(parts: np.ndarray) -> list[AdcFinding]:
                            f"ADC samples are whole numbers within {low:.0f}..{high:.0f} centred on "
                            f"{float(parts.mean()):.0f}: they look like offset-binary 16-bit words; subtract 32768")]
     return []
+
+
+def _offset_binary_finding(parts: np.ndarray) -> list[AdcFinding]:
+    """Offset-binary words decoded as two's complement: a small sample s became s - full (s >= 0) or s + full (s < 0),
+    so the parts crowd both ends of the full scale and flipping the top bit brings them back near zero."""
+    largest = float(np.abs(parts).max())
+    full = next((scale for scale in FULL_SCALES if largest <= scale), None)
+    if full is None or largest < full / 2 or not np.array_equal(parts, np.round(parts)):
+        return []
+    far = float(np.mean(np.abs(parts) > full / 2))
+    flipped = np.where(parts < 0, parts + full, parts - full)
+    if far < FAR_SHARE or float(flipped.std()) * SPREAD_SHRINK >= float(parts.std()):
+        return []
+    low, high = float(np.mean(parts < -full / 2)), float(np.mean(parts > full / 2))
+    return [AdcFinding("offset_binary_decoded", True,
+                       f"{far:.1%} of the ADC samples' I and Q parts sit beyond +-{full // 2} ({low:.1%} near -{full}, "
+                       f"{high:.1%} near +{full}), and flipping their top bit shrinks their spread "
+                       f"{float(parts.std()) / max(float(flipped.std()), 1e-12):.3g}x: offset-binary words read as "
+                       f"two's complement, not clipping; read the capture with --offset-binary (a profile's "
+                       f"[capture] offset_binary = true)")]
 
 
 def _dc_finding(adc: np.ndarray, channel_axis: int) -> list[AdcFinding]:
@@ -116,7 +141,7 @@ def adc_findings(adc: np.ndarray, *, channel_axis: int = -1) -> list[AdcFinding]
     """Every check's finding on one frame of finite ADC samples (``channel_axis``: the receive channel or
     virtual element axis); empty when the samples look like decoded signed samples."""
     parts = _parts(adc)
-    words = _word_findings(parts)
+    words = _word_findings(parts) or _offset_binary_finding(parts)
     if words:
         return words
     return _dc_finding(adc, channel_axis) + _clipping_finding(parts)

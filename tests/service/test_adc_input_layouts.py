@@ -140,3 +140,13 @@ def test_sck_to_ti_is_the_layout_the_fixture_reshapes_to():
     """The helper's reshape of OpenRadar's (loops, virtual antennas, samples) is the chain's "ti" layout."""
     profile = openradar_profile()
     assert np.array_equal(sck_to_ti(sck_frame(), profile), as_complex(ti_frame_iq()))
+
+
+def test_an_offset_binary_capture_is_refused_naming_it_not_billed_as_clipped(client, frames, tmp_path):
+    """A DCA1000 capture of offset-binary words, read with the profile's two's complement: 422 naming offset binary
+    (it was 200, a clipping warning and 8 objects where the frame has 4)."""
+    path = tmp_path / "adc_data.bin"
+    write_dca1000(path, frames, CaptureFormat.of_profile(openradar_profile(), offset_binary=True))
+    refused = client.post(f"{SEGMENT}&format=dca1000", content=path.read_bytes(), headers=OCTETS)
+    assert refused.status_code == 422, refused.text
+    assert "offset-binary words read as two's complement" in refused.json()["detail"]
