@@ -19,6 +19,8 @@ import numpy as np
 from radar.errors import UserError
 
 BACKLOG_FRAMES = 32  # frames received but not yet written or posted; more are dropped and counted
+BAD_FRAME_POLICIES = ("zero", "drop")
+MAX_LISTED_BAD_FRAMES = 100  # bad frames named in the summary (all are counted)
 
 
 def add_capture_parser(sub: Any) -> None:
@@ -35,6 +37,10 @@ def add_capture_parser(sub: Any) -> None:
     cap.add_argument("--idle-timeout", type=float, default=2.0, help="stop when no packet came for this long (s)")
     cap.add_argument("--start-timeout", type=float, default=30.0, help="give up without a first packet (s)")
     cap.add_argument("--buffer-bytes", type=int, default=8 << 20, help="socket receive buffer asked for")
+    cap.add_argument("--bad-frames", choices=BAD_FRAME_POLICIES, default="zero",
+                     help="a frame the ADC checks refuse (undecoded words, nothing but an offset): 'zero' writes it as "
+                          "zeros (every frame keeps its place in --out) and posts nothing; 'drop' leaves it out; "
+                          "either way it is counted and the capture goes on")
     cap.set_defaults(func=cmd_capture)
     cap_sub = cap.add_subparsers(dest="capture_command")
     rep = cap_sub.add_parser("replay", help="send a capture file (.bin) as a DCA1000 UDP stream")
@@ -115,7 +121,7 @@ class StreamPoster:
 
 def cmd_capture(args: argparse.Namespace) -> int:
     from radar.adc import ti_to_sck
-    from radar.adc_checks import check_adc
+    from radar.adc_checks import AdcCheckError, check_adc
     from radar.profiles import get_profile
     from radar.ti.dca1000 import CaptureFormat, FrameGeometry, decode_frame
     from radar.ti.live import open_data_socket, receive_frames
@@ -154,11 +160,20 @@ def cmd_capture(args: argparse.Namespace) -> int:
     print(f"listening on {args.host}:{sock.getsockname()[1]} for {geometry.bytes}-byte frames", file=sys.stderr)
     receiver = threading.Thread(target=receive, daemon=True)
     receiver.start()
+    bad: list[int] = []
     try:
         while (frame := frames.get()) is not None:
             first_index = frame.index if first_index is None else first_index
             samples = decode_frame(np.frombuffer(frame.data, "<u2"), fmt, geometry)
-            check_adc(samples, channel_axis=1, source=f"frame {frame.index - first_index}")
+            try:
+                check_adc(samples, channel_axis=1, source=f"frame {frame.index - first_index}")
+            except AdcCheckError as refused:  # one bad frame: flagged, counted, the capture goes on
+                bad.append(frame.index - first_index)
+                print(f"warning: {refused} ({'written as zeros' if args.bad_frames == 'zero' else 'dropped'})",
+                      file=sys.stderr)
+                if out is not None and args.bad_frames == "zero":
+                    out.write(bytes(len(frame.data)))
+                continue
             if out is not None:
                 out.write(frame.data)
             if poster is not None:
@@ -171,7 +186,8 @@ def cmd_capture(args: argparse.Namespace) -> int:
         if poster is not None:
             poster.close()
     seconds = time.monotonic() - start
-    summary = {**assembler.stats.to_dict(), "frames_dropped_backlog": len(backlog_drops),
+    summary = {**assembler.stats.to_dict(), "frames_dropped_backlog": len(backlog_drops), "bad_frames": len(bad),
+               "bad_frame_indices": bad[:MAX_LISTED_BAD_FRAMES], "bad_frame_policy": args.bad_frames,
                "seconds": round(seconds, 3), "out": args.out,
                "stream": poster.id if poster else None, "objects_per_frame": posted or None}
     print(json.dumps(summary))

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 from radar.ti.udp import DATA_PORT, AssembledFrame, FrameAssembler, PacketError, unpack_packet
 
 RECEIVE_BUFFER = 8 * 1024 * 1024  # bytes asked of the kernel for the socket (the system may grant less)
-DATAGRAM_MAX = 2048  # the DCA1000's packets are at most 1466 bytes
+DATAGRAM_MAX = 65_536  # any UDP datagram, so that one longer than a DCA1000 packet (1466 bytes) is seen whole
 
 
 def open_data_socket(host: str = "0.0.0.0", port: int = DATA_PORT, *, buffer_bytes: int = RECEIVE_BUFFER

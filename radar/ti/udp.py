@@ -22,6 +22,8 @@ MAX_PAYLOAD = 1456  # ADC bytes in a full data packet
 HEADER = struct.Struct("<I")  # sequence number; the 6-byte byte count follows
 HEADER_BYTES = 10
 MAX_BYTE_COUNT = 1 << 48
+SEQUENCE_SPAN = 1 << 32  # sequence numbers wrap here
+RESYNC_PACKETS = 16  # packets in a row far from the stream's place that move it there (a spoofed or stale anchor)
 
 
 class PacketError(ValueError):
@@ -39,6 +41,9 @@ def unpack_packet(datagram: bytes | memoryview) -> tuple[int, int, memoryview]:
     """(sequence number, byte count, payload) of one datagram; PacketError if it is shorter than a header or its
     payload is not whole 16-bit words."""
     view = memoryview(datagram)
+    if len(view) > HEADER_BYTES + MAX_PAYLOAD:
+        raise PacketError(f"a {len(view)}-byte datagram is longer than a DCA1000 data packet (at most "
+                          f"{HEADER_BYTES + MAX_PAYLOAD} bytes)")
     if len(view) <= HEADER_BYTES or (len(view) - HEADER_BYTES) % 2:
         raise PacketError(f"a {len(view)}-byte datagram is no DCA1000 data packet (10-byte header, then 16-bit words)")
     (sequence,) = HEADER.unpack_from(view, 0)
@@ -68,7 +73,10 @@ class StreamStats:
     late_packets: int = 0  # arrived after their frame had left (zero-filled there)
     reordered_packets: int = 0  # arrived after a packet with a higher sequence number, placed right
     malformed_packets: int = 0
-    first_sequence: int | None = None
+    stray_packets: int = 0  # byte counts more than max_gap_frames from the stream's place: set aside
+    resyncs: int = 0  # RESYNC_PACKETS strays in a row moved the stream to them (its open frames were lost)
+    unique_packets: int = 0  # of the stream since its last resync, repeats aside
+    first_sequence: int | None = None  # sequence numbers unwrapped (they wrap at 2^32)
     last_sequence: int | None = None
     frames: int = 0
     frames_with_loss: int = 0
@@ -82,13 +90,13 @@ class StreamStats:
         """Sequence numbers never received between the first and the last one seen."""
         if self.first_sequence is None:
             return 0
-        unique = self.packets - self.duplicate_packets
-        return max(0, self.last_sequence - self.first_sequence + 1 - unique)
+        return max(0, self.last_sequence - self.first_sequence + 1 - self.unique_packets)
 
     def to_dict(self) -> dict:
         return {"packets": self.packets, "lost_packets": self.lost_packets,
                 "duplicate_packets": self.duplicate_packets, "reordered_packets": self.reordered_packets,
                 "late_packets": self.late_packets, "malformed_packets": self.malformed_packets,
+                "stray_packets": self.stray_packets, "resyncs": self.resyncs,
                 "frames": self.frames, "frames_with_loss": self.frames_with_loss, "lost_bytes": self.lost_bytes,
                 "lost_frames": len(self.missing_frames), "skipped_leading_bytes": self.skipped_leading_bytes,
                 "truncated_bytes": self.truncated_bytes}
@@ -109,6 +117,7 @@ class FrameAssembler:
         self._next = None  # the next frame index to leave
         self._seen: deque[int] = deque(maxlen=recent)
         self._seen_set: set[int] = set()
+        self._strays = 0  # far packets in a row
 
     def _first_packet(self, byte_count: int) -> None:
         index, rest = divmod(byte_count, self.frame_bytes)
@@ -118,8 +127,17 @@ class FrameAssembler:
         self._first_index = self._next
         self.stats.skipped_leading_bytes = (self.frame_bytes - rest) % self.frame_bytes if rest else 0
 
+    def _unwrap(self, sequence: int) -> int:
+        """The sequence number counted past 2^32: the one of its wraps nearest the last one seen."""
+        last = self.stats.last_sequence
+        if last is None:
+            return sequence
+        base = last - last % SEQUENCE_SPAN + sequence
+        return min((base - SEQUENCE_SPAN, base, base + SEQUENCE_SPAN), key=lambda s: abs(s - last))
+
     def _note_sequence(self, sequence: int) -> bool:
         """False for a repeated packet."""
+        sequence = self._unwrap(sequence)
         if sequence in self._seen_set:
             self.stats.duplicate_packets += 1
             return False
@@ -128,6 +146,7 @@ class FrameAssembler:
         self._seen.append(sequence)
         self._seen_set.add(sequence)
         s = self.stats
+        s.unique_packets += 1
         if s.last_sequence is not None and sequence < s.last_sequence:
             s.reordered_packets += 1
         s.first_sequence = sequence if s.first_sequence is None else min(s.first_sequence, sequence)
@@ -137,9 +156,11 @@ class FrameAssembler:
     def add(self, sequence: int, byte_count: int, payload: bytes | memoryview) -> list[AssembledFrame]:
         """Place one packet; the frames that can leave now, in order."""
         self.stats.packets += 1
-        if self._next is not None and (byte_count // self.frame_bytes - self._next > self.max_gap_frames):
-            self.stats.malformed_packets += 1  # a byte count far ahead of the stream: not trusted
-            return []
+        if self._next is not None and abs(byte_count // self.frame_bytes - self._next) > self.max_gap_frames:
+            if not self._stray():
+                return []
+        else:
+            self._strays = 0
         if not self._note_sequence(sequence):
             return []
         if self._next is None:
@@ -164,6 +185,22 @@ class FrameAssembler:
         if late:
             self.stats.late_packets += 1
         return self._leave(newest=(end - 1) // self.frame_bytes)
+
+    def _stray(self) -> bool:
+        """A byte count far from the stream's place: set aside and counted; True when it is the RESYNC_PACKETS-th
+        in a row, and the stream moves to it (a spoofed first packet, or a radar restarted: its open frames lost)."""
+        self.stats.stray_packets += 1
+        self._strays += 1
+        if self._strays < RESYNC_PACKETS:
+            return False
+        s = self.stats
+        s.lost_bytes += sum(self.frame_bytes - entry[2] for entry in self._open.values())
+        s.resyncs, s.first_sequence, s.last_sequence, s.unique_packets = s.resyncs + 1, None, None, 0
+        self._open.clear()
+        self._seen.clear()
+        self._seen_set.clear()
+        self._next, self._strays = None, 0
+        return True
 
     def _next_start_bytes(self) -> int:
         """Byte offset of the first frame of ours (bytes before it belong to a frame begun before the capture)."""

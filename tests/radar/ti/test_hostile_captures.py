@@ -15,7 +15,7 @@ from pipelines.cli import main
 from radar.adc import adc_shape
 from radar.io.errors import DataError
 from radar.ti.capture import MIN_PACKET, Capture
-from radar.ti.capture_writer import write_studio_raw
+from radar.ti.capture_writer import write_dca1000, write_studio_raw
 from radar.ti.dca1000 import CaptureFormat
 from tests.radar.ti.test_capture import SMALL, _profile, _simulated_frames
 
@@ -84,3 +84,21 @@ def test_process_adc_checks_an_npy_header_against_the_profile_before_reading(tmp
     assert main(["process-adc", str(path), "--profile", str(profile), "--out", str(tmp_path / "c.npy")]) == 2
     assert f"have shape {adc_shape(_profile(), 'sck')}, got (2147483648,)" in capsys.readouterr().err
     assert time.process_time() - started < 2.0 and _peak_kib() - before < 100_000
+
+
+def test_an_offset_binary_capture_is_named_not_called_clipping(tmp_path, capsys):
+    """Offset-binary words read as two's complement sit at both ends of full scale: refused naming --offset-binary
+    (it was a clipping warning and exit 0); read with --offset-binary, the same file gives the frame."""
+    profile_path = tmp_path / "p.json"
+    profile_path.write_text(json.dumps(SMALL))
+    offset = CaptureFormat(offset_binary=True)
+    frames = _simulated_frames(_profile(), offset)
+    path = tmp_path / "adc_data.bin"
+    write_dca1000(path, frames, offset)
+    command = ["process-adc", str(path), "--profile", str(profile_path), "--out", str(tmp_path / "c.npy")]
+    assert main(command) == 2
+    err = capsys.readouterr().err
+    assert "offset-binary words read as two's complement" in err and "--offset-binary" in err
+    assert "clipped" not in err
+    assert main([*command, "--offset-binary"]) == 0
+    np.testing.assert_array_equal(Capture(path, _profile(), offset).frame(0), frames[0])
