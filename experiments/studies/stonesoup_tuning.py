@@ -5,6 +5,7 @@ frames ``evaluate --trackers`` saved (``tracking_frames.npz``); prints every poi
 writes them to ``--out`` as JSON.
 
     .venv/bin/python -m experiments.studies.stonesoup_tuning --frames OUT/tracking_frames.npz [--preset small] \
+        [--trackers stonesoup-jpda] [--grid '{"clutter_per_frame": [5, 10], "acceleration_sigma_mps2": [8, 16]}'] \
         [--out /tmp/stonesoup_tuning.json]
 
 The best points become :class:`StoneSoupSettings`' defaults; the comparison itself runs on another seed.
@@ -39,6 +40,8 @@ def main() -> None:
     parser.add_argument("--frames", required=True, help="tracking_frames.npz of evaluate --trackers on the tuning seed")
     parser.add_argument("--preset", default="small")
     parser.add_argument("--trackers", default=",".join(GRIDS), help="comma-separated, of " + ", ".join(GRIDS))
+    parser.add_argument("--grid", type=json.loads, help="instead of GRIDS and ACCELERATION_MPS2: one grid (JSON, "
+                        "setting -> values, acceleration_sigma_mps2 among them) for every tracker named")
     parser.add_argument("--out", default="/tmp/stonesoup_tuning.json")
     args = parser.parse_args()
     profile = get_profile(args.preset)
@@ -47,7 +50,8 @@ def main() -> None:
     config = TrackerConfig.for_profile(profile)
     rows = []
     for name in args.trackers.split(","):
-        for settings in points({**GRIDS[name], "acceleration_sigma_mps2": ACCELERATION_MPS2}):
+        grid = args.grid or {**GRIDS[name], "acceleration_sigma_mps2": ACCELERATION_MPS2}
+        for settings in points(grid):
             scores = compare_trackers(sequences, (name,), config, profile.class_names, match_m, {name: settings})[name]
             row = {"tracker": name, **settings,
                    "gospa_m": scores["gospa"]["mean_m"], "hota": scores["hota"]["hota"],

@@ -24,7 +24,7 @@ from radar.input_kind import InputKind
 REPO = Path(__file__).resolve().parents[2]
 
 
-def _sequence_frames(store: str, sequence: int | None):
+def sequence_frames(store: str, sequence: int | None):
     from pipelines.datasets.store import OBJECT_COLUMN, open_store, store_profile
     from pipelines.evaluation.tracking import TruthObjects
 
@@ -57,7 +57,7 @@ def _paths(measurements, config):
     return paths, velocity
 
 
-def _draw(ax, profile, log_power, paths, velocity, truth, title):
+def draw_tracks(ax, profile, log_power, paths, velocity, truth, title):
     from radar import transforms
 
     x, y = profile.ra_cartesian
@@ -94,7 +94,7 @@ def main() -> None:
     from pipelines.figures import save_figure
     from radar.tracking import Measurements, TrackerConfig
 
-    profile, sequence, name, frames = _sequence_frames(args.store, args.sequence)
+    profile, sequence, name, frames = sequence_frames(args.store, args.sequence)
     net = EraseNet.from_checkpoints(REPO / "checkpoints" / "detector.pt", REPO / "checkpoints" / "segmenter.pt")
     config = TrackerConfig.for_profile(profile)
     predicted = [Measurements.from_objects(net.segment(lp, kind=InputKind.log_power).objects) for _, lp, _ in frames]
@@ -107,7 +107,7 @@ def main() -> None:
     for ax, measurements, what in ((axes[0], predicted, "the shipped pair's objects"),
                                    (axes[1], truth_in, "the true centres")):
         paths, velocity = _paths(measurements, config)
-        _draw(ax, profile, frames[-1][1], paths, velocity, truth, f"tracks from {what} ({len(paths)} tracks)")
+        draw_tracks(ax, profile, frames[-1][1], paths, velocity, truth, f"tracks from {what} ({len(paths)} tracks)")
     fig.suptitle(f"{Path(args.store).name} sequence {sequence} ({name}), frames {frames[0][0]}-{frames[-1][0]}: "
                  f"tracks (solid, id, velocity arrow = 1 s) and true tracks (dashed white) on the last frame's RA view")
     fig.tight_layout()
