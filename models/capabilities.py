@@ -20,10 +20,12 @@ is usable everywhere (trainer, compare, slimming, summary, the service).
 from __future__ import annotations
 
 from enum import StrEnum
-
-from torch import nn
+from typing import TYPE_CHECKING
 
 from radar.profiles import RadarProfile, get_profile
+
+if TYPE_CHECKING:  # annotations only: the stages are read by the command line's options, which load no torch
+    from torch import nn
 
 InputShapes = tuple[tuple[int, ...], ...]
 

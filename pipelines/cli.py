@@ -7,7 +7,7 @@ import json
 import logging
 import sys
 import time
-from typing import Any
+from typing import Any, NamedTuple
 
 from models.erasenet.engines import ENGINES, PRECISIONS
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
@@ -16,31 +16,47 @@ from radar.errors import UserError
 from radar.input_kind import InputKind
 from radar.profiles import BUILTIN_PRESETS
 
-# The jobs (pipelines.jobs' contract): command -> (module, help). A job module loads only when its command runs.
-JOBS: dict[str, tuple[str, str]] = {
-    "preprocess": ("pipelines.datasets.preprocess", "Ray job: cubes into the zarr store of inputs and targets"),
-    "segment-batch": ("pipelines.inference.segment_batch", "Ray job: segment a store split or a recording into a "
-                                                 "predictions store"),
-    "train": ("pipelines.training.train", "train the detector or the segmenter from a store, or export a checkpoint"),
-    "train-baseline": ("pipelines.training.train_baselines",
-                       "train a 2-D baseline (unet, tmvanet, smvanet) from a store"),
-    "evaluate": ("pipelines.evaluation.evaluate",
-                 "evaluate both stages on a split of a store: metrics.json, report.md, "
-                                       "pictures"),
-    "compare": ("pipelines.evaluation.compare", "ERASE-Net and the 2-D baselines on the same frames: compare.json, "
-                                     "compare.md, compare_frames.png"),
-    "slim-sweep": ("pipelines.training.slim_sweep", "compression sweep: prune (and fine-tune) at several ratios, "
-                                           "reports/slimming.md and .png"),
+
+class Job(NamedTuple):
+    """A job command (:mod:`pipelines.jobs`' contract): the module that runs it, its one-line help, and the module
+    that declares its options, which loads neither torch nor zarr (``--help`` answers at once)."""
+
+    module: str
+    help: str
+    options: str
+
+
+# The jobs: command -> Job. A job module loads only when its command runs, after its options have parsed.
+JOBS: dict[str, Job] = {
+    "preprocess": Job("pipelines.datasets.preprocess", "Ray job: cubes into the zarr store of inputs and targets",
+                      "pipelines.datasets.preprocess_options"),
+    "segment-batch": Job("pipelines.inference.segment_batch", "Ray job: segment a store split or a recording into a "
+                                                               "predictions store",
+                         "pipelines.inference.segment_batch_options"),
+    "train": Job("pipelines.training.train", "train the detector or the segmenter from a store, or export a checkpoint",
+                 "pipelines.training.train"),
+    "train-baseline": Job("pipelines.training.train_baselines",
+                          "train a 2-D baseline (unet, tmvanet, smvanet) from a store",
+                          "pipelines.training.train_baselines"),
+    "evaluate": Job("pipelines.evaluation.evaluate",
+                    "evaluate both stages on a split of a store: metrics.json, report.md, pictures",
+                    "pipelines.evaluation.evaluate_options"),
+    "compare": Job("pipelines.evaluation.compare", "ERASE-Net and the 2-D baselines on the same frames: compare.json, "
+                                                   "compare.md, compare_frames.png",
+                   "pipelines.evaluation.compare_options"),
+    "slim-sweep": Job("pipelines.training.slim_sweep", "compression sweep: prune (and fine-tune) at several ratios, "
+                                                       "reports/slimming.md and .png",
+                      "pipelines.training.slim_sweep_options"),
 }
 
 
 def job_parser_of(command: str) -> argparse.ArgumentParser:
-    """The parser that reads a job command's options (``radarseg train ...``): the job module's own
+    """The parser that reads a job command's options (``radarseg train ...``): the one its options module declares
     (:mod:`pipelines.jobs`). The top-level parser only names the jobs; the reference pages and their test walk
     these for every option."""
-    from pipelines.jobs import job_module, job_parser
+    from pipelines.jobs import OPTIONS, job_module, job_parser
 
-    return job_parser(job_module(JOBS[command][0]), prog=f"radarseg {command}")
+    return job_parser(job_module(JOBS[command].options, OPTIONS), prog=f"radarseg {command}")
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -393,8 +409,8 @@ def _add_data_commands(sub: Any) -> None:
                      help="--adc: a .npy per frame, or a DCA1000 capture (adc_data.bin) per sequence")
     sim.set_defaults(func=_cmd_simulate)
 
-    for name, (_, help_text) in JOBS.items():  # parsed by the job's own parser (see main)
-        sub.add_parser(name, add_help=False, help=help_text)
+    for name, job in JOBS.items():  # parsed by the job's own parser (see main)
+        sub.add_parser(name, add_help=False, help=job.help)
 
     prune = sub.add_parser("prune", help="network slimming: remove the channels with the smallest BatchNorm "
                                          "scales, save a genuinely narrower checkpoint")
@@ -571,7 +587,8 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     if command in JOBS:  # a job: its own parser reads the rest (pipelines.jobs)
         try:
-            _, summary = run_job(JOBS[command][0], argv[at + 1:], prog=f"radarseg {command}")
+            job = JOBS[command]
+            _, summary = run_job(job.module, argv[at + 1:], prog=f"radarseg {command}", options=job.options)
         except USER_ERRORS as exc:
             return report_error(f"radarseg {command}", exc)
         print(summary)

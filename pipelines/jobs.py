@@ -7,7 +7,11 @@
 
 ``radarseg JOB ...`` (:mod:`pipelines.cli`) and ``python -m pipelines.JOB ...`` (each module's
 ``__main__`` calls :func:`run_module`) both go through :func:`run_job`, so the two spellings take the
-same arguments. A job module is imported only when its command runs: Ray and torch load with the job.
+same arguments. A job module is imported only when its command runs: Ray and torch load with the job. Its
+options (``add_arguments``, ``config_from_args`` and the config dataclass) are declared in a module that loads
+neither torch nor zarr (``preprocess_options`` beside ``preprocess``, which re-exports them; a job module whose work
+loads inside ``main`` is its own), so that ``--help`` and a wrong option answer at once
+(tests/pipelines/test_help_is_light.py).
 """
 
 from __future__ import annotations
@@ -28,14 +32,16 @@ from radar.errors import UserError
 from radar.profiles import UnknownPresetError
 
 CONTRACT = ("add_arguments", "config_from_args", "main", "format_result")
+OPTIONS = CONTRACT[:2]  # what a job's options module declares
 
 log = logging.getLogger(__name__)
 
 
-def job_module(name: str) -> ModuleType:
-    """Import a job module (``pipelines.datasets.preprocess``) and check that it follows the contract."""
+def job_module(name: str, contract: Sequence[str] = CONTRACT) -> ModuleType:
+    """Import a job module (``pipelines.datasets.preprocess``) and check that it follows the contract (with
+    ``contract=OPTIONS``: a job's options module, ``pipelines.datasets.preprocess_options``)."""
     module = importlib.import_module(name)
-    missing = [attr for attr in CONTRACT if not callable(getattr(module, attr, None))]
+    missing = [attr for attr in contract if not callable(getattr(module, attr, None))]
     if missing:
         raise TypeError(f"job module {name} lacks {', '.join(missing)} (see pipelines.jobs)")
     return module
@@ -154,11 +160,13 @@ def smoke_config(cfg: Any) -> Any:
     return dataclasses.replace(cfg, **changes)
 
 
-def run_job(name: str, argv: Sequence[str] | None, prog: str) -> tuple[dict[str, Any], str]:
+def run_job(name: str, argv: Sequence[str] | None, prog: str, *,
+            options: str | None = None) -> tuple[dict[str, Any], str]:
     """Parse, run and format one job: ``(result, printed summary)``; tiny sizes under ``RADARSEG_SMOKE=1``.
-    The summary is text for people, or with ``--json`` the result as one JSON line for machines."""
+    The summary is text for people, or with ``--json`` the result as one JSON line for machines. The arguments are
+    parsed by the job's ``options`` module (default: the job module) before the job module loads."""
+    args = parse_job_args(job_module(options or name, OPTIONS), argv, prog)
     module = job_module(name)
-    args = parse_job_args(module, argv, prog)
     cfg = config_of(module, args)
     if smoke_mode():
         cfg = smoke_config(cfg)

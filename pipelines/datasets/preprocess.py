@@ -9,9 +9,10 @@
         python -m pipelines.datasets.preprocess ... --out /abs/STORE.zarr
 
 The job follows :mod:`pipelines.jobs` (``add_arguments``, ``config_from_args``, ``main(cfg) -> dict``,
-``format_result``) and runs on :mod:`pipelines.datasets.sharded_job`. With no ``--address`` (and no
-``RAY_ADDRESS``, which ``ray job submit`` sets for its drivers) it starts an embedded local Ray with a
-capped object store; ``--in-process`` runs every shard in the calling process without Ray (smoke runs).
+``format_result``; the options and the config in :mod:`pipelines.datasets.preprocess_options`) and runs on
+:mod:`pipelines.datasets.sharded_job`. With no ``--address`` (and no ``RAY_ADDRESS``, which ``ray job submit`` sets
+for its drivers) it starts an embedded local Ray with a capped object store; ``--in-process`` runs every shard in
+the calling process without Ray (smoke runs).
 
 How the work is cut: frames are laid out sequence by sequence (sequences sorted by name) in ``N``
 store slots; every array is sharded along the frame axis every ``--shard-frames`` slots; one Ray task
@@ -31,11 +32,10 @@ the result is deterministic) into the store's ``normalisation`` and ``class_voxe
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -43,11 +43,16 @@ from typing import Any
 import numpy as np
 
 from pipelines.datasets import shard_frames, sharded_job
-from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
-from pipelines.datasets.sources import SourceKind, add_source_arguments, parse_source, source_from_args
+from pipelines.datasets.preprocess_options import (  # noqa: F401 (the job's options: pipelines.jobs' contract)
+    SOURCE_KINDS,
+    PreprocessConfig,
+    add_arguments,
+    config_from_args,
+)
+from pipelines.datasets.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
+from pipelines.datasets.sources import SourceKind, parse_source
 from pipelines.datasets.store import (
     FORMAT,
-    MAX_OBJECTS,
     OBJECT_FIELDS,
     SPLIT_CODE,
     SPLITS,
@@ -55,7 +60,7 @@ from pipelines.datasets.store import (
     create_store,
     encode_frame,
 )
-from pipelines.jobs import always, cap, field_defaults, run_module, smoke
+from pipelines.jobs import run_module
 from radar.errors import UserError
 from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
@@ -69,31 +74,6 @@ from radar.simulate import SimulatorConfig, sequence_name, simulate_sequence
 log = logging.getLogger(__name__)
 
 DEFAULT_SPLIT_FRACTIONS = (0.7, 0.15, 0.15)
-SOURCE_KINDS = (SourceKind.SIM, SourceKind.RECORDING, SourceKind.ADC_RECORDING, SourceKind.CARRADA)
-
-
-@dataclass(frozen=True)
-class PreprocessConfig:
-    """Arguments of the job, as given (None = the source's default, resolved by :func:`plan_job`)."""
-
-    source: str  # "sim", "recording:DIR" or "carrada:ROOT"
-    out: str  # store path (a directory ending in .zarr by convention)
-    preset: str | None = None  # sim only (default small)
-    sequences: int | None = smoke(None, cap(4))  # sim only (default 2)
-    frames: int | None = smoke(None, cap(6))  # sim only: frames per sequence (default 8)
-    seed: int = 0  # sim only
-    split_fractions: tuple[float, float, float] | None = None  # train, val, test by sequence
-    address: str | None = None  # Ray address; None = embedded local Ray (or RAY_ADDRESS under a job)
-    tasks: int | None = None  # shard tasks in flight; None = the cluster's CPUs
-    shard_frames: int = smoke(SHARD_FRAMES, cap(2))  # TMVA-Net needs 5 frames
-    max_objects: int = MAX_OBJECTS
-    progress: bool = True
-    in_process: bool = smoke(False, always(True))  # every shard in this process, no Ray
-
-    def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
-        data["split_fractions"] = None if self.split_fractions is None else list(self.split_fractions)
-        return data
 
 
 @dataclass(frozen=True)
@@ -120,33 +100,6 @@ class JobPlan(sharded_job.ShardedPlan):
         return {"source": self.source.to_dict(), "layout": self.layout.to_dict(), "sequences": list(self.sequences),
                 "split_rule": self.split_rule,
                 "slots": [[s.sequence_id, s.index, s.split] for s in self.frames], "simulator": self.simulator}
-
-
-# --------------------------------------------------------------------------- arguments
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The job's arguments (shared by ``python -m pipelines.datasets.preprocess`` and ``radarseg preprocess``)."""
-    defaults = field_defaults(PreprocessConfig)
-    add_source_arguments(parser, SOURCE_KINDS)
-    parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
-    parser.add_argument("--preset", help="sim: radar preset (carrada, nxp, small; default small) or a profile file")
-    parser.add_argument("--sequences", type=int, help="sim: number of sequences (default 2)")
-    parser.add_argument("--frames", type=int, help="sim: frames per sequence (default 8)")
-    parser.add_argument("--seed", type=int, default=defaults.seed, help="sim: scene seed")
-    parser.add_argument("--split-fractions", type=float, nargs=3, metavar=("TRAIN", "VAL", "TEST"),
-                        help="split by sequence in name order (default 0.7 0.15 0.15; CARRADA: its split file)")
-    parser.add_argument("--tasks", type=int, help="shard tasks in flight (default: the cluster's CPUs)")
-    parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS, help="width of the object table")
-    sharded_job.add_execution_arguments(parser)
-
-
-def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
-    return PreprocessConfig(
-        source=source_from_args(args, SOURCE_KINDS), out=str(Path(args.out).expanduser().absolute()),
-        preset=args.preset, sequences=args.sequences, frames=args.frames, seed=args.seed,
-        split_fractions=None if args.split_fractions is None else tuple(args.split_fractions),
-        address=args.address, tasks=args.tasks, shard_frames=args.shard_frames, max_objects=args.max_objects,
-        progress=args.progress, in_process=args.in_process,
-    )
 
 
 # --------------------------------------------------------------------------- planning

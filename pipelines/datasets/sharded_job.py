@@ -23,7 +23,6 @@ the Ray start-up (:mod:`pipelines.ray_runtime`) and the code version (:mod:`pipe
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -33,7 +32,7 @@ from typing import Any
 
 from pipelines.datasets.provenance import code_version
 from pipelines.datasets.shard_frames import FrameSlot, ShardJob, SourceSpec
-from pipelines.datasets.sharded_store import SHARD_FRAMES, Sharded, done_shards, finish_store
+from pipelines.datasets.sharded_store import Sharded, done_shards, finish_store
 from pipelines.progress import progress
 from pipelines.ray_runtime import init_ray
 
@@ -106,15 +105,6 @@ class ShardedRun:
     def frames_per_second(self) -> float | None:
         frames = sum(s["frames"] for s in self.summaries)
         return frames / self.seconds_shards if frames else None
-
-
-def add_execution_arguments(parser: argparse.ArgumentParser) -> None:
-    """The arguments every sharded job takes (how many shards in flight is the job's own: tasks or actors)."""
-    parser.add_argument("--address", help="Ray address (default: embedded local Ray, or the job's cluster)")
-    parser.add_argument("--shard-frames", type=int, default=SHARD_FRAMES, help="frames per shard")
-    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
-    parser.add_argument("--in-process", action="store_true",
-                        help="run every shard in this process, without Ray (smoke runs and tests)")
 
 
 def run_sharded(job: ShardedJob, execution: Execution) -> ShardedRun:

@@ -31,7 +31,6 @@ from radar.io.errors import DataError
 log = logging.getLogger(__name__)
 
 PROGRESS = "progress"
-SHARD_FRAMES = 8  # frames per shard of every sharded store (input and predictions), unless a job is told otherwise
 ZSTD_LEVEL = 1
 
 

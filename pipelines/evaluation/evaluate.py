@@ -21,12 +21,12 @@ split and writes ``DIR/metrics.json``, ``DIR/report.md`` (:mod:`pipelines.evalua
 - pictures: PR curves, the RA/RD confusion matrices, and RA/RD maps of ``--pictures`` frames with the
   ground truth above the prediction.
 
-Figures in ``metrics.json`` are fractions (IoU, recall, AP in [0, 1]); the report prints IoU in %.
+Figures in ``metrics.json`` are fractions (IoU, recall, AP in [0, 1]); the report prints IoU in %. The options and
+the config are in :mod:`pipelines.evaluation.evaluate_options`.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import sys
@@ -40,7 +40,7 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
-from models.erasenet.engines import ENGINES, PRECISIONS, load_erasenet
+from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
 from models.heap import freeze_loaded_heap
 from pipelines.datasets.history import earlier_frames, earlier_slots
@@ -52,19 +52,22 @@ from pipelines.datasets.store import (
     open_store,
     tracking_truth_problem,
 )
+from pipelines.evaluation.evaluate_options import (  # noqa: F401 (the job's options: pipelines.jobs' contract)
+    EvaluateConfig,
+    add_arguments,
+    config_from_args,
+)
 from pipelines.evaluation.report import tracking_headline
 from pipelines.evaluation.scoring import DetectionScorer, ViewConfusion
 from pipelines.evaluation.tracker_comparison import (
-    TRACKERS,
     compare_trackers,
-    parse_trackers,
     plot_gospa_by_frame,
     save_frames,
 )
 from pipelines.evaluation.tracking import TrackingTally, by_sequence
-from pipelines.jobs import always, cap, field_defaults, run_module, smoke
+from pipelines.jobs import run_module
 from pipelines.progress import progress
-from radar.centres import SCORE_THRESHOLD, Centres
+from radar.centres import Centres
 from radar.doppler import DOPPLER_REFINEMENT
 from radar.errors import UserError
 from radar.input_kind import InputKind
@@ -74,41 +77,6 @@ from radar.tracking import TrackerConfig
 log = logging.getLogger(__name__)
 
 AP_SCORE_THRESHOLD = 0.01  # detections kept for the PR curve
-D_THRESH_SWEEP_M = (4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
-
-
-@dataclass(frozen=True)
-class EvaluateConfig:
-    detector: str
-    segmenter: str
-    store: str
-    out: str
-    split: str | None = "test"  # None: every frame of the store
-    max_frames: int = smoke(0, cap(2, fill=True))  # 0 = every frame of the split
-    pictures: int = smoke(4, cap(1))
-    sweep: tuple[float, ...] = D_THRESH_SWEEP_M
-    sweep_frames: int = smoke(48, cap(2))
-    score_threshold: float | None = None  # operating threshold (None = EraseNet's default)
-    oracle: bool = True  # also segment from true centres
-    doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
-    device: str = "cpu"  # the torch runtime's device
-    engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.erasenet.engines)
-    precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
-    onnx_dir: str | None = None  # the ONNX runtimes: this export instead of the cached one
-    threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default); per-stage seconds with these
-    progress: bool = True
-    single_cube: bool = False  # a detector that reads earlier frames sees each frame alone (no history)
-    trackers: tuple[str, ...] = ()  # also compare these trackers on the same objects (tracker_comparison.TRACKERS)
-
-    def __post_init__(self) -> None:
-        if self.max_frames < 0 or self.pictures < 0 or self.sweep_frames < 0:
-            raise ValueError("max_frames, pictures and sweep_frames must be >= 0")
-        if any(d <= 0 for d in self.sweep):
-            raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
-        if self.engine not in ENGINES:
-            raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
-        if unknown := [name for name in self.trackers if name not in TRACKERS]:
-            raise ValueError(f"trackers must be among {tuple(TRACKERS)}, got {unknown}")
 
 
 def _int8_calibration(store: str, profile: Any) -> Any:
@@ -350,52 +318,6 @@ def _training_info(extra: dict[str, Any]) -> dict[str, Any]:
     return {"stage": extra.get("stage"), "recipe": extra.get("recipe", extra.get("profile")),
             "epoch": extra.get("epoch"), "step": extra.get("step"), "elapsed_s": metrics.get("elapsed_s"),
             **{k: v for k, v in metrics.items() if k.startswith("val_")}}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    defaults = field_defaults(EvaluateConfig)
-    parser.add_argument("--detector", required=True, help="detector checkpoint")
-    parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
-    parser.add_argument("--store", required=True, help="preprocessed store (radarseg preprocess)")
-    parser.add_argument("--split", default=defaults.split, help="train, val, test, or 'all'")
-    parser.add_argument("--out", required=True, help="output directory (metrics.json, report.md, pictures)")
-    parser.add_argument("--max-frames", type=int, default=defaults.max_frames,
-                        help="evaluate this many frames, evenly spread (0: all)")
-    parser.add_argument("--pictures", type=int, default=defaults.pictures, help="frames drawn (truth above prediction)")
-    parser.add_argument("--sweep", type=float, nargs="+", default=list(D_THRESH_SWEEP_M), help="D_thresh values (m)")
-    parser.add_argument("--sweep-frames", type=int, default=defaults.sweep_frames,
-                        help="frames of the region-growing D_thresh sweep")
-    parser.add_argument("--score-threshold", type=float, help=f"detector score threshold (default: {SCORE_THRESHOLD})")
-    parser.add_argument("--no-oracle", action="store_true", help="skip segmentation from true centres")
-    parser.add_argument("--no-doppler-refinement", action="store_true",
-                        help="keep the detector's own Doppler (no refinement from the cube)")
-    parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")
-    parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
-                        help="the runtime scored (onnx, onnx-int8: the export cached on first use)")
-    parser.add_argument("--precision", choices=PRECISIONS, default=defaults.precision,
-                        help="float, or int8: the torch engine's segmenter in the int8 sparse kernels, calibrated on "
-                             "the store's train split (simulated frames of the preset if it has none)")
-    parser.add_argument("--threads", type=int, default=defaults.threads,
-                        help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--single-cube", action="store_true",
-                        help="a detector that reads earlier frames of the sequence sees each frame alone")
-    parser.add_argument("--trackers", type=parse_trackers, default=defaults.trackers,
-                        help=f"also run these trackers on the same objects and score them with GOSPA, HOTA, MOTA, "
-                             f"IDF1 and velocity error (comma-separated: {','.join(TRACKERS)}; Stone Soup's and "
-                             f"HOTA need the 'tracking' extra)")
-
-
-def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
-    return EvaluateConfig(detector=args.detector, segmenter=args.segmenter, store=args.store, out=args.out,
-                          split=None if args.split == "all" else args.split, max_frames=args.max_frames,
-                          pictures=args.pictures,
-                          sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
-                          score_threshold=args.score_threshold, oracle=not args.no_oracle,
-                          doppler_refinement=not args.no_doppler_refinement, device=args.device, engine=args.engine,
-                          precision=args.precision,
-                          threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube,
-                          trackers=tuple(args.trackers))
 
 
 def main(cfg: EvaluateConfig) -> dict[str, Any]:

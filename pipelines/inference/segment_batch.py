@@ -9,11 +9,12 @@
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \\
         python -m pipelines.inference.segment_batch ... --out /abs/PRED.zarr --workers 4
 
-The job follows :mod:`pipelines.jobs` and runs on :mod:`pipelines.datasets.sharded_job` like
-:mod:`pipelines.datasets.preprocess` (embedded local Ray without ``--address``; ``RAY_ADDRESS`` under ``ray job
-submit``; ``--in-process`` for smoke runs without Ray). The work is cut the same way: the selected frames
-take ``N`` slots of the predictions store (:mod:`pipelines.inference.predictions_store`), every array is cut along
-the frame axis every ``--shard-frames`` slots, and a shard is the unit of work, of writing and of resumption.
+The job follows :mod:`pipelines.jobs` (its options and config in :mod:`pipelines.inference.segment_batch_options`)
+and runs on :mod:`pipelines.datasets.sharded_job` like :mod:`pipelines.datasets.preprocess` (embedded local Ray
+without ``--address``; ``RAY_ADDRESS`` under ``ray job submit``; ``--in-process`` for smoke runs without Ray). The
+work is cut the same way: the selected frames take ``N`` slots of the predictions store
+(:mod:`pipelines.inference.predictions_store`), every array is cut along the frame axis every ``--shard-frames``
+slots, and a shard is the unit of work, of writing and of resumption.
 
 Stages are callable classes (Ray's batch-inference pattern): ``--workers`` :class:`ShardSegmenter`
 actors each load both checkpoints once (``__init__``), then each call reads its shard's frames from
@@ -31,26 +32,24 @@ from the first shard submitted to the last shard written, with every actor's mod
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import logging
 import os
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from models.erasenet.engines import ENGINES, PRECISIONS
 from models.heap import freeze_loaded_heap
 from pipelines.datasets import shard_frames, sharded_job
 from pipelines.datasets.history import earlier_frames, earlier_slots
-from pipelines.datasets.sharded_store import SHARD_FRAMES, check_resumable_out, mark_shard_done, write_shard_arrays
-from pipelines.datasets.sources import SourceKind, add_source_arguments, parse_source, source_from_args
+from pipelines.datasets.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
+from pipelines.datasets.sources import SourceKind, parse_source
 from pipelines.datasets.store import frames_of_split, open_store
 from pipelines.inference.predictions_store import (
     COMPUTE_FIELDS,
@@ -60,7 +59,13 @@ from pipelines.inference.predictions_store import (
     create_predictions,
     encode_prediction,
 )
-from pipelines.jobs import always, cap, field_defaults, run_module, smoke
+from pipelines.inference.segment_batch_options import (  # noqa: F401 (the job's options: pipelines.jobs' contract)
+    SOURCE_KINDS,
+    SegmentBatchConfig,
+    add_arguments,
+    config_from_args,
+)
+from pipelines.jobs import run_module
 from radar import transforms
 from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
 from radar.errors import UserError
@@ -71,33 +76,6 @@ from radar.profiles import describe_for_storage
 
 log = logging.getLogger(__name__)
 
-SOURCE_KINDS = (SourceKind.STORE, SourceKind.RECORDING)
-
-
-@dataclass(frozen=True)
-class SegmentBatchConfig:
-    """Arguments of the job, as given."""
-
-    source: str  # "store:STORE.zarr" or "recording:DIR"
-    detector: str
-    segmenter: str
-    out: str
-    split: str | None = None  # store only: train, val, test; None = every valid frame
-    limit: int | None = smoke(None, cap(4, fill=True))  # the first LIMIT selected frames only (smoke tests)
-    score_threshold: float = SCORE_THRESHOLD
-    max_objects: int = MAX_OBJECTS
-    address: str | None = None
-    workers: int | None = None  # segmenter actors; None = the cluster's CPUs
-    cpus_per_worker: float = 1.0
-    torch_threads: int = 1  # per actor: one core each, so actors scale instead of fighting over cores
-    shard_frames: int = smoke(SHARD_FRAMES, cap(2))
-    progress: bool = True
-    in_process: bool = smoke(False, always(True))  # every shard in this process (one ShardSegmenter), no Ray
-    engine: str = "torch"  # models.erasenet.engines: torch, or onnx (the exported graphs in onnxruntime)
-    precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -123,46 +101,6 @@ class BatchPlan(sharded_job.ShardedPlan):
         return {"source": self.source.to_dict(), "split": self.cfg.split, "layout": self.layout.to_dict(),
                 "checkpoints": self.checkpoints, "score_threshold": self.cfg.score_threshold,
                 "source_slots": [f.source_slot for f in self.frames]}
-
-
-# --------------------------------------------------------------------------- arguments
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """The job's arguments (shared by ``python -m pipelines.inference.segment_batch`` and ``radarseg
-    segment-batch``)."""
-    defaults = field_defaults(SegmentBatchConfig)
-    add_source_arguments(parser, SOURCE_KINDS)
-    parser.add_argument("--detector", required=True, help="detector checkpoint")
-    parser.add_argument("--segmenter", required=True, help="segmenter checkpoint")
-    parser.add_argument("--out", required=True, help="predictions store path (shared by all Ray nodes)")
-    parser.add_argument("--split", choices=["train", "val", "test"],
-                        help="store source: the split to segment (default: every valid frame)")
-    parser.add_argument("--limit", type=int, help="segment only the first LIMIT selected frames (smoke runs)")
-    parser.add_argument("--score-threshold", type=float, default=SCORE_THRESHOLD, help="detector score threshold")
-    parser.add_argument("--max-objects", type=int, default=MAX_OBJECTS,
-                        help="detections per frame and width of the object table")
-    parser.add_argument("--workers", type=int, help="segmenter actors, each loading the model once "
-                                                    "(default: the cluster's CPUs / --cpus-per-worker)")
-    parser.add_argument("--cpus-per-worker", type=float, default=defaults.cpus_per_worker,
-                        help="CPUs reserved per actor")
-    parser.add_argument("--torch-threads", type=int, default=defaults.torch_threads, help="torch threads per actor")
-    parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
-                        help="torch (default), or onnx: the exported graphs in onnxruntime (exported once into "
-                             "each node's $RADARSEG_ONNX_CACHE, default ~/.cache/radarseg/onnx)")
-    parser.add_argument("--precision", choices=PRECISIONS, default=defaults.precision,
-                        help="float (default), or int8: the torch engine's segmenter in the int8 sparse kernels, "
-                             "calibrated in each actor on simulated frames of the preset (docs/guides/int8.md)")
-    sharded_job.add_execution_arguments(parser)
-
-
-def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
-    return SegmentBatchConfig(
-        source=source_from_args(args, SOURCE_KINDS), detector=str(Path(args.detector).expanduser().absolute()),
-        segmenter=str(Path(args.segmenter).expanduser().absolute()), out=str(Path(args.out).expanduser().absolute()),
-        split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
-        address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
-        torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
-        in_process=args.in_process, engine=args.engine, precision=args.precision,
-    )
 
 
 # --------------------------------------------------------------------------- planning

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from typing import Any
 
 from models.capabilities import Stage
-from models.registry import get_builder
 from pipelines.jobs import always, cap, smoke
 
 log = logging.getLogger(__name__)
@@ -180,6 +179,8 @@ class TrainConfig:
 
     def _check_view(self) -> None:
         """A one-view model (its builder takes ``view``) needs a view; a multi-view one takes none."""
+        from models.registry import get_builder  # torch: not loaded to declare the options (radarseg train --help)
+
         name = self.hyper().model
         takes_view = "view" in inspect.signature(get_builder(name)).parameters
         if takes_view and self.view not in ("ra", "rd"):

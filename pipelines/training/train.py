@@ -19,17 +19,10 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-import torch
-
 from models.capabilities import ERASENET_STAGES, Stage
-from models.checkpoint import export_checkpoint
-from pipelines.datasets.store_info import StoreInfo
 from pipelines.jobs import always, cap, field_defaults, run_module, smoke
 from pipelines.training.arguments import add_common_arguments, common_config, format_training
-from pipelines.training.class_gains import write_class_gains
-from pipelines.training.class_offsets import write_class_offsets
 from pipelines.training.config import TrainConfig
-from pipelines.training.loop import train
 from radar.errors import UserError
 
 
@@ -146,20 +139,32 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig | ExportConfig | C
 
 def main(cfg: TrainConfig | ExportConfig | ClassGainsConfig | ClassOffsetsConfig) -> dict[str, Any]:
     """Train (the last epoch's metrics and where the run lives), export (the checkpoint and its size), or tune the
-    class gains (the chosen thresholds) or the segmenter's class offsets."""
+    class gains (the chosen thresholds) or the segmenter's class offsets. The work's modules (torch, zarr) load
+    here, not with the options: ``radarseg train --help`` answers at once."""
     if isinstance(cfg, ClassOffsetsConfig):
+        import torch
+
+        from pipelines.training.class_offsets import write_class_offsets
+
         if cfg.threads:
             torch.set_num_threads(cfg.threads)
         record = write_class_offsets(cfg.source, cfg.target, detector=cfg.detector, stores=list(cfg.stores),
                                      split=cfg.split, max_frames=cfg.max_frames, show_progress=cfg.progress)
         return {"checkpoint": cfg.target, "class_offsets": record}
     if isinstance(cfg, ClassGainsConfig):
+        from pipelines.datasets.store_info import StoreInfo
+        from pipelines.training.class_gains import write_class_gains
+
         record = write_class_gains(cfg.source, cfg.target, StoreInfo.read(cfg.store), split=cfg.split,
                                    max_frames=cfg.frames)
         return {"checkpoint": cfg.target, "class_gains": record}
     if isinstance(cfg, ExportConfig):
+        from models.checkpoint import export_checkpoint
+
         target = export_checkpoint(cfg.source, cfg.target, float16=cfg.float16)
         return {"checkpoint": str(target), "bytes": target.stat().st_size}
+    from pipelines.training.loop import train
+
     return train(cfg)
 
 

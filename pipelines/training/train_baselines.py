@@ -15,7 +15,6 @@ from typing import Any
 from pipelines.jobs import run_module
 from pipelines.training.arguments import add_common_arguments, common_config, format_training
 from pipelines.training.config import TrainConfig
-from pipelines.training.loop import train
 
 MODELS = ("unet", "tmvanet", "smvanet", "unet_tiny", "tmvanet_tiny", "smvanet_tiny")
 
@@ -31,6 +30,8 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
 
 
 def main(cfg: TrainConfig) -> dict[str, Any]:
+    from pipelines.training.loop import train  # torch and zarr load with the work, not with the options (--help)
+
     return train(cfg)
 
 

@@ -57,9 +57,10 @@ def _literal_defaults(path: Path) -> list[tuple[int, str]]:
 
 @pytest.mark.parametrize("command", sorted(JOBS))
 def test_no_option_writes_its_configs_default_again(command):
-    module = importlib.import_module(JOBS[command][0])
+    module = importlib.import_module(JOBS[command].module)
     fields = _configs(module)
-    sources = {Path(inspect.getsourcefile(module))}
+    job = JOBS[command]
+    sources = {Path(inspect.getsourcefile(importlib.import_module(name))) for name in (job.module, job.options)}
     if command in ("train", "train-baseline"):
         sources.add(Path(inspect.getsourcefile(arguments)))
     twice = [f"{path.name}:{line} --{dest.replace('_', '-')}" for path in sources
@@ -69,7 +70,7 @@ def test_no_option_writes_its_configs_default_again(command):
 
 @pytest.mark.parametrize("command", sorted(JOBS))
 def test_every_option_named_after_a_config_field_parses_to_its_default(command):
-    module = importlib.import_module(JOBS[command][0])
+    module = importlib.import_module(JOBS[command].module)
     fields = _configs(module)
     for action in _actions(job_parser(module, f"radarseg {command}")):
         field = fields.get(action.dest)
