@@ -24,6 +24,7 @@ from pipelines.datasets.spread import subset
 from pipelines.datasets.store import StoreDataset, open_store
 from pipelines.datasets.store_info import StoreInfo
 from pipelines.evaluation.scoring import ViewConfusion, frame_centres
+from pipelines.jobs import smoke_mode
 from pipelines.training.jitter import SeedJitter, measure_detector_errors
 from pipelines.training.task import Task, unwrap
 from radar.metrics import iou_per_class
@@ -117,6 +118,9 @@ class SegmenterTask(Task):
         elif self.cfg.jitter_std is not None:  # asked for: said once, at INFO
             log.info("seeds jittered by Gaussian errors of std %s bins (--jitter-std)", self.hyper.jitter_std)
             self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (--jitter-std)")
+        elif smoke_mode():  # a --jitter-from was cleared by its smoke rule, which warned: not a second warning
+            log.info("smoke mode: seeds jittered by Gaussian errors of the default std %s bins", self.hyper.jitter_std)
+            self.jitter = SeedJitter(np.zeros((0, 3)), self.hyper.jitter_std, "gaussian (smoke mode)")
         else:
             log.warning("neither --jitter-from nor --jitter-std given: seeds jittered by Gaussian errors of the "
                         "default std %s bins", self.hyper.jitter_std)

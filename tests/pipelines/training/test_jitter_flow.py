@@ -3,6 +3,8 @@ needed and offering --jitter-std, and no run directory left behind; in smoke mod
 
 from __future__ import annotations
 
+import logging
+
 from pipelines.cli import main
 from tests.conftest import save_tiny_checkpoints
 
@@ -19,4 +21,6 @@ def test_jitter_from_a_detector_that_matches_nothing(small_store, tmp_path, caps
     monkeypatch.setenv("RADARSEG_SMOKE", "1")
     assert main([*argv, "--out", str(tmp_path / "seg-smoke")]) == 0
     assert (tmp_path / "seg-smoke" / "model.pt").is_file()
-    assert any("smoke mode" in r.getMessage() and "--jitter-std" in r.getMessage() for r in caplog.records)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING and "jitter" in r.getMessage()]
+    assert len(warnings) == 1, warnings  # the smoke rule's, not also "neither --jitter-from nor --jitter-std given"
+    assert "smoke mode" in warnings[0] and "--jitter-std" in warnings[0] and made["detector"] in warnings[0]
