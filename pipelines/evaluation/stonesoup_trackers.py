@@ -11,15 +11,19 @@ Three trackers people compare radar trackers with, built from Stone Soup's own c
   ``PointProcessMultiTargetTracker``, a track per component tag.
 
 Each is given what ours is given (:class:`radar.tracking.TrackerConfig` from the profile): an extended Kalman filter
-with a constant-velocity motion model of the same acceleration noise (Stone Soup's ``ConstantVelocity`` is driven by
-continuous white noise: its ``q = acceleration_sigma^2 * frame_period`` gives the same velocity variance per frame),
-and a measurement of bearing, range and radial velocity (``CartesianToBearingRangeRate2D``) with ours' noise per object:
-range ``max(range_sigma_m, min_position_sigma_m)``, bearing ``max(azimuth_sigma_rad * r, min_position_sigma_m) / r``,
-radial velocity ``radial_velocity_sigma_mps``. A track is confirmed after ``confirm_hits`` updates
-(``MultiMeasurementInitiator``), a tentative one is dropped after ``tentative_max_misses`` + 1 frames without one and
-a confirmed one after ``max_misses`` + 1 (``UpdateTimeStepsDeleter``); the association gate is ours (``gate_chi2``).
-What ours has that they have not: the radial velocity's innovation wrapped into the unambiguous interval, the gate in
-metres, a class's typical speed as a new track's prior.
+with a constant-velocity motion model (Stone Soup's ``ConstantVelocity``, driven by continuous white noise: its ``q
+= acceleration_sigma^2 * frame_period`` gives ours' velocity variance per frame for the same acceleration noise,
+which is tuned for each, as ours was), and a measurement of bearing, range and radial velocity
+(``CartesianToBearingRangeRate2D``) with ours' noise per object: range ``max(range_sigma_m, min_position_sigma_m)``,
+bearing ``max(azimuth_sigma_rad * r, min_position_sigma_m) / r``, radial velocity ``radial_velocity_sigma_mps``. A
+track is confirmed after ``confirm_hits`` updates (``MultiMeasurementInitiator``), a tentative one is dropped after
+``tentative_max_misses`` + 1 frames without one and a confirmed one after ``max_misses`` + 1
+(``UpdateTimeStepsDeleter``); the association gate is ours (``gate_chi2``). What ours has that they have not: the
+radial velocity's innovation wrapped into the unambiguous interval, the gate in metres, a class's typical speed as a
+new track's prior.
+
+Their own settings (clutter, detection probability, the PHD's birth and extraction, and their acceleration noise) were
+tuned for GOSPA on a tuning seed: :data:`TUNED`.
 
 Stone Soup runs its trackers as iterators over a detection reader; :class:`StoneSoupTracker` feeds it one frame at a
 time so that it is stepped like ours.
@@ -79,6 +83,13 @@ class StoneSoupSettings:
     acceleration_sigma_mps2: float | None = None  # the motion noise, if tuned apart from ours (None: ours)
 
 
+TUNED = {  # each tracker's settings, tuned for GOSPA on a tuning seed (experiments/studies/stonesoup_tuning.py)
+    "gnn": StoneSoupSettings(acceleration_sigma_mps2=8.0),
+    "jpda": StoneSoupSettings(clutter_per_frame=5.0, prob_detect=0.5, acceleration_sigma_mps2=12.0),
+    "gmphd": StoneSoupSettings(clutter_per_frame=0.5, birth_weight=0.1, acceleration_sigma_mps2=8.0),
+}
+
+
 class BearingRangeRate(CartesianToBearingRangeRate2D, ReversibleModel):
     """Stone Soup's bearing, range and radial velocity made reversible for its initiator: a track starts at the
     object's position, moving at its radial velocity along the line of sight (the velocity across it from the
@@ -115,7 +126,7 @@ class StoneSoupTracker:
     def __init__(self, kind: str, config: TrackerConfig, settings: StoneSoupSettings | None = None) -> None:
         if kind not in BUILDERS:
             raise ValueError(f"Stone Soup tracker kind must be one of {tuple(BUILDERS)}, got {kind!r}")
-        self.config, self.settings = config, settings or StoneSoupSettings()
+        self.config, self.settings = config, settings or TUNED[kind]
         self.feed = _Feed()
         self.frames = 0
         self.tracker = BUILDERS[kind](self.config, self.settings, self.feed)

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Hashable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -68,8 +68,8 @@ class OursReported:
 def _stonesoup(kind: str) -> Callable[..., FrameTracker]:
     def build(config: TrackerConfig, **settings: Any) -> FrameTracker:
         try:
-            from pipelines.evaluation.stonesoup_trackers import StoneSoupSettings, StoneSoupTracker
-            return StoneSoupTracker(kind, config, StoneSoupSettings(**settings))
+            from pipelines.evaluation.stonesoup_trackers import TUNED, StoneSoupTracker
+            return StoneSoupTracker(kind, config, replace(TUNED[kind], **settings))
         except ModuleNotFoundError as error:
             raise UserError(f"tracker stonesoup-{kind} needs Stone Soup ({error}): pip install -e '.[tracking]'") \
                 from error
@@ -99,6 +99,7 @@ class TrackerRun:
 
     answers: dict[int, list[Hypotheses]]
     seconds: list[float]
+    settings: dict[str, Any]  # the settings it was built with (Stone Soup's; {} for ours: TrackerConfig)
 
 
 def run_reported(sequences: dict[int, list[TrackingFrame]], name: str, config: TrackerConfig,
@@ -107,8 +108,10 @@ def run_reported(sequences: dict[int, list[TrackingFrame]], name: str, config: T
     sequence's predicted objects (a new tracker per sequence)."""
     answers: dict[int, list[Hypotheses]] = {}
     seconds: list[float] = []
+    used: dict[str, Any] = {}
     for s, group in sequences.items():
         tracker = TRACKERS[name](config, **(settings or {}))
+        used = asdict(tracker.settings) if hasattr(tracker, "settings") else {}
         ids: dict[Hashable, int] = {}  # a tracker's ids (Stone Soup's are strings) -> 1, 2, ...
         reported: dict[int, int] = {}  # frames each track was reported in
         answers[s], previous = [], None
@@ -127,7 +130,7 @@ def run_reported(sequences: dict[int, list[TrackingFrame]], name: str, config: T
                 velocity=np.asarray(velocity, np.float64).reshape(-1, 2),
                 age=np.array([reported[n] + config.confirm_hits - 1 for n in numbers.tolist()], np.int64),
                 confirmed=np.ones(len(numbers), bool)))
-    return TrackerRun(answers, seconds)
+    return TrackerRun(answers, seconds, used)
 
 
 def compare_trackers(sequences: dict[int, list[TrackingFrame]], names: tuple[str, ...], config: TrackerConfig,
@@ -140,7 +143,7 @@ def compare_trackers(sequences: dict[int, list[TrackingFrame]], names: tuple[str
     for name in names:
         run = run_reported(sequences, name, config, (settings or {}).get(name))
         out[name] = {
-            "settings": (settings or {}).get(name, {}),
+            "settings": run.settings,
             "gospa": gospa_scores(sequences, run.answers, match_m),
             "hota": hota_scores(sequences, run.answers, match_m),
             "mot": mot_summary(mot_accumulator(sequences, run.answers, "all_objects", match_m, None)),
@@ -219,6 +222,7 @@ def plot_gospa_by_frame(comparison: dict[str, Any], path: str | Path) -> str:
     g = comparison["gospa"]
     ax.set(xlabel="frame of the sequence", ylabel=f"GOSPA (m; p = {g['p']:g}, c = {g['c_m']:g} m, alpha = 2)",
            title="GOSPA per frame, mean over the sequences")
+    ax.xaxis.get_major_locator().set_params(integer=True)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
