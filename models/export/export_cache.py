@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from models.cache_secret import cache_secret
 from models.checkpoint import Checkpoint
 from models.environment import environment
 from models.export import quantize
@@ -35,23 +36,6 @@ log = logging.getLogger(__name__)
 
 CACHE_ENV = "RADARSEG_ONNX_CACHE"
 KEY_FILE_ENV = "RADARSEG_ONNX_CACHE_KEY_FILE"  # this machine's secret that seals its exports (default below)
-
-
-def cache_secret() -> bytes:
-    """This user's secret for sealing exports: ``$RADARSEG_ONNX_CACHE_KEY_FILE``, else
-    ``~/.config/radarseg/onnx-cache.key`` (32 random bytes, made on first use, readable by the user only). It lives
-    outside the cache, so whoever can write to a shared cache can neither predict an export's folder nor seal a
-    graph of their own."""
-    path = environment().onnx_cache_key_file or Path.home() / ".config" / "radarseg" / "onnx-cache.key"
-    if not path.is_file():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        except FileExistsError:  # another process made it first
-            return path.read_bytes()
-        with os.fdopen(fd, "wb") as out:
-            out.write(os.urandom(32))
-    return path.read_bytes()
 
 
 def _file_digests(directory: Path) -> dict[str, str]:

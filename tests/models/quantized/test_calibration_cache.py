@@ -117,3 +117,54 @@ def test_the_segmenter_form_is_attached_in_public(tiny_checkpoints, cube):
     assert net.segmenter_form is form and net.precision == "float"
     net.segment(cube, kind=InputKind.complex)
     assert calls and calls[0] > 0
+
+
+def _reseal(path, record) -> None:
+    """Write ``record`` sealed with this machine's key (what no one without the key can do)."""
+    record["mac"] = calibration_cache._seal(record["key"], record["ranges"])
+    path.write_text(json.dumps(record))
+
+
+@pytest.fixture
+def sealed(calibrations, tmp_path, monkeypatch):
+    monkeypatch.setenv("RADARSEG_ONNX_CACHE_KEY_FILE", str(tmp_path / "secret" / "cache.key"))
+    return calibrations
+
+
+def test_a_tampered_calibration_is_never_used(sealed, tiny_checkpoints, caplog):
+    """Scales x 1e4 with a recomputed sha256 were used silently (4 objects became 0): the file is sealed under a key
+    outside the cache, so a tampered one is calibrated again."""
+    import hashlib
+
+    root, runs = sealed
+    load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    (path,) = root.glob("*.json")
+    kept = json.loads(path.read_text())
+    record = json.loads(path.read_text())
+    record["ranges"]["activation_scales"] = [[v * 1e4 for v in s] for s in record["ranges"]["activation_scales"]]
+    record["sha256"] = hashlib.sha256(calibration_cache._canonical({"key": record["key"], "ranges": record["ranges"]})
+                                      ).hexdigest()
+    record["mac"] = hashlib.sha256(b"guess").hexdigest()
+    path.write_text(json.dumps(record))
+    with caplog.at_level(logging.WARNING, logger="models.quantized.erasenet"):
+        load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    assert len(runs) == 2 and "not sealed by this machine's cache key" in caplog.text
+    assert json.loads(path.read_text()) == kept
+
+
+def test_any_error_in_a_sealed_calibration_means_a_fresh_one(sealed, tiny_checkpoints, caplog):
+    """A list of the wrong length under a valid seal crashed with IndexError; a 3 GB file was read whole."""
+    root, runs = sealed
+    load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    (path,) = root.glob("*.json")
+    record = json.loads(path.read_text())
+    record["ranges"]["activation_scales"] = record["ranges"]["activation_scales"][:-1]
+    _reseal(path, record)
+    with caplog.at_level(logging.WARNING, logger="models.quantized.erasenet"):
+        net = load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    assert len(runs) == 2 and "activation scale vectors" in caplog.text
+    net.segment(next(simulate_sequence("small", 1, seed=5)).cube)
+    with path.open("r+b") as huge:
+        huge.truncate(3 * 2**30)  # sparse: 3 GB at the cache path
+    loaded, problem = calibration_cache.load(path, record["key"], net.segmenter_form.fused)
+    assert loaded is None and "not read" in problem
