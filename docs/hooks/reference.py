@@ -6,6 +6,9 @@
   the comment beside the field in the source);
 - ``reference/radar-profile.md``: every key of a radar profile file, from ``radar.profiles.files``'s schema.
 
+The Results page's pictures are the ones the shipped model's evaluation drew beside it (``checkpoints/*.png``,
+:data:`RESULT_PICTURES`): added to the site as ``images/results/NAME`` at build, never copied into ``docs/``.
+
 The hook also turns a link to a file outside ``docs/`` (``[x](../models/...)``, which the site cannot serve) into
 the path in code, so that pages can point at source files and ``mkdocs build --strict`` still checks every link
 between pages.
@@ -30,6 +33,8 @@ PAGES = {
     "reference/settings.md": "settings_page",
     "reference/radar-profile.md": "radar_profile_page",
 }
+# The pictures of `radarseg evaluate` on the shipped model (checkpoints/report.md), shown on the Results page.
+RESULT_PICTURES = ("pr_curves.png", "confusion_ra.png", "confusion_rd.png", "frame_02550.png", "frame_02999.png")
 NOTE = "*Generated from the code at every build of the site (`docs/hooks/reference.py`).*\n"
 HELP_WIDTH = "100"
 LINK = re.compile(r"(!?)\[([^\]]*)\]\(([^)\s]+)\)")
@@ -42,6 +47,8 @@ def on_files(files, config):  # noqa: ANN001, ANN201
         sys.path.insert(0, str(REPO))
     for uri, builder in PAGES.items():
         files.append(File.generated(config, uri, content=globals()[builder]()))
+    for name in RESULT_PICTURES:
+        files.append(File.generated(config, f"images/results/{name}", abs_src_path=str(REPO / "checkpoints" / name)))
     return files
 
 
