@@ -1,13 +1,24 @@
 """The documentation site builds offline with ``mkdocs build --strict`` (every link between pages, every nav entry and
 every anchor checked), its reference pages hold every command, route, setting and profile key the code has (they
-are generated from it at build time by docs/hooks/reference.py), and the built pages fetch nothing from elsewhere."""
+are generated from it at build time by docs/hooks/reference.py), and the built pages fetch nothing from elsewhere.
+
+Rendered in a real browser (Debian's ``chromium``, headless, as tests/service/test_viewer.py drives it) from a local
+HTTP server: search answers a query, no entry of the command-line reference is empty, every picture loads."""
 
 from __future__ import annotations
 
 import argparse
+import functools
+import http.server
+import json
+import os
 import re
+import shutil
 import subprocess
 import sys
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -107,3 +118,126 @@ def test_every_page_is_in_the_nav_or_generated():
     nav = paths(yaml.safe_load((REPO / "mkdocs.yml").read_text().replace("!!python", "#"))["nav"])
     pages = {str(p.relative_to(REPO / "docs")) for p in (REPO / "docs").rglob("*.md") if "hooks" not in p.parts}
     assert not pages - nav, f"pages missing from the nav: {sorted(pages - nav)}"
+
+
+# -- the site in a browser ------------------------------------------------------------------------------------------
+# .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails these tests.
+CHROMIUM = shutil.which("chromium")
+needs_browser = pytest.mark.skipif(CHROMIUM is None and os.environ.get("RADARSEG_REQUIRE_BROWSER") != "1",
+                                   reason="chromium is not installed (.ci/run installs it)")
+
+# Added to every page the test serves: once the page has loaded, each picture's state goes into the DOM that
+# chromium dumps (a picture that did not load has naturalWidth 0). With a query in the URL it also waits for search's
+# results: the search worker builds its index in real time, which virtual time does not wait for, but it does wait
+# for a pending request, so the probe asks the server for pauses of PAUSE_S until the results are drawn (30 s at most).
+PAUSE = "/__pause"  # the address PROBE fetches
+PAUSE_S = 0.2
+PROBE = """<script>
+addEventListener("load", async () => {
+  document.body.dataset.images = JSON.stringify(
+    [...document.images].map(image => [image.getAttribute("src"), image.complete && image.naturalWidth > 0]));
+  if (!new URL(location.href).searchParams.has("q")) return;
+  for (let i = 0; i < 150 && !document.querySelector(".md-search-result__item"); i++) await fetch("/__pause");
+  document.body.dataset.searched = "yes";
+});
+</script>"""
+
+
+@pytest.fixture(scope="module")
+def served(site, tmp_path_factory) -> Iterator[str]:
+    """The built site, each page with :data:`PROBE`, on a loopback HTTP server (search's web worker and its index
+    need http://, not file://); yields its base URL."""
+    root = tmp_path_factory.mktemp("served") / "site"
+    shutil.copytree(site, root)
+    for page in root.rglob("*.html"):
+        page.write_text(page.read_text().replace("</body>", PROBE + "</body>"))
+
+    class Site(http.server.SimpleHTTPRequestHandler):
+        def do_GET(self) -> None:
+            if self.path == PAUSE:
+                time.sleep(PAUSE_S)
+                self.send_response(204)
+                self.end_headers()
+            else:
+                super().do_GET()
+
+        def log_message(self, format: str, *args: object) -> None:  # noqa: A002 (the base class's name)
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Site, directory=str(root)))
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}"
+    finally:
+        server.shutdown()
+        thread.join()
+
+
+def rendered(url: str, profile: Path) -> str:
+    """The page's DOM after its scripts ran (and :data:`PROBE` wrote its findings), as chromium dumps it."""
+    assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
+    browser = subprocess.Popen(
+        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
+         "--disable-extensions", "--disable-background-networking", f"--user-data-dir={profile}",
+         "--window-size=1400,1050", "--virtual-time-budget=30000", "--dump-dom", url],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        html, _ = browser.communicate(timeout=180)
+    finally:
+        if browser.poll() is None:
+            browser.kill()  # by pid
+            browser.wait()
+    assert browser.returncode == 0, f"chromium exited with {browser.returncode} on {url}"
+    return html
+
+
+def _plain(html: str) -> str:
+    return re.sub(r"<[^>]+>", "", html).replace("&quot;", '"').replace("&lt;", "<").replace("&gt;", ">")
+
+
+@pytest.mark.slow
+@needs_browser
+def test_search_answers_a_query(served, tmp_path):
+    """Material's search (a web worker over search/search_index.json) with the query in the URL, as a shared search
+    link gives it: the results list the pages that hold the words."""
+    html = rendered(f"{served}/?q=region+growing", tmp_path / "browser")
+    assert 'data-searched="yes"' in html, "the page never finished loading"
+    results = re.search(r'<ol class="md-search-result__list"[^>]*>(.*?)</ol>', html, re.S)
+    assert results, "no search results list on the page"
+    targets = re.findall(r'<a href="([^"]+)"', results.group(1))
+    assert targets, f"search for 'region growing' found nothing: {_plain(html)[-500:]}"
+    assert any("design/" in target for target in targets), f"design.md (section 6) is not among {targets[:10]}"
+    meta = re.search(r'class="md-search-result__meta"[^>]*>([^<]*)<', html)
+    assert meta and re.search(r"\d+ matching documents?", meta.group(1)), meta and meta.group(1)
+
+
+@pytest.mark.slow
+@needs_browser
+def test_no_entry_of_the_cli_reference_is_empty(served, tmp_path):
+    """Each command's section, as the browser shows it, holds its usage and at least one option or argument line
+    (the job commands were once a bare usage line)."""
+    html = rendered(f"{served}/reference/cli/", tmp_path / "browser")
+    sections = html.split("<h2")[1:]
+    assert len(sections) > 20, f"the CLI reference shows {len(sections)} commands"
+    for chunk in sections:
+        command = _plain("<h2" + chunk).strip().split("\n", 1)[0].rstrip("¶").strip()
+        block = re.search(r"<pre.*?</pre>", chunk, re.S)
+        assert block and "usage: radarseg" in _plain(block.group(0)), f"{command}: no usage line"
+        described = re.findall(r"^ {2}(?:-{1,2}\w|\w|\{)", _plain(block.group(0)), re.M)
+        assert described, f"{command}: its entry shows no option and no argument"
+
+
+@pytest.mark.slow
+@needs_browser
+def test_every_picture_on_the_pages_loads(site, served, tmp_path):
+    pages = sorted(p.relative_to(site).parent.as_posix() for p in site.rglob("index.html") if "<img" in p.read_text())
+    assert {"results", "design"} <= set(pages), f"pages with pictures: {pages}"
+    for page in pages:
+        html = rendered(f"{served}/{page}/", tmp_path / "browser")
+        state = re.search(r'<body[^>]*\bdata-images="([^"]*)"', html)
+        assert state, f"{page}: the page never finished loading"
+        images = json.loads(state.group(1).replace("&quot;", '"'))
+        assert images, f"{page}: the browser saw no picture"
+        broken = [src for src, loaded in images if not loaded]
+        assert not broken, f"{page}: pictures that did not load: {broken}"
