@@ -23,6 +23,7 @@ from typing import Any
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint, save_checkpoint
+from pipelines.jobs import run_module
 from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
 
@@ -57,22 +58,36 @@ def write_operating_point(source: str | Path, target: str | Path, score: float) 
     return record
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+@dataclasses.dataclass(frozen=True)
+class OperatingPointConfig:
+    """``python -m pipelines.training.operating_point SOURCE TARGET --score S``."""
+
+    source: str
+    target: str
+    score: float
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("source", help="detector checkpoint")
     parser.add_argument("target", help="the copy to write, its heatmap shifted")
     parser.add_argument("--score", type=float, required=True,
                         help=f"the detector's own score that the product's threshold ({SCORE_THRESHOLD}) should keep")
-    args = parser.parse_args(argv)
-    try:
-        record = write_operating_point(args.source, args.target, args.score)
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(f"{args.target}: scores of {record['score']} now meet the threshold {record['threshold']} "
-          f"(heatmap logits {record['shift']:+.3f})")
-    return 0
+
+
+def config_from_args(args: argparse.Namespace) -> OperatingPointConfig:
+    heatmap_shift(args.score)  # a score outside (0, 1): refused before any file is read
+    return OperatingPointConfig(args.source, args.target, args.score)
+
+
+def main(cfg: OperatingPointConfig) -> dict[str, Any]:
+    """Write the copy; its record (``extra["operating_point"]``) and where it went."""
+    return {"checkpoint": cfg.target, **write_operating_point(cfg.source, cfg.target, cfg.score)}
+
+
+def format_result(result: dict[str, Any]) -> str:
+    return (f"{result['checkpoint']}: scores of {result['score']} now meet the threshold {result['threshold']} "
+            f"(heatmap logits {result['shift']:+.3f})")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_module("pipelines.training.operating_point"))

@@ -6,7 +6,8 @@ import torch
 
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.registry import create_model
-from pipelines.training.operating_point import main, write_operating_point
+from pipelines.jobs import run_module
+from pipelines.training.operating_point import write_operating_point
 from radar.centres import SCORE_THRESHOLD
 
 
@@ -37,6 +38,7 @@ def test_the_threshold_keeps_after_the_shift_what_the_score_kept_before(tmp_path
 
 @pytest.mark.parametrize("score", ["0", "1", "-0.2"])
 def test_a_score_outside_zero_to_one_is_refused(tmp_path, score, capsys):
-    assert main([str(_detector(tmp_path)), str(tmp_path / "t.pt"), "--score", score]) == 2
+    assert run_module("pipelines.training.operating_point",
+                      [str(_detector(tmp_path)), str(tmp_path / "t.pt"), "--score", score]) == 2
     assert "--score must be a heatmap score in (0, 1)" in capsys.readouterr().err
     assert not (tmp_path / "t.pt").exists()
