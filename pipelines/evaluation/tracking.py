@@ -31,7 +31,6 @@ from typing import Any
 
 import numpy as np
 
-from pipelines.datasets.store import OBJECT_COLUMN
 from radar.profiles import RadarProfile
 from radar.profiles.scene_settings import radar_scale
 from radar.tracking import Measurements, Tracker, TrackerConfig, TrackStatus
@@ -77,7 +76,7 @@ class TruthObjects:
     @classmethod
     def from_table(cls, table: np.ndarray, profile: RadarProfile) -> TruthObjects:
         """From the rows in use of a frame's object table (columns ``OBJECT_FIELDS``, with tracking truth)."""
-        col = OBJECT_COLUMN
+        from pipelines.datasets.store import OBJECT_COLUMN as col  # torch and zarr: not for evaluate --help
         table = np.asarray(table, np.float64)
         return cls(table[:, col["track_id"]].astype(np.int64), table[:, col["class_id"]].astype(np.int64),
                    table[:, col["x"]], table[:, col["y"]], table[:, col["vx"]], table[:, col["vy"]],
@@ -124,6 +123,8 @@ class TrackingTally:
         """One frame: the rows in use of its object table and the network's objects."""
         if self.problem is not None:
             return
+        from pipelines.datasets.store import OBJECT_COLUMN  # torch and zarr: not for evaluate --help
+
         if np.isnan(np.asarray(table, np.float64)[:, OBJECT_COLUMN["track_id"]]).any():
             self.problem = "the store's objects carry no track ids (its source records none): no tracking truth"
             self.frames = []

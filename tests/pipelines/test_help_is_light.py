@@ -38,14 +38,7 @@ def loaded_after(argv: list[str], *imports: str) -> tuple[list[str], str]:
     return json.loads(last), "\n".join(printed)
 
 
-# pipelines/evaluation/tracking.py reads OBJECT_COLUMN from pipelines/datasets/store.py (torch, zarr) at import; the
-# evaluate options need its tracker names (tracker_comparison.TRACKERS). Strict: this fails once that is fixed.
-_TRACKING_IMPORTS_THE_STORE = pytest.mark.xfail(
-    strict=True, reason="pipelines.evaluation.tracking imports pipelines.datasets.store at import time")
-
-
-@pytest.mark.parametrize("command", [pytest.param(c, marks=_TRACKING_IMPORTS_THE_STORE) if c == "evaluate" else c
-                                     for c in sorted(JOBS)])
+@pytest.mark.parametrize("command", sorted(JOBS))
 def test_help_of_a_job_loads_neither_torch_nor_zarr(command):
     heavy, printed = loaded_after([command, "--help"])
     assert f"usage: radarseg {command}" in printed
