@@ -23,6 +23,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.browser import CHROMIUM, dump_dom
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -122,7 +124,6 @@ def test_every_page_is_in_the_nav_or_generated():
 
 # -- the site in a browser ------------------------------------------------------------------------------------------
 # .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails these tests.
-CHROMIUM = shutil.which("chromium")
 needs_browser = pytest.mark.skipif(CHROMIUM is None and os.environ.get("RADARSEG_REQUIRE_BROWSER") != "1",
                                    reason="chromium is not installed (.ci/run installs it)")
 
@@ -176,20 +177,7 @@ def served(site, tmp_path_factory) -> Iterator[str]:
 
 def rendered(url: str, profile: Path) -> str:
     """The page's DOM after its scripts ran (and :data:`PROBE` wrote its findings), as chromium dumps it."""
-    assert CHROMIUM is not None, "chromium is not installed: apt-get install -y chromium (.ci/run does)"
-    browser = subprocess.Popen(
-        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-         "--disable-extensions", "--disable-background-networking", f"--user-data-dir={profile}",
-         "--window-size=1400,1050", "--virtual-time-budget=30000", "--dump-dom", url],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    try:
-        html, _ = browser.communicate(timeout=180)
-    finally:
-        if browser.poll() is None:
-            browser.kill()  # by pid
-            browser.wait()
-    assert browser.returncode == 0, f"chromium exited with {browser.returncode} on {url}"
-    return html
+    return dump_dom(url, profile, budget_ms=30000)
 
 
 def _plain(html: str) -> str:

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import base64
 import os
-import shutil
-import subprocess
 from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import quote
@@ -17,10 +15,10 @@ import numpy as np
 import pytest
 
 from service.encoding import decode_array
+from tests.browser import CHROMIUM, dump_dom
 from tests.service.conftest import NPY
 
 # .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails the test.
-CHROMIUM = shutil.which("chromium")
 REQUIRED = os.environ.get("RADARSEG_REQUIRE_BROWSER") == "1"
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None and not REQUIRED,
                                                    reason="chromium is not installed (.ci/run installs it)")]
@@ -72,19 +70,7 @@ def rendered(url: str, profile: Path, tries: int = 3) -> Dom:
 
 
 def _render_once(url: str, profile: Path) -> Dom:
-    browser = subprocess.Popen(
-        [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-         "--disable-extensions", "--disable-background-networking", f"--user-data-dir={profile}",
-         "--window-size=1400,1050", "--virtual-time-budget=120000", "--dump-dom", url],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
-    try:
-        html, _ = browser.communicate(timeout=180)
-    finally:
-        if browser.poll() is None:
-            browser.kill()  # by pid
-            browser.wait()
-    assert browser.returncode == 0, f"chromium exited with {browser.returncode}"
-    return Dom(html)
+    return Dom(dump_dom(url, profile, budget_ms=120000))
 
 
 @pytest.fixture
