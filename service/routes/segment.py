@@ -275,6 +275,10 @@ async def admit(request: Request, state: ServiceState, caller: Principal, model:
     if (capture or layout is not None) and input_kind is not InputKind.adc:
         raise ApiError(422, f"?{'format=dca1000' if capture else 'layout='} is for ADC samples: send them with "
                             f"?input=adc, not ?input={input_kind.value}", error="invalid_parameters")
+    if capture and layout is not None:
+        raise ApiError(422, f"?layout={layout} is for one ADC frame sent as .npy: a DCA1000 capture's words are laid "
+                            "out as the radar's profile says; leave ?layout= out",
+                       error="invalid_parameters")
     chosen = _parse_outputs(outputs)
     _check_content_type(request)
     content_length = declared_length(request)

@@ -124,6 +124,9 @@ def test_a_capture_that_does_not_fit_the_radar_is_refused_in_one_line(client, ca
     assert past.status_code == 422 and "frame 3 out of range: the capture holds 3 whole frames" in past.json()["detail"]
     not_adc = client.post("/v1/segment?format=dca1000", content=capture, headers=OCTETS)
     assert not_adc.status_code == 422 and "?input=adc" in not_adc.json()["detail"]
+    for layout in ("sck", "ti"):  # a capture's layout is the radar's: a layout asked for is refused, not ignored
+        laid = client.post(f"{url}&layout={layout}", content=capture, headers=OCTETS)
+        assert laid.status_code == 422 and "?layout=" in laid.json()["detail"], laid.text
 
 
 def test_a_capture_over_the_body_limit_is_refused(client, capture):
