@@ -58,6 +58,8 @@ class Environment:
     torch_extensions_dir: Path | None = _variable(
         "TORCH_EXTENSIONS_DIR", None, _path,
         "where the compiled sparse kernels are built (torch's variable; unset: ~/.cache/radarseg/extensions)")
+    cxx: str | None = _variable("CXX", None, _text,
+                                "the C++ compiler building the compiled sparse kernels (unset: c++)")
     ray_address: str | None = _variable("RAY_ADDRESS", None, _text,
                                         "the Ray cluster a job joins (Ray's variable; unset: an embedded local Ray)")
 

@@ -83,6 +83,7 @@ def test_each_variable_is_parsed_as_its_readers_took_it():
     assert Environment.read({"RADARSEG_ONNX_CACHE_KEY_FILE": ""}).onnx_cache_key_file is None
     assert Environment.read({"TORCH_EXTENSIONS_DIR": "/x"}).torch_extensions_dir == Path("/x")
     assert Environment.read({"RAY_ADDRESS": ""}).ray_address is None
+    assert Environment.read({"CXX": "clang++"}).cxx == "clang++" and Environment.read({"CXX": ""}).cxx is None
 
 
 def test_the_process_environment_is_read_when_asked(monkeypatch):

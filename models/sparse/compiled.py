@@ -130,7 +130,7 @@ def cpu_flags() -> str:
 @functools.cache
 def compiler_identity() -> str:
     """The C++ compiler torch's loader runs (`$CXX`, else `c++`): its path and the first line of `--version`."""
-    command = os.environ.get("CXX", "c++")
+    command = environment().cxx or "c++"
     found = shutil.which(command)
     if found is None:
         return f"{command} (not found)"
