@@ -2,7 +2,8 @@
 
 ``detector.onnx`` and ``segmenter.onnx`` of a float export (:mod:`models.export.onnx_export`) go through
 ``onnxruntime.quantization.quantize_static``: QDQ format (standard QuantizeLinear / DequantizeLinear around the
-float operators, so the files stay standard ONNX), weights signed int8 per output channel, activations 8-bit,
+float operators, so the files stay standard ONNX), weights signed int8 per output channel (on 7 bits, so that no
+CPU's kernels overflow: ``QUANT_VERSION`` 7), activations 8-bit,
 ranges calibrated on frames:
 
 - the detector on the frames' log power (R, A, D) dB, and a detector that reads earlier frames on the frames
@@ -65,10 +66,12 @@ from radar.input_kind import InputKind
 
 log = logging.getLogger(__name__)
 
-QUANT_VERSION = 6
+QUANT_VERSION = 7
 """Bump when the quantisation recipe changes: the int8 export cache keys on it (4: the segmenter quantised from
 its z-column form, :func:`_column_segmenter`; 5: the detector computes in int8 only where it beats the int8-weights
-graph, not the float one; 6: a detector that reads earlier frames calibrated with them)."""
+graph, not the float one; 6: a detector that reads earlier frames calibrated with them; 7: weights on 7 bits,
+``reduce_range``: onnxruntime's uint8 x int8 kernels on a CPU without VNNI add pairs of products in 16 bits, which
+8-bit weights can overflow; on an AVX2-only CPU the int8 detector then found other objects than the float one)."""
 METHODS = ("MinMax", "Entropy", "Percentile")
 CALIBRATION_FRAMES = 8
 """Default calibration frames (each frame's ROI gives the segmenter tens of thousands of voxel rows)."""
@@ -200,6 +203,7 @@ def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndar
         try:
             quantize_static(str(source), str(target), _Feeds(feeds), quant_format=QuantFormat.QDQ,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+                            reduce_range=True,
                             calibrate_method=getattr(CalibrationMethod, method), op_types_to_quantize=op_types,
                             extra_options={"CalibStridedMinMax": 1})
         finally:
