@@ -87,7 +87,7 @@ class TrackerConfig:
             "range_sigma_m": max(profile.range_resolution, 0.2),
             "azimuth_sigma_rad": 2.0 / profile.n_angle,  # one angle bin at boresight (bins uniform in sin)
             # an object's Doppler (its voxels' mean) wanders over bins and its labelled centre need not move
-            # as it does (part of it out of view): a loose radial velocity keeps identities (seed 25301)
+            # as it does (part of it out of view): a loose radial velocity keeps identities
             "radial_velocity_sigma_mps": max(2.5 * profile.velocity_resolution, 0.1),
             "class_speed_sigma_mps": (1.0, *(TYPICAL_SPEED_SIGMA_MPS.get(name, cls.initial_speed_sigma_mps)
                                              for name in profile.class_names)),

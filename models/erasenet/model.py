@@ -113,10 +113,9 @@ class EraseNet:
         output loop, MACs from the kernel maps; a copy of its weights taken now); other segmenters run eager.
         ``object_centre``: where an object is (its position and radial velocity): ``seed``, the centre and Doppler
         its seed was decoded at (the detector's sub-cell centre, Doppler refined from the cube), or ``voxels``, the
-        mean position and circular-mean Doppler of its segmented voxels. ``seed`` by default: on 480 fresh frames
-        (seed 25291) it put 56 % of the true objects within 2 m of an object against 40 % (median error, cyclists
-        0.85 m against 2.87 m), and its radial velocity RMSE was 0.52 m/s against 1.77 (the voxel mean has a heavy
-        tail), which took tracking from the objects from MOTA 0.04 to 0.36 (reports/tracking.md).
+        mean position and circular-mean Doppler of its segmented voxels. ``seed`` by default: it places objects
+        closer to the truth and its radial velocity has no heavy tail, which tracking needs (docs/guides/tracking.md
+        and experiments/reports/tracking.md measure both).
         ``detector`` None: the centres always come from the caller (``segment(..., centres=...)``, e.g. CFAR); the
         detector then counts 0 parameters."""
         self.profile = get_profile(profile)

@@ -102,7 +102,7 @@ def run_demo(out: str | Path = "out/demo", *, preset: str = "small", sequences: 
     scored = min(segment_frames, len(recording)) if segment_frames else len(recording)
     with _step(say, f"3. segmenting {scored} frames with the shipped model ({checkpoints}) and scoring them "
                     f"against the simulator's exact labels"):
-        # every split: the shipped model was trained on other sequences (seed 9001), so all frames are unseen
+        # every split: the shipped model was trained on other sequences' scenes, so all frames are unseen
         metrics = evaluate(EvaluateConfig(
             detector=str(checkpoints / "detector.pt"), segmenter=str(checkpoints / "segmenter.pt"),
             store=str(store_dir), out=str(eval_dir), split=None, max_frames=segment_frames,

@@ -25,7 +25,7 @@ pytestmark = pytest.mark.slow
 PREPROCESS = ["--source", "sim", "--preset", "small", "--sequences", "2", "--frames", "1", "--seed", "3",
               "--split-fractions", "0.5", "0.5", "0", "--in-process", "--no-progress", "--json"]
 # The machine's own choice, then two that differ from it on an x86-64 CPU: Haswell's kernels (AVX2 with FMA, what
-# the machines of issue 59 force, with a smaller L2 blocking) and Sandy Bridge's (AVX without FMA: another rounding).
+# some CI machines force, with a smaller L2 blocking) and Sandy Bridge's (AVX without FMA: another rounding).
 # An architecture that ignores a name runs its own kernel, and the promise holds trivially.
 BLAS_CONFIGURATIONS = {
     "default": {},
