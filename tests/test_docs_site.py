@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.browser import CHROMIUM, dump_dom
+from tests.browser import CHROMIUM, settled_html
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -175,9 +175,14 @@ def served(site, tmp_path_factory) -> Iterator[str]:
         thread.join()
 
 
+# What PROBE writes once it has looked: the pictures on load, and with a query in the URL, the search results.
+SETTLED = ("document.body.dataset.images !== undefined"
+           " && (!new URL(location.href).searchParams.has('q') || document.body.dataset.searched === 'yes')")
+
+
 def rendered(url: str, profile: Path) -> str:
-    """The page's DOM after its scripts ran (and :data:`PROBE` wrote its findings), as chromium dumps it."""
-    return dump_dom(url, profile, budget_ms=30000)
+    """The page's DOM once :data:`PROBE` wrote its findings, waited on in real time (tests/browser.py)."""
+    return settled_html(url, profile, SETTLED)
 
 
 def _plain(html: str) -> str:

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import base64
 import os
-from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import quote
 
@@ -15,62 +14,19 @@ import numpy as np
 import pytest
 
 from service.encoding import decode_array
-from tests.browser import CHROMIUM, dump_dom
+from tests.browser import CHROMIUM, Dom, settled_html
 from tests.service.conftest import NPY
 
 # .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails the test.
 REQUIRED = os.environ.get("RADARSEG_REQUIRE_BROWSER") == "1"
+SETTLED = "['done', 'error'].includes(document.body.dataset.state)"  # what the page says once it has an answer
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None and not REQUIRED,
                                                    reason="chromium is not installed (.ci/run installs it)")]
 
 
-class Dom(HTMLParser):
-    """The rendered page: attributes and text of every element with an id, and the objects table's rows."""
-
-    def __init__(self, html: str) -> None:
-        super().__init__()
-        self.attrs: dict[str, dict[str, str]] = {}
-        self.text: dict[str, str] = {}
-        self.rows: list[dict[str, str]] = []
-        self._open: list[tuple[str, str | None]] = []
-        self.feed(html)
-
-    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
-        values = {name: value or "" for name, value in attrs}
-        if tag == "body":
-            self.attrs["body"] = values
-        if "id" in values:
-            self.attrs[values["id"]] = values
-            self.text.setdefault(values["id"], "")
-        if tag == "tr" and "data-index" in values:
-            self.rows.append(values)
-        if tag not in ("br", "img", "input", "link", "meta"):
-            self._open.append((tag, values.get("id")))
-
-    def handle_endtag(self, tag: str) -> None:
-        while self._open:
-            if self._open.pop()[0] == tag:
-                break
-
-    def handle_data(self, data: str) -> None:
-        for _, element_id in self._open:
-            if element_id is not None:
-                self.text[element_id] += data
-
-
-def rendered(url: str, profile: Path, tries: int = 3) -> Dom:
-    """The DOM after the page's scripts ran. Virtual time waits for the page's requests to the service, but a
-    budget can still run out while a loaded machine answers one (the page left ``loading``): then the page is
-    rendered again, up to ``tries`` times; a page that never settles is returned as it is, for the test to fail."""
-    for _ in range(tries):
-        dom = _render_once(url, profile)
-        if dom.attrs.get("body", {}).get("data-state") != "loading":
-            break
-    return dom
-
-
-def _render_once(url: str, profile: Path) -> Dom:
-    return Dom(dump_dom(url, profile, budget_ms=120000))
+def rendered(url: str, profile: Path) -> Dom:
+    """The page once it has settled (``done`` or ``error``), waited on in real time (tests/browser.py)."""
+    return Dom(settled_html(url, profile, SETTLED))
 
 
 @pytest.fixture

@@ -9,14 +9,8 @@ browser and the server are stopped by pid."""
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
-import shutil
-import subprocess
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import httpx
@@ -26,6 +20,7 @@ import pytest
 from radar.ti.capture_writer import write_dca1000
 from radar.ti.dca1000 import CaptureFormat
 from service.encoding import decode_array
+from tests.browser import CHROMIUM, Browser, Dom, browser
 from tests.service.conftest import NPY, npy_bytes
 from tests.service.openradar_model import (
     as_complex,
@@ -34,10 +29,8 @@ from tests.service.openradar_model import (
     ti_frame_iq,
     undecoded_words,
 )
-from tests.service.test_viewer import Dom
 
 # .ci/run installs chromium and sets RADARSEG_REQUIRE_BROWSER=1: there a missing browser fails the test.
-CHROMIUM = shutil.which("chromium")
 REQUIRED = os.environ.get("RADARSEG_REQUIRE_BROWSER") == "1"
 OUTPUTS = "outputs=objects,masks,views&encoding=zlib"
 SETTLED = "['done', 'error'].includes(document.body.dataset.state)"
@@ -46,82 +39,21 @@ pytestmark = [pytest.mark.slow, pytest.mark.skipif(CHROMIUM is None and not REQU
                                                    reason="chromium is not installed (.ci/run installs it)")]
 
 
-class Browser:
-    """A headless chromium and its page, driven over the DevTools protocol (one websocket, commands in turn)."""
+def pick(chromium: Browser, path: Path) -> Dom:
+    """The file picked in "Open .npy / .bin", as a user does; the page once it has the service's answer."""
+    chromium.evaluate("document.body.dataset.state = 'idle'")
+    root = chromium.send("DOM.getDocument")["root"]["nodeId"]
+    node = chromium.send("DOM.querySelector", nodeId=root, selector="#file")["nodeId"]
+    chromium.send("DOM.setFileInputFiles", nodeId=node, files=[str(path)])
+    chromium.until(SETTLED)
+    return Dom(chromium.html())
 
-    def __init__(self, profile_dir: Path) -> None:
-        self.proc = subprocess.Popen(
-            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--no-first-run",
-             "--disable-extensions", "--disable-background-networking", f"--user-data-dir={profile_dir}",
-             "--window-size=1400,1050", "--remote-debugging-port=0", "about:blank"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        port_file = profile_dir / "DevToolsActivePort"
-        self._wait(lambda: port_file.is_file() and port_file.read_text().count("\n") >= 1, 60, "chromium's port")
-        port = int(port_file.read_text().split()[0])
-        pages = [t for t in httpx.get(f"http://127.0.0.1:{port}/json/list").json() if t["type"] == "page"]
-        self.address = pages[0]["webSocketDebuggerUrl"]
-        self.socket = None  # connected by browser()
-        self.ids = itertools.count(1)
 
-    def _wait(self, ready, timeout_s: float, what: str) -> None:
-        deadline = time.monotonic() + timeout_s
-        while not ready():
-            assert self.proc.poll() is None, f"chromium exited with {self.proc.returncode}"
-            assert time.monotonic() < deadline, f"no {what} within {timeout_s} s"
-            time.sleep(0.2)
-
-    def send(self, method: str, **params) -> dict:
-        number = next(self.ids)
-        self.socket.send(json.dumps({"id": number, "method": method, "params": params}))
-        while True:  # events in between are not needed
-            message = json.loads(self.socket.recv(timeout=120))
-            if message.get("id") == number:
-                assert "error" not in message, message
-                return message["result"]
-
-    def evaluate(self, expression: str):
-        return self.send("Runtime.evaluate", expression=expression, returnByValue=True)["result"].get("value")
-
-    def until(self, expression: str, timeout_s: float = 180) -> None:
-        self._wait(lambda: self.evaluate(expression), timeout_s, expression)
-
-    def open(self, url: str) -> None:
-        self.send("Page.navigate", url=url)
-        self.until("document.readyState === 'complete' && document.body.dataset.state === 'idle'")
-
-    def pick(self, path: Path) -> Dom:
-        """The file picked in "Open .npy / .bin", as a user does; the page once it has the service's answer."""
-        self.evaluate("document.body.dataset.state = 'idle'")
-        root = self.send("DOM.getDocument")["root"]["nodeId"]
-        node = self.send("DOM.querySelector", nodeId=root, selector="#file")["nodeId"]
-        self.send("DOM.setFileInputFiles", nodeId=node, files=[str(path)])
-        self.until(SETTLED)
-        return self.dom()
-
-    def choose_frame(self, frame: int) -> Dom:
-        self.evaluate(f"document.body.dataset.state = 'idle'; const box = document.getElementById('frame'); "
+def choose_frame(chromium: Browser, frame: int) -> Dom:
+    chromium.evaluate(f"document.body.dataset.state = 'idle'; const box = document.getElementById('frame'); "
                       f"box.value = '{frame}'; box.dispatchEvent(new Event('change'));")
-        self.until(SETTLED)
-        return self.dom()
-
-    def dom(self) -> Dom:
-        return Dom(self.evaluate("document.documentElement.outerHTML"))
-
-    def close(self) -> None:
-        self.proc.kill()  # by pid
-        self.proc.wait()
-
-
-@contextmanager
-def browser(profile_dir: Path) -> Iterator[Browser]:
-    from websockets.sync.client import connect
-
-    started = Browser(profile_dir)
-    try:
-        with connect(started.address, max_size=None) as started.socket:
-            yield started
-    finally:
-        started.close()
+    chromium.until(SETTLED)
+    return Dom(chromium.html())
 
 
 def drawn_like(page: Dom, answer: dict) -> None:
@@ -159,12 +91,12 @@ def test_viewer_opens_an_adc_frame_and_a_capture_and_shows_refusals(serve, tmp_p
     env = {"RADARSEG_DATA_DIR": str(tmp_path / "data"), "RADARSEG_WARMUP": "false",
            "RADARSEG_MODELS": json.dumps([model])}
     with serve(env) as (server,), browser(tmp_path / "browser") as chromium:
-        chromium.open(f"{server.url}/viewer")
-        adc_page = chromium.pick(radar_files["adc"])
-        capture_first = chromium.pick(radar_files["capture"])
-        capture_last = chromium.choose_frame(2)
-        cut_page = chromium.pick(radar_files["cut"])
-        words_page = chromium.pick(radar_files["words"])
+        chromium.open(f"{server.url}/viewer", "document.body.dataset.state === 'idle'")
+        adc_page = pick(chromium, radar_files["adc"])
+        capture_first = pick(chromium, radar_files["capture"])
+        capture_last = choose_frame(chromium, 2)
+        cut_page = pick(chromium, radar_files["cut"])
+        words_page = pick(chromium, radar_files["words"])
         with httpx.Client(base_url=server.url, timeout=180) as http:  # the API's answers for the same bytes
             adc = http.post(f"/v1/segment?input=adc&{OUTPUTS}", content=radar_files["adc"].read_bytes(), headers=NPY)
             capture = radar_files["capture"].read_bytes()
