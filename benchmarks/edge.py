@@ -31,9 +31,9 @@ import torch
 
 from benchmarks.harness import write_with_load
 from models.checkpoint import load_pair
-from models.erasenet.engines import load_erasenet
 from models.export.export_cache import exported_dir
 from models.export.quantize import METHODS
+from models.runtime import load_erasenet
 from pipelines.datasets.calibration import store_calibration
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.store import frames_of_split, open_store

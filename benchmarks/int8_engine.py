@@ -28,9 +28,10 @@ import numpy as np
 import torch
 
 from benchmarks.harness import SHIPPED_PAIRS, Table, int_options_main, print_load
-from models.erasenet.engines import load_erasenet
+from models.export.label_agreement import roi_label_agreement
 from models.heap import freeze_loaded_heap
-from models.quantized.calibration import roi_label_agreement, segmenter_inputs
+from models.quantized.calibration import segmenter_inputs
+from models.runtime import load_erasenet
 from models.sparse import compiled, int8
 from radar.metrics import confusion_matrix, mean_iou
 from radar.simulate import simulate_sequence

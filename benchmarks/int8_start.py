@@ -45,9 +45,9 @@ def main(argv: list[str] | None = None) -> dict:
     with tempfile.TemporaryDirectory(prefix="int8-start-") as scratch:
         os.environ["RADARSEG_INT8_CACHE"] = scratch  # read by models.environment when the cache is looked up
         from models.checkpoint import load_pair
-        from models.erasenet.engines import load_erasenet
         from models.quantized import calibration_cache
         from models.quantized.erasenet import calibration_key
+        from models.runtime import load_erasenet
 
         _, results["float_load_seconds"] = timed(lambda: load_erasenet(args.detector, args.segmenter))
         _, results["int8_first_load_seconds"] = timed(

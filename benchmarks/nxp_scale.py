@@ -112,7 +112,7 @@ def preprocess_figures(out: Path, frames: int) -> dict:
 
 def segment_figures(detector: Path, segmenter: Path, cubes: list[np.ndarray]) -> dict:
     """The torch engine on the last cube (the one before it as history): warm-up run, then the timed one."""
-    from models.erasenet.engines import load_erasenet
+    from models.runtime import load_erasenet
 
     net = load_erasenet(detector, segmenter, **SERVED)
     history = [transforms.log_power(cubes[-2])] if net.history_frames and len(cubes) > 1 else None

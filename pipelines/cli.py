@@ -9,7 +9,7 @@ import sys
 import time
 from typing import Any, NamedTuple
 
-from models.erasenet.engines import ENGINES, PRECISIONS
+from models.runtime import ENGINES, PRECISIONS
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
 from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
@@ -63,7 +63,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     from pipelines.datasets.record import simulate_recording
 
     if args.format == "dca1000":  # each sequence a DCA1000 capture (radar/ti/recorded_capture.py)
-        from radar.ti.commands import simulate_capture_recording
+        from pipelines.ti_commands import simulate_capture_recording
 
         if not args.adc:
             raise UserError("--format dca1000 writes ADC samples: add --adc")
@@ -357,12 +357,12 @@ def _cmd_process_adc(args: argparse.Namespace) -> int:
     import numpy as np
 
     from radar.adc import adc_shape, layout_hint, process_adc
-    from radar.io.errors import DataError
+    from radar.errors import DataError
     from radar.io.npy import load_npy, read_npy_header
     from radar.profiles import get_profile
 
     if args.adc.endswith(".bin"):  # a TI capture file
-        from radar.ti.commands import process_capture
+        from pipelines.ti_commands import process_capture
 
         return process_capture(args)
     profile = get_profile(args.profile)
@@ -499,7 +499,7 @@ def _add_frame_commands(sub: Any) -> None:
     tune.add_argument("--write", action="store_true", help="write the chosen settings into the profile file")
     tune.add_argument("--json", action="store_true", help="print the sweep as JSON")
     tune.set_defaults(func=_cmd_radar_tune_growing)
-    from radar.ti.commands import add_from_ti_parser
+    from pipelines.ti_commands import add_from_ti_parser
 
     add_from_ti_parser(radar_sub)
 
@@ -521,7 +521,7 @@ def _add_process_adc_command(sub: Any) -> None:
     adc.add_argument("--no-tdm-compensation", dest="coupling", action="store_const", const="none",
                      help="the same as --coupling none")
     adc.add_argument("--out", required=True, help="output .npy (complex64 (R, A, D))")
-    from radar.ti.commands import add_capture_options
+    from pipelines.ti_commands import add_capture_options
 
     add_capture_options(adc)
     adc.set_defaults(func=_cmd_process_adc)

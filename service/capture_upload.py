@@ -18,7 +18,7 @@ import numpy as np
 from starlette.requests import ClientDisconnect, Request
 
 from radar.adc import ti_to_sck
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.profiles import RadarProfile
 from radar.ti.capture import frames_from_bytes
 from radar.ti.dca1000 import CaptureFormat, FrameGeometry

@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from models.checkpoint import CheckpointError
-from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet, SegmentationResult
+from models.runtime import load_erasenet
 from radar.adc import process_adc
 from radar.input_kind import InputKind
 from service.radar_check import radar_refusal

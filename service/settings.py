@@ -56,7 +56,7 @@ class ModelSpec(BaseModel):
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = SCORE_THRESHOLD
     max_objects: Annotated[int, Field(ge=1, le=256)] = MAX_OBJECTS
     # torch: PyTorch (its sparse convolutions on models.sparse's engine); onnx: the exported graphs in onnxruntime
-    # (models.erasenet.engines), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx);
+    # (models.runtime), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx);
     # onnx-int8: those graphs quantised, calibrated on simulated frames of the model's preset (models.export.quantize)
     engine: Literal["torch", "onnx", "onnx-int8"] = "torch"
     # float, or int8: the torch engine's segmenter in the int8 sparse kernels (models.quantized), each replica

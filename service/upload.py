@@ -21,9 +21,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from radar.errors import DataError
 from radar.input_kind import ACCEPTED_DTYPES, InputKindError, resolve_kind
 from radar.input_kind import check_values as check_kind_values
-from radar.io.errors import DataError
 from radar.io.npy import MAGIC, MAX_HEADER_LEN, NpyHeader, parse_npy_header
 from service.adc_upload import AdcFrameInput
 from service.errors import ApiError

@@ -114,4 +114,65 @@ def test_the_checker_sees_a_cycle_and_a_function_level_import(tmp_path):
     assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
     assert find_cycle({"a": {"b"}, "b": set()}) is None
     graph = import_graph()
-    assert "models.slimming.channel_surgery" in graph["models.detector.centre_detector"]
+    assert "models.channel_surgery" in graph["models.detector.centre_detector"]
+
+
+# The rooms of models/ and radar/ (a subfolder, or a top-level module) floor by floor, lowest first: a room imports
+# only rooms on lower floors. "*" stands for every top-level module not named elsewhere; those may import each other
+# (the cycle test above still holds them), the named rooms of one floor may not.
+FLOORS = {
+    "models": (("*",), ("sparse",), ("channel_surgery",), ("detector", "segmenter", "baselines"), ("slimming",),
+               ("erasenet",), ("export",), ("quantized",), ("runtime",)),
+    "radar": (("errors",), ("profiles",), ("*",), ("simulate", "ti", "recorders"), ("io",), ("growing_sweep",)),
+}
+
+
+def room_floor(package: str, room: str) -> int:
+    floors = FLOORS[package]
+    for level, rooms in enumerate(floors):
+        if room in rooms:
+            return level
+    return next(level for level, rooms in enumerate(floors) if "*" in rooms)
+
+
+def wrong_way_room_imports(graph: dict[str, set[str]], package: str) -> list[str]:
+    """Imports between two rooms of ``package`` that do not go to a lower floor."""
+    wrong = []
+    for module, targets in graph.items():
+        parts = module.split(".")
+        if parts[0] != package or len(parts) < 2:
+            continue
+        for target in targets:
+            target_parts = target.split(".")
+            if target_parts[0] != package or len(target_parts) < 2 or target_parts[1] == parts[1]:
+                continue
+            here, there = room_floor(package, parts[1]), room_floor(package, target_parts[1])
+            both_loose = "*" in FLOORS[package][here] and parts[1] not in FLOORS[package][here]
+            both_loose = both_loose and "*" in FLOORS[package][there] and target_parts[1] not in FLOORS[package][there]
+            if there > here or (there == here and not both_loose):
+                wrong.append(f"{module} imports {target}")
+    return sorted(wrong)
+
+
+def test_rooms_of_models_and_radar_import_downward_only():
+    graph = import_graph()
+    wrong = wrong_way_room_imports(graph, "models") + wrong_way_room_imports(graph, "radar")
+    assert not wrong, wrong
+
+
+def test_every_room_of_models_and_radar_is_on_a_floor_or_loose():
+    """A new subfolder must be given its floor: only top-level modules may stand for "*"."""
+    for package, floors in FLOORS.items():
+        named = {room for rooms in floors for room in rooms}
+        folders = {p.name for p in (REPO / package).iterdir() if (p / "__init__.py").is_file()}
+        assert folders <= named, f"{package}: subfolders with no floor: {sorted(folders - named)}"
+        stale = {room for room in named - {"*"} if not (REPO / package / room).is_dir()
+                 and not (REPO / package / f"{room}.py").is_file()}
+        assert not stale, f"{package}: floors name rooms that are gone: {sorted(stale)}"
+
+
+def test_the_room_checker_sees_mutual_and_same_floor_imports():
+    graph = {"models.detector.a": {"models.slimming.b", "models.sparse.c"}, "models.slimming.b": {"models.detector.a"},
+             "models.segmenter.d": {"models.detector.a"}, "models.heap": {"models.layers"}}
+    assert wrong_way_room_imports(graph, "models") == ["models.detector.a imports models.slimming.b",
+                                                       "models.segmenter.d imports models.detector.a"]

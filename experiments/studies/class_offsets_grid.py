@@ -13,8 +13,8 @@ import numpy as np
 import torch
 
 from models.checkpoint import load_checkpoint
-from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
+from models.runtime import load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.store import open_store  # noqa
 from pipelines.evaluation.scoring import ViewConfusion

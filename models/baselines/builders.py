@@ -12,8 +12,8 @@ from torch import nn
 
 from models.baselines.mvnet import MVRSS_WIDTH, MultiViewNet
 from models.baselines.unet import CLASSIC_WIDTHS, UNet
+from models.channel_surgery import apply_channel_table
 from models.registry import register_model
-from models.slimming.channel_surgery import apply_channel_table
 from radar.profiles import RadarProfile, get_profile
 
 Channels = dict[str, list[int]] | None  # per-layer widths of a slimmed network (models.slimming.prune)

@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.capabilities import InputShapes, Stage
+from models.channel_surgery import apply_channel_table
 from models.detector.bifpn import BiFPNNeck
 from models.detector.centernet import CentreNetHead
 from models.detector.efficientnet import (
@@ -45,7 +46,6 @@ from models.detector.efficientnet import (
 from models.detector.targets import CentreTargets
 from models.layers import require_at_least
 from models.registry import register_model
-from models.slimming.channel_surgery import apply_channel_table
 from radar.profiles import RadarProfile, get_profile
 
 COMPRESSED_DOPPLER_CHANNELS = 3
@@ -300,7 +300,7 @@ def build_centre_detector(
     ``variant`` picks the stage table and head conv type from :data:`VARIANTS`; ``stages`` and
     ``separable_heads`` override them. ``cartesian`` (x, y metres, each (R, A)) defaults to the
     preset's RA grid. ``channels``: the per-layer widths of a slimmed detector
-    (:func:`models.slimming.channel_surgery.apply_channel_table`), None for the full widths.
+    (:func:`models.channel_surgery.apply_channel_table`), None for the full widths.
     """
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {sorted(VARIANTS)}, got {variant!r}")

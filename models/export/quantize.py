@@ -60,8 +60,8 @@ import numpy as np
 
 from models.checkpoint import Checkpoint
 from models.export.compact import int8_weights, short_names
+from models.export.label_agreement import roi_label_agreement  # float against int8 ROI labels
 from models.export.onnx_engine import INT8_WEIGHTS
-from models.quantized.calibration import roi_label_agreement  # float against int8 ROI labels
 from radar.input_kind import InputKind
 
 log = logging.getLogger(__name__)

@@ -113,13 +113,3 @@ def calibrate(fused: FusedMinkUNet, inputs: Sequence[SparseTensor], method: str 
     scales = [r.clamp(min=1e-6) / QMAX_ACTIVATION for r in ranges]
     input_range = InputRange(low.clamp(max=0.0), high.clamp(min=0.0))
     return Int8MinkUNet(fused, input_range, scales)
-
-
-def roi_label_agreement(reference: Sequence[np.ndarray], labels: Sequence[np.ndarray]) -> float:
-    """Share of the voxels non-background in either where both label maps agree (1.0 when there are none)."""
-    same = total = 0
-    for ref, got in zip(reference, labels, strict=True):
-        voxels = (ref > 0) | (got > 0)
-        same += int(np.count_nonzero(ref[voxels] == got[voxels]))
-        total += int(np.count_nonzero(voxels))
-    return same / total if total else 1.0

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from models.channel_surgery import apply_channel_table
 from models.registry import register_model
 from models.segmenter.minkunet import MinkUNet, scaled_widths
 from models.segmenter.spvcnn import SPVCNN
-from models.slimming.channel_surgery import apply_channel_table
 from radar.profiles import RadarProfile, get_profile
 from radar.roi import N_FEATURES
 

@@ -9,11 +9,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
+from models.channel_surgery import out_size
 from models.detector.bifpn import BiFPNNeck
 from models.detector.efficientnet import EfficientNetBackbone
 from models.layers import SeparableConv2d
 from models.segmenter.spvcnn import FUSE_AFTER_DECODER_STAGE
-from models.slimming.channel_surgery import out_size
 
 
 # --------------------------------------------------------------------------- channel groups

@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from models.slimming.channel_surgery import NORM_TYPES
+from models.channel_surgery import NORM_TYPES
 
 
 # --------------------------------------------------------------------------- sparsity training

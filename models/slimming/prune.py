@@ -13,10 +13,10 @@ import torch
 from torch import Tensor, nn
 
 from models.capabilities import dense_input_shapes
+from models.channel_surgery import channel_table, slice_module
 from models.checkpoint import Checkpoint
 from models.compute import count_macs, count_params
 from models.registry import create_model
-from models.slimming.channel_surgery import channel_table, slice_module
 from models.slimming.channels import ChannelGroup, trace_channels
 from radar.errors import UserError
 

@@ -9,7 +9,7 @@ environment variable `RADARSEG_SPARSE_KERNELS` read at first use) is one of:
 - `compiled`: compiled where they apply; a failed build raises;
 - `reference`: always the pure-PyTorch kernels.
 
-"Engine" names the runtime only (`--engine torch|onnx|onnx-int8`, :mod:`models.erasenet.engines`): the `torch`
+"Engine" names the runtime only (`--engine torch|onnx|onnx-int8`, :mod:`models.runtime`): the `torch`
 runtime runs its sparse convolutions on this setting's kernels. The earlier names (the variable
 `RADARSEG_SPARSE_ENGINE`, the values `native` and `torch`) are refused with the new ones.
 

@@ -61,10 +61,9 @@ from pipelines.datasets.store import (
     encode_frame,
 )
 from pipelines.jobs import run_module
-from radar.errors import UserError
+from radar.errors import DataError, UserError
 from radar.frame import RadarFrame
 from radar.io.carrada import CarradaReader
-from radar.io.errors import DataError
 from radar.io.recording import Recording
 from radar.profiles import UnknownPresetError, get_profile
 from radar.profiles.files import ProfileError, profile_to_dict

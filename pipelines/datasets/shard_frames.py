@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from pipelines.datasets.sharded_store import Sharded
-from radar.io.errors import DataError
+from radar.errors import DataError
 
 log = logging.getLogger(__name__)
 

@@ -25,8 +25,7 @@ import numpy as np
 import zarr
 from zarr.codecs import BloscCodec, ZstdCodec
 
-from radar.errors import UserError
-from radar.io.errors import DataError
+from radar.errors import DataError, UserError
 
 log = logging.getLogger(__name__)
 

@@ -43,8 +43,8 @@ from pipelines.datasets.history import earlier_slots
 from pipelines.datasets.sharded_store import Sharded, create_sharded_store, done_shards, open_sharded_store
 from radar import transforms
 from radar.centres import MAX_OBJECTS
+from radar.errors import DataError
 from radar.frame import RadarFrame
-from radar.io.errors import DataError
 from radar.io.npy import check_array
 from radar.profiles import RadarProfile, resolve_profile
 

@@ -48,8 +48,8 @@ from torch import nn
 from models.capabilities import Stage, dense_input_shapes
 from models.checkpoint import Checkpoint, load_checkpoint, load_pair
 from models.compute import count_macs, count_params
-from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
+from models.runtime import load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import open_store

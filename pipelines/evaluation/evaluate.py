@@ -40,9 +40,9 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
-from models.erasenet.engines import load_erasenet
 from models.erasenet.model import EraseNet
 from models.heap import freeze_loaded_heap
+from models.runtime import load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import (

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 
-from models.erasenet.engines import ENGINES, PRECISIONS
+from models.runtime import ENGINES, PRECISIONS
 from pipelines.evaluation.tracker_comparison import TRACKERS, parse_trackers
 from pipelines.jobs import always, cap, field_defaults, smoke
 from radar.centres import SCORE_THRESHOLD
@@ -29,7 +29,7 @@ class EvaluateConfig:
     oracle: bool = True  # also segment from true centres
     doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
     device: str = "cpu"  # the torch runtime's device
-    engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.erasenet.engines)
+    engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.runtime)
     precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
     onnx_dir: str | None = None  # the ONNX runtimes: this export instead of the cached one
     threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default); per-stage seconds with these

@@ -8,10 +8,10 @@ from typing import Any
 import numpy as np
 
 from models.checkpoint import load_pair
-from models.erasenet.engines import load_erasenet
+from models.runtime import load_erasenet
 from radar.centres import SCORE_THRESHOLD
+from radar.errors import DataError
 from radar.input_kind import InputKind, check_values, parse_kind, resolve_kind
-from radar.io.errors import DataError
 from radar.io.npy import load_npy
 
 
@@ -22,7 +22,7 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
     """Segment a .npy cube and return objects and compute. ``input_kind`` says what the cube holds
     (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
     say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake.
-    ``engine``: "torch" or "onnx" (``models.erasenet.engines``); ``precision``: "float", or "int8" (the torch
+    ``engine``: "torch" or "onnx" (``models.runtime``); ``precision``: "float", or "int8" (the torch
     engine's segmenter in the int8 sparse kernels, calibrated on simulated frames of the preset). With ``warm_up`` the
     cube is segmented once
     before the run whose compute is reported, so its seconds are a steady frame's, not the process's first

@@ -68,9 +68,8 @@ from pipelines.inference.segment_batch_options import (  # noqa: F401 (the job's
 from pipelines.jobs import run_module
 from radar import transforms
 from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
-from radar.errors import UserError
+from radar.errors import DataError, UserError
 from radar.input_kind import InputKind
-from radar.io.errors import DataError
 from radar.io.recording import Recording
 from radar.profiles import describe_for_storage
 
@@ -224,7 +223,7 @@ class ShardSegmenter:
                  precision: str = "float") -> None:
         import torch
 
-        from models.erasenet.engines import load_erasenet
+        from models.runtime import load_erasenet
 
         torch.set_num_threads(torch_threads)  # the ONNX engine takes its thread count from torch's too
         started = time.perf_counter()

@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from models.erasenet.engines import ENGINES, PRECISIONS
+from models.runtime import ENGINES, PRECISIONS
 from pipelines.datasets.sharded_options import SHARD_FRAMES, add_execution_arguments
 from pipelines.datasets.sources import SourceKind, add_source_arguments, source_from_args
 from pipelines.jobs import always, cap, field_defaults, smoke
@@ -36,7 +36,7 @@ class SegmentBatchConfig:
     shard_frames: int = smoke(SHARD_FRAMES, cap(2))
     progress: bool = True
     in_process: bool = smoke(False, always(True))  # every shard in this process (one ShardSegmenter), no Ray
-    engine: str = "torch"  # models.erasenet.engines: torch, or onnx (the exported graphs in onnxruntime)
+    engine: str = "torch"  # models.runtime: torch, or onnx (the exported graphs in onnxruntime)
     precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
 
     def to_dict(self) -> dict[str, Any]:

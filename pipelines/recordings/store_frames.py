@@ -21,8 +21,7 @@ import zarr
 
 from pipelines.inference.predictions_store import PREDICTION_OBJECT_FIELDS, PredictionLayout, open_predictions
 from radar import transforms
-from radar.errors import UserError
-from radar.io.errors import DataError
+from radar.errors import DataError, UserError
 from radar.profiles import RadarProfile
 from radar.recorders.frames import PredictionFrame, RecordedObject, RecordingInfo, build_frame
 

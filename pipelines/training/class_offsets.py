@@ -32,7 +32,7 @@ import torch
 
 from models.capabilities import Stage
 from models.checkpoint import load_checkpoint, save_checkpoint
-from models.erasenet.engines import load_erasenet
+from models.runtime import load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.evaluation.evaluate import store_frames
 from pipelines.evaluation.scoring import ViewConfusion

@@ -36,9 +36,9 @@ from typing import Any
 
 import numpy as np
 
+from radar.errors import DataError
 from radar.frame import ObjectRecord, RadarFrame
 from radar.instances import instance_stats
-from radar.io.errors import DataError
 from radar.io.npy import load_npy
 from radar.profiles import CARRADA
 

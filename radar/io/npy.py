@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radar.io.errors import DataError
+from radar.errors import DataError
 
 MAGIC = b"\x93NUMPY"
 # numpy's own default bound (``np.load(max_header_size=10000)``); real headers are about 120 bytes.

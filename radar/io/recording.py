@@ -30,8 +30,8 @@ import numpy as np
 
 from radar.adc import adc_shape, process_adc, ti_to_sck
 from radar.adc_checks import AdcCheckError
+from radar.errors import DataError
 from radar.frame import ObjectRecord, RadarFrame
-from radar.io.errors import DataError
 from radar.io.npy import check_array, load_npy
 from radar.profiles import RadarProfile, UnknownPresetError, resolve_profile
 from radar.profiles.files import ProfileError, profile_to_dict

@@ -35,10 +35,10 @@ from pathlib import Path
 from typing import Any
 
 from radar.errors import UserError
+from radar.profiles import hardware
 from radar.profiles.limits import check_tables, read_checked
 from radar.profiles.profile import SPEED_OF_LIGHT, ChirpParameters, RadarProfile
 from radar.profiles.scene_settings import SCENE_KEYS, scene_from_table
-from radar.ti import profile_tables as hardware
 
 WINDOWS = ("hann", "rect")
 EXPECT_TOLERANCE = 0.005  # relative
@@ -67,7 +67,7 @@ TRACKING_COUNTS = ("confirm_hits", "max_misses", "tentative_max_misses")
 TRACKING_KEYS = TRACKING_FLOATS + TRACKING_COUNTS
 """What a profile's ``[tracking]`` table may set (fields of ``radar.tracking.TrackerConfig``; ranges checked there)."""
 _SCHEMA["tracking"] = set(TRACKING_KEYS)
-# A real radar's hardware (radar/ti/profile_tables.py): TI's chirp timing, antenna positions, calibration, capture.
+# A real radar's hardware (radar/profiles/hardware.py): TI's chirp timing, antenna positions, calibration, capture.
 _SCHEMA[""] |= {"calibration", "capture"}
 _SCHEMA["chirp"] |= set(hardware.CHIRP_KEYS)
 _SCHEMA["array"] |= set(hardware.ARRAY_KEYS)
@@ -203,7 +203,7 @@ def _scene_options(data: dict, class_names: tuple[str, ...], max_range_m: float,
 def _hardware(data: dict, chirp: dict, array: dict, n_virtual: int, adc_time: float, cycle: float | None,
               source: str) -> tuple:
     """(chirp cycle, ChirpParameters timing kwargs, antenna positions, calibration, capture) of a real radar's
-    hardware keys (radar/ti/profile_tables.py)."""
+    hardware keys (radar/profiles/hardware.py)."""
     try:
         cycle, timing = hardware.chirp_timing(chirp, int(array["n_tx"]), adc_time, cycle)
         return (cycle, timing, hardware.antenna_positions(array, n_virtual),

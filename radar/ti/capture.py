@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.profiles import RadarProfile
 from radar.ti.dca1000 import CaptureFormat, FrameGeometry, decode_frame
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from radar.adc import chain_constants, sck_to_ti
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.profiles import RadarProfile
 from radar.ti.capture import Capture
 from radar.ti.capture_writer import quantize

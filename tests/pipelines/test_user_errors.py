@@ -9,8 +9,7 @@ import types
 import pytest
 
 from pipelines.jobs import run_module
-from radar.errors import UserError
-from radar.io.errors import DataError
+from radar.errors import DataError, UserError
 
 
 def _job(monkeypatch, error: Exception) -> str:

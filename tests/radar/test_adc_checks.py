@@ -14,8 +14,8 @@ import pytest
 from pipelines.cli import main
 from radar.adc import process_adc
 from radar.adc_checks import AdcCheckError, adc_findings, check_adc
+from radar.errors import DataError
 from radar.frame import RadarFrame
-from radar.io.errors import DataError
 from radar.io.recording import Recording, RecordingWriter
 from radar.profiles.files import load_profile_file
 

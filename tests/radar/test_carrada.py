@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
+from radar.errors import DataError
 from radar.io.carrada import CarradaReader
-from radar.io.errors import DataError
 from radar.profiles import CARRADA
 from radar.simulate import point_target_cube
 

@@ -7,7 +7,7 @@ import io
 import numpy as np
 import pytest
 
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.io.npy import MAX_HEADER_LEN, decode_npy, parse_npy_header
 
 

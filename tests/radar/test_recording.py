@@ -4,7 +4,7 @@ import shutil
 import numpy as np
 import pytest
 
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.io.npy import decode_npy
 from radar.io.recording import Recording, RecordingWriter
 from radar.profiles import SMALL

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from models.checkpoint import load_pair
-from models.erasenet.engines import load_erasenet
 from models.export.onnx_export import HISTORY_INPUTS, export_onnx
+from models.runtime import load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.preprocess import PreprocessConfig
 from pipelines.datasets.preprocess import main as preprocess

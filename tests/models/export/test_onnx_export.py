@@ -11,11 +11,11 @@ import pytest
 import torch
 
 from models.checkpoint import load_checkpoint
-from models.erasenet.engines import load_erasenet
 from models.export.centres_numpy import decode_centres
 from models.export.kernel_maps_numpy import STRIDES, expand_neighbours, input_names, kernel_maps
 from models.export.sparse_graph import ExportMinkUNet
 from models.registry import create_model
+from models.runtime import load_erasenet
 from models.sparse import SparseTensor
 from pipelines.cli import main
 from radar import transforms

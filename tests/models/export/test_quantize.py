@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from models.checkpoint import load_pair
-from models.erasenet.engines import load_erasenet
 from models.export.export_cache import Int8Calibration, exported_dir
 from models.export.onnx_export import export_onnx, validate
 from models.export.quantize import export_int8, roi_label_agreement, simulated_calibration_frames
+from models.runtime import load_erasenet
 from radar.simulate import simulate_sequence
 
 ROOT = Path(__file__).resolve().parents[3]

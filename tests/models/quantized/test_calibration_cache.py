@@ -9,11 +9,11 @@ import logging
 import numpy as np
 import pytest
 
-from models.erasenet.engines import load_erasenet
 from models.export import quantize
 from models.quantized import calibration_cache
 from models.quantized import erasenet as quantized_erasenet
 from models.quantized.segmenter import Int8MinkUNet
+from models.runtime import load_erasenet
 from radar.input_kind import InputKind
 from radar.simulate import simulate_sequence
 

@@ -11,11 +11,11 @@ import pytest
 import torch
 from torch import nn
 
+from models.channel_surgery import NORM_TYPES, apply_channel_table
 from models.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from models.compute import count_params
 from models.registry import create_model
 from models.segmenter.spvcnn import PointTensor
-from models.slimming.channel_surgery import NORM_TYPES, apply_channel_table
 from models.slimming.channels import trace_channels
 from models.slimming.penalty import slimming_penalty
 from models.slimming.prune import prune_checkpoint, prune_model, select_channels

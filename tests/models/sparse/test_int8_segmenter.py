@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from models.quantized.calibration import calibrate, roi_label_agreement, segmenter_inputs
+from models.export.label_agreement import roi_label_agreement
+from models.quantized.calibration import calibrate, segmenter_inputs
 from models.segmenter.fused import FusedMinkUNet
 from models.segmenter.minkunet import MinkUNet
 from models.sparse import SparseTensor
@@ -74,8 +75,8 @@ def test_label_agreement_counts_voxels_labelled_in_either():
 
 @pytest.mark.slow
 def test_the_shipped_segmenter_in_int8_labels_fresh_frames_as_float():
-    from models.erasenet.engines import load_erasenet
     from models.export.quantize import simulated_calibration_frames
+    from models.runtime import load_erasenet
 
     torch.set_num_threads(1)
     net = load_erasenet(CHECKPOINTS / "detector.pt", CHECKPOINTS / "segmenter.pt")

@@ -22,7 +22,7 @@ from pipelines.datasets.store import array_checksums, open_store, summarise
 from pipelines.jobs import job_module, parse_config, run_module
 from pipelines.ray_runtime import init_ray
 from radar import transforms
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.io.recording import Recording
 from radar.simulate import SIMULATOR_VERSION, SimulatorConfig, simulate_sequence
 from tests.pipelines.conftest import (

@@ -21,8 +21,8 @@ from pipelines.datasets.store import (
     open_store,
     summarise,
 )
+from radar.errors import DataError
 from radar.instances import instance_stats
-from radar.io.errors import DataError
 from radar.profiles import get_profile
 from radar.simulate import SIMULATOR_VERSION, SimulatorConfig
 from tests.pipelines.conftest import assert_store_matches_simulator

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from models.erasenet.engines import load_erasenet
+from models.runtime import load_erasenet
 from pipelines.inference.segment import segment_file
 from radar.adc import process_adc
 from radar.profiles import get_profile

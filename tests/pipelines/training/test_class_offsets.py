@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from models.checkpoint import load_checkpoint, save_checkpoint
-from models.erasenet.engines import load_erasenet
+from models.runtime import load_erasenet
 from pipelines.cli import main as cli
 from pipelines.datasets.store import CENTRE_COLUMNS, open_store
 from pipelines.training.class_offsets import CLASSIFIER_BIAS, FrameLogits, choose_offsets, objective, score

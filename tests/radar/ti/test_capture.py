@@ -11,7 +11,7 @@ from mmwave.dataloader import DCA1000, parse_raw_adc
 
 from pipelines.cli import main
 from radar.adc import process_adc, sck_to_ti
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.io.recording import Recording
 from radar.profiles.files import profile_from_dict
 from radar.profiles.profile import ChannelCalibration

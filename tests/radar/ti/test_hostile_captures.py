@@ -13,7 +13,7 @@ import pytest
 
 from pipelines.cli import main
 from radar.adc import adc_shape
-from radar.io.errors import DataError
+from radar.errors import DataError
 from radar.ti.capture import MIN_PACKET, Capture
 from radar.ti.capture_writer import write_dca1000, write_studio_raw
 from radar.ti.dca1000 import CaptureFormat
