@@ -67,7 +67,7 @@ def build_erasenet(preset: str, first_log_power: np.ndarray, *, random_weights: 
                     std_db=float(first_log_power.std()), score_threshold=0.0)
 
 
-ENGINES = ("native", "torch")  # the keys of the results: the compiled and the reference sparse engine
+KERNEL_KEYS = ("native", "torch")  # the keys of the results: the compiled and the reference sparse engine
 SPARSE_ENGINE = {"native": "compiled", "torch": "reference"}  # models.sparse.compiled's names
 
 
@@ -77,10 +77,10 @@ def erasenet_run(preset: str, n_frames: int, repeats: int, *, random_weights: bo
     frames = list(simulate_sequence(preset, n_frames, seed=5))
     cubes = [frame.log_power() for frame in frames]
     net = build_erasenet(preset, cubes[0], random_weights=random_weights)
-    for engine in ENGINES:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
+    for engine in KERNEL_KEYS:  # warm-up: the detector's meta copy for its MAC count, first maps, the engine's build
         with compiled.using_kernels(SPARSE_ENGINE[engine]):
             net.segment(cubes[0], kind=InputKind.log_power)
-    times, macs, macs_paper, executed = {engine: [] for engine in ENGINES}, [], [], []
+    times, macs, macs_paper, executed = {engine: [] for engine in KERNEL_KEYS}, [], [], []
     stages: dict[str, list[float]] = {}  # the compiled engine's seconds per stage (FrameCompute.seconds)
     r, a, d = net.profile.shape
     detector = count_macs(net.detector, (1, d, r, a))
@@ -88,7 +88,7 @@ def erasenet_run(preset: str, n_frames: int, repeats: int, *, random_weights: bo
         if random_weights:  # top-K seeds: the ROI a trained detector would grow
             net.max_objects = max(1, sum(1 for o in frame.objects if o.n_voxels))
         for _ in range(repeats):
-            for engine in reversed(ENGINES):  # the compiled engine last: its result's MACs are kept below
+            for engine in reversed(KERNEL_KEYS):  # the compiled engine last: its result's MACs are kept below
                 with compiled.using_kernels(SPARSE_ENGINE[engine]):
                     started = time.perf_counter()
                     result = net.segment(cube, kind=InputKind.log_power)

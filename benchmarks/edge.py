@@ -42,7 +42,7 @@ from radar.input_kind import InputKind
 ROOT = Path(__file__).resolve().parents[1]
 PAIRS = {"shipped": ("checkpoints/detector.pt", "checkpoints/segmenter.pt"),
          "p40": ("checkpoints/detector-slimmed.pt", "checkpoints/segmenter-slimmed.pt")}
-ENGINES = ("onnx", "onnx-int8", "torch")
+RUNTIMES = ("onnx", "onnx-int8", "torch")
 
 
 def cpu_flags() -> dict[str, object]:
@@ -99,11 +99,11 @@ def pair_engines(pair: str, cache: Path, calibration_store: str, calibration_fra
     ``warm_up``: (float dir, int8 dir, {"onnx", "onnx-int8", "torch": EraseNet})."""
     detector, segmenter = load_pair(*(ROOT / path for path in PAIRS[pair]))
     float_dir = exported_dir(detector, segmenter, cache)
-    profile = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir).profile
+    profile = load_erasenet(detector, segmenter, runtime="onnx", onnx_dir=float_dir).profile
     calibration = store_calibration(calibration_store, profile, frames=calibration_frames, methods=methods)
     int8_dir = exported_dir(detector, segmenter, cache, int8=calibration)
-    nets = {"onnx": load_erasenet(detector, segmenter, engine="onnx", onnx_dir=float_dir),
-            "onnx-int8": load_erasenet(detector, segmenter, engine="onnx-int8", onnx_dir=int8_dir),
+    nets = {"onnx": load_erasenet(detector, segmenter, runtime="onnx", onnx_dir=float_dir),
+            "onnx-int8": load_erasenet(detector, segmenter, runtime="onnx-int8", onnx_dir=int8_dir),
             "torch": load_erasenet(detector, segmenter)}
     for net in nets.values():
         net.segment(warm_up, kind=InputKind.log_power)

@@ -164,7 +164,7 @@ def main() -> dict:
                "ms_per_frame": 1e3 * seconds / n, "useful_gmacs_per_s": macs / seconds / 1e9 if seconds else 0.0}
               for (name, k, c_in, c_out), (calls, seconds, macs)
               in sorted(clock.layers.items(), key=lambda kv: -kv[1][1])]
-    result = {"frames": n, "engine": model.engine, "segmenter": "eager" if args.eager else "fused",
+    result = {"frames": n, "runtime": model.runtime, "segmenter": "eager" if args.eager else "fused",
               "ms_per_frame": per_frame, "segment_parts_ms": parts,
               "pair_counting_ms_deducted": 1e3 * clock.counting / n,
               "layers": layers, "cpu_flags": [f for f in compiled.cpu_flags().split() if f.startswith(("avx", "fma"))],

@@ -31,7 +31,7 @@ from benchmarks.harness import SHIPPED_PAIRS, Table, int_options_main, print_loa
 from models.export.label_agreement import roi_label_agreement
 from models.heap import freeze_loaded_heap
 from models.quantized.calibration import segmenter_inputs
-from models.runtime import load_erasenet
+from models.runtime import Runtime, load_erasenet
 from models.sparse import compiled, int8
 from radar.metrics import confusion_matrix, mean_iou
 from radar.simulate import simulate_sequence
@@ -67,7 +67,7 @@ def _network_cpu_ms(nets: dict, cube: np.ndarray, repeats: int) -> dict[str, flo
 
 
 def compare(frames: list, repeats: int, preset: str = "small") -> dict:
-    nets = {precision: load_erasenet(*SHIPPED_PAIRS[preset], precision=precision) for precision in PRECISIONS}
+    nets = {precision: load_erasenet(*SHIPPED_PAIRS[preset], Runtime("torch", precision)) for precision in PRECISIONS}
     freeze_loaded_heap()
     num_classes = nets["float"].profile.num_classes
     stages: dict[str, list[dict]] = {precision: [] for precision in PRECISIONS}

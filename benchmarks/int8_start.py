@@ -51,9 +51,9 @@ def main(argv: list[str] | None = None) -> dict:
 
         _, results["float_load_seconds"] = timed(lambda: load_erasenet(args.detector, args.segmenter))
         _, results["int8_first_load_seconds"] = timed(
-            lambda: load_erasenet(args.detector, args.segmenter, precision="int8"))
+            lambda: load_erasenet(args.detector, args.segmenter, runtime="torch-int8"))
         net, results["int8_second_load_seconds"] = timed(
-            lambda: load_erasenet(args.detector, args.segmenter, precision="int8"))
+            lambda: load_erasenet(args.detector, args.segmenter, runtime="torch-int8"))
         detector, segmenter = load_pair(args.detector, args.segmenter)
         calibration_cache.source_digest.cache_clear()  # as a fresh process computes it
 

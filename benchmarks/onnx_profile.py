@@ -41,7 +41,7 @@ from models.export.kernel_maps_numpy import kernel_maps
 from models.export.onnx_export import export_segmenter
 from radar.input_kind import InputKind
 
-ENGINES = ("onnx", "onnx-int8", "torch")
+RUNTIMES = ("onnx", "onnx-int8", "torch")
 PRODUCTS = ("MatMul", "QLinearMatMul", "MatMulInteger", "MatMulIntegerToFloat", "Gemm", "QGemm",
             "DynamicQuantizeMatMul", "FusedMatMul")
 """Operator types that are a graph's matrix products (float or 8-bit), for the ceiling."""
@@ -211,9 +211,9 @@ def profile_pair(pair: str, args: argparse.Namespace, cubes: list[np.ndarray], c
 def print_pair(pair: str, entry: dict) -> None:
     stages = entry["stages_ms"]
     print(f"\n{pair}: ROI voxels {entry['roi_voxels']}")
-    print(f"{'stage':>10} " + " ".join(f"{name:>10}" for name in ENGINES))
+    print(f"{'stage':>10} " + " ".join(f"{name:>10}" for name in RUNTIMES))
     for stage in (*STEPS, "total"):
-        print(f"{stage:>10} " + " ".join(f"{stages[name][stage]:10.2f}" for name in ENGINES))
+        print(f"{stage:>10} " + " ".join(f"{stages[name][stage]:10.2f}" for name in RUNTIMES))
     print("segment split (ms):", {key: round(value, 2) for key, value in entry["segment_split_ms"].items()})
     print("segment CPU time (ms):", {key: round(value, 3) for key, value in entry["segment_cpu_ms"].items()})
     for graph, precisions in entry["operators_ms"].items():

@@ -7,12 +7,12 @@ measured. Prints the figures and merges them under ``--label`` into benchmarks/r
 (one label per code version, e.g. ``before`` and ``after``); never asserts a time.
 
     .venv/bin/python -m benchmarks.segmenter_train --label after [--frames 8] [--batch-size 2] [--repeats 3]
-        [--engine auto|compiled|reference] [--smoke]
+        [--kernels auto|compiled|reference] [--smoke]
     .venv/bin/python -m benchmarks.segmenter_train --against 18f7d7f --rounds 3   # before/after, interleaved
 
 ``--against REF`` exports that commit's tree (``git archive``) to a temporary folder and runs this benchmark
 there and here in alternating processes, ``--rounds`` times each, so both versions see the same machine
-load: here once per sparse engine (``after``: the compiled one, ``after_torch``: the pure-PyTorch one); it
+load: here once per sparse kernels setting (``after``: the compiled one, ``after_torch``: the pure-PyTorch one); it
 records all and the ratios of their median step times under the label ``REF..HEAD``.
 """
 
@@ -56,7 +56,7 @@ class BenchConfig:
     ratios: tuple[float, ...] = (0.25, 0.37)
     threads: int = 1
     seed: int = 0
-    engine: str = "auto"  # the sparse engine (models.sparse.compiled): auto, compiled or reference
+    kernels: str = "auto"  # the sparse kernels (models.sparse.compiled): auto, compiled or reference
 
 
 def roi_samples(preset: str, n_frames: int, seed: int) -> list[dict[str, torch.Tensor]]:
@@ -112,8 +112,8 @@ def bench_ratio(ratio: float, batches: list, cfg: BenchConfig) -> dict:
 
 def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     torch.set_num_threads(cfg.threads)
-    compiled.set_kernels(cfg.engine)
-    engine = "compiled" if cfg.engine != "reference" and compiled.available() else "reference"
+    compiled.set_kernels(cfg.kernels)
+    kernels = "compiled" if cfg.kernels != "reference" and compiled.available() else "reference"
     samples = roi_samples(cfg.preset, cfg.frames, cfg.seed)
     batches = [collate(samples[i:i + cfg.batch_size]) for i in range(0, len(samples) - cfg.batch_size + 1,
                                                                        cfg.batch_size)]
@@ -122,12 +122,12 @@ def main(cfg: BenchConfig, label: str, output: Path) -> dict:
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                             cwd=Path(__file__).parent).stdout.strip()
     result = {
-        "config": asdict(cfg), "commit": commit, "rows": rows, "engine": engine,
+        "config": asdict(cfg), "commit": commit, "rows": rows, "kernels": kernels,
         "voxels_per_batch_mean": float(np.mean([len(b[0]) for b in batches])),
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count(), "torch": torch.__version__,
                     "load_average_before": load_before, "load_average_after": os.getloadavg()},
     }
-    print(f"{label}: {engine} engine, {cfg.preset}, batches of {cfg.batch_size} ROIs, "
+    print(f"{label}: {kernels} kernels, {cfg.preset}, batches of {cfg.batch_size} ROIs, "
           f"{result['voxels_per_batch_mean']:.0f} voxels per batch, {cfg.threads} thread(s), "
           f"load {load_before[0]:.2f} -> {os.getloadavg()[0]:.2f}")
     for row in rows:
@@ -152,8 +152,8 @@ def against(ref: str, rounds: int, cfg: BenchConfig, output: Path) -> dict:
         old_tree = Path(tmp) / "tree"
         with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
             tar.extractall(old_tree, filter="data")
-        versions = (("before", old_tree, []), ("after", repo, ["--engine", "compiled"]),
-                    ("after_torch", repo, ["--engine", "reference"]))
+        versions = (("before", old_tree, []), ("after", repo, ["--kernels", "compiled"]),
+                    ("after_torch", repo, ["--kernels", "reference"]))
         for _ in range(rounds):
             for label, tree, extra in versions:
                 out = Path(tmp) / f"{label}.json"
@@ -190,7 +190,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path, s
     parser.add_argument("--batch-size", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--engine", default="auto", choices=compiled.KERNELS, help="sparse engine (default auto)")
+    parser.add_argument("--kernels", default="auto", choices=compiled.KERNELS, help="sparse kernels (default auto)")
     parser.add_argument("--smoke", action="store_true", help="two frames, one repeat, the shipped ratio only")
     parser.add_argument("--output", default=str(RESULTS))
     parser.add_argument("--against", help="git commit to compare with, interleaved (see the docstring)")
@@ -198,10 +198,10 @@ def parse_args(argv: list[str] | None = None) -> tuple[BenchConfig, str, Path, s
     args = parser.parse_args(argv)
     if args.smoke:
         cfg = BenchConfig(preset=args.preset, frames=2, batch_size=1, repeats=1, ratios=(0.25,), threads=args.threads,
-                          engine=args.engine)
+                          kernels=args.kernels)
     else:
         cfg = BenchConfig(preset=args.preset, frames=args.frames, batch_size=args.batch_size, repeats=args.repeats,
-                          threads=args.threads, engine=args.engine)
+                          threads=args.threads, kernels=args.kernels)
     return cfg, args.label, Path(args.output), args.against, args.rounds
 
 

@@ -1,7 +1,7 @@
 """Benchmark of the sparse convolution's two engines (compiled `native`, pure-PyTorch `torch`) against dense
 Conv3d, and a MinkUNet training step.
 
-Measured side by side in one run, the engines interleaved (`ENGINES`):
+Measured side by side in one run, the engines interleaved (`KERNEL_KEYS`):
 - a 3^3 submanifold conv 32 -> 32, forward + backward, at 20k and 100k voxels filling about 5% of their
   bounding grid, next to a dense `nn.Conv3d` on that bounding grid (the compiled engine also timed alone, after the
   interleaved rounds: `dense_over_native_alone`); two layouts: solid blobs like
@@ -48,7 +48,7 @@ from models.sparse import (
 )
 
 RESULTS = Path(__file__).parent / "results" / "sparse_conv.json"
-ENGINES = ("native", "torch")  # the keys of the results: the compiled and the reference sparse engine
+KERNEL_KEYS = ("native", "torch")  # the keys of the results: the compiled and the reference sparse engine
 SPARSE_ENGINE = {"native": "compiled", "torch": "reference"}  # models.sparse.compiled's names
 SIMD_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512bw", "avx512_vnni", "amx_tile", "asimd", "sve")
 
@@ -153,9 +153,9 @@ def timed(fn: Callable[[], object], repeats: int, device: torch.device) -> list[
 
 def interleaved(fn: Callable[[], object], repeats: int, device: torch.device) -> dict[str, list[float]]:
     """Wall seconds of `repeats` calls per engine, the engines taking turns (one warm-up call each)."""
-    times: dict[str, list[float]] = {engine: [] for engine in ENGINES}
+    times: dict[str, list[float]] = {engine: [] for engine in KERNEL_KEYS}
     for repeat in range(repeats + 1):
-        for engine in ENGINES:
+        for engine in KERNEL_KEYS:
             with compiled.using_kernels(SPARSE_ENGINE[engine]):
                 start = time.perf_counter()
                 fn()

@@ -9,8 +9,8 @@ import sys
 import time
 from typing import Any, NamedTuple
 
-from models.runtime import ENGINES, PRECISIONS
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
+from pipelines.runtime_option import add_runtime_option, runtime_of
 from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
 from radar.input_kind import InputKind
@@ -176,7 +176,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
 
     result = segment_file(args.cube, detector=args.detector, segmenter=args.segmenter,
                           input_kind=args.input, png=args.png, score_threshold=args.score_threshold,
-                          engine=args.engine, warm_up=args.warm_up, precision=args.precision)
+                          runtime=runtime_of(args), warm_up=args.warm_up)
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -188,7 +188,7 @@ def _cmd_segment(args: argparse.Namespace) -> int:
           f"(detect {compute['macs']['detect'] / 1e9:.3f}, segment {compute['macs']['segment'] / 1e9:.3f})  "
           f"ROI voxels: {compute['roi_voxels']}  time: {compute['seconds']['total'] * 1e3:.0f} ms"
           f"{' (after a warm-up run)' if result['timed_after_warm_up'] else ' (first run: includes warm-up)'}  "
-          f"engine: {compute['engine']} ({result['precision']})")
+          f"runtime: {result['runtime']}")
     if result["png"]:
         print(f"picture: {result['png']}")
     return 0
@@ -275,7 +275,7 @@ def _served_model(args: argparse.Namespace) -> dict[str, str]:
     load_checkpoint(args.segmenter, stage=Stage.SEGMENTER, option="--segmenter")
     name = args.model_name or re.sub(r"[^a-z0-9_.-]+", "-", detector.profile.name.lower()).strip("-.")[:64] or "model"
     return {"name": name, "detector": str(Path(args.detector).absolute()),
-            "segmenter": str(Path(args.segmenter).absolute()), "engine": args.engine}
+            "segmenter": str(Path(args.segmenter).absolute()), "runtime": runtime_of(args)}
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
@@ -449,13 +449,7 @@ def _add_frame_commands(sub: Any) -> None:
                      help="the same as --input log_power")
     seg.add_argument("--score-threshold", type=float, default=SCORE_THRESHOLD, help="detector score threshold")
     seg.add_argument("--png", help="write RA/RD pictures with the prediction here")
-    seg.add_argument("--engine", choices=ENGINES, default="torch",
-                     help="torch, or onnx: the exported graphs in onnxruntime, exported on first use "
-                          "into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx); onnx-int8: the same graphs "
-                          "quantised, calibrated on simulated frames of the checkpoints' preset")
-    seg.add_argument("--precision", choices=PRECISIONS, default="float",
-                     help="float, or int8: the torch engine's segmenter in the int8 sparse kernels (AVX-512 VNNI or "
-                          "AVX2), calibrated on simulated frames of the checkpoints' preset (docs/guides/int8.md)")
+    add_runtime_option(seg)
     seg.add_argument("--no-warm-up", dest="warm_up", action="store_false",
                      help="report the first run's time (by default the cube is segmented once before the timed run, "
                           "so the time is a steady frame's)")
@@ -555,7 +549,8 @@ def _add_model_commands(sub: Any) -> None:
     serve.add_argument("--detector", help="serve this one pair (with --segmenter) instead of RADARSEG_MODELS")
     serve.add_argument("--segmenter", help="the pair's segmenter checkpoint")
     serve.add_argument("--model-name", help="the pair's model name (default: its radar's name)")
-    serve.add_argument("--engine", choices=ENGINES, default="torch", help="the pair's runtime")
+    add_runtime_option(serve, "what runs the pair (with --detector and --segmenter; RADARSEG_MODELS gives each "
+                              "model's \"runtime\"): torch (default), torch-int8, onnx or onnx-int8")
     serve.set_defaults(func=_cmd_serve)
 
     demo = sub.add_parser("demo", help="run the end-to-end demo on embedded defaults")

@@ -89,7 +89,7 @@ class ServedModel:
             executor = inference_executor(replicas, threads, f"model-{self.spec.name}")
 
         def build() -> EraseNet:
-            return load_erasenet(detector, segmenter, engine=self.spec.engine, precision=self.spec.precision,
+            return load_erasenet(detector, segmenter, self.spec.runtime,
                                  score_threshold=self.spec.score_threshold, max_objects=self.spec.max_objects)
 
         # Built and warmed on the inference threads themselves: no other thread of the process runs torch, so

@@ -102,7 +102,10 @@ class Compute(BaseModel):
     roi_voxels: int
     visited_points: int
     detections: int
-    engine: str = Field("torch", description="what ran the networks: torch, or onnx (onnxruntime)")
+    runtime: str = Field("torch", description="what ran the networks: torch, torch-int8 (the int8 sparse kernels), "
+                                              "onnx or onnx-int8 (onnxruntime)")
+    engine: str = Field("torch", description="the runtime's former name (the same value), kept for clients that "
+                                             "read it")
 
 
 class UsageTotals(BaseModel):

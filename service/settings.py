@@ -12,15 +12,19 @@ Relative checkpoint paths are resolved against the repository root (the director
 from __future__ import annotations
 
 import ipaddress
+import logging
 import os
 import re
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from models.runtime import Runtime
 from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
+
+log = logging.getLogger(__name__)
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TENANT_PATTERN = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
@@ -55,20 +59,30 @@ class ModelSpec(BaseModel):
     segmenter: Path
     score_threshold: Annotated[float, Field(ge=0.0, le=1.0)] = SCORE_THRESHOLD
     max_objects: Annotated[int, Field(ge=1, le=256)] = MAX_OBJECTS
-    # torch: PyTorch (its sparse convolutions on models.sparse's engine); onnx: the exported graphs in onnxruntime
-    # (models.runtime), exported on first load into $RADARSEG_ONNX_CACHE (default ~/.cache/radarseg/onnx);
-    # onnx-int8: those graphs quantised, calibrated on simulated frames of the model's preset (models.export.quantize)
-    engine: Literal["torch", "onnx", "onnx-int8"] = "torch"
-    # float, or int8: the torch engine's segmenter in the int8 sparse kernels (models.quantized), each replica
-    # calibrated at load on simulated frames of the model's preset (docs/guides/int8.md)
-    precision: Literal["float", "int8"] = "float"
+    # What runs the pair (models.runtime): torch (PyTorch and the compiled sparse kernels), torch-int8 (the
+    # segmenter in the int8 sparse kernels, each replica calibrated at load on simulated frames of the model's preset:
+    # docs/guides/int8.md), onnx (the exported graphs in onnxruntime, exported on first load into $RADARSEG_ONNX_CACHE,
+    # default ~/.cache/radarseg/onnx) or onnx-int8 (those graphs statically quantised)
+    runtime: Literal["torch", "torch-int8", "onnx", "onnx-int8"] = "torch"
 
-    @model_validator(mode="after")
-    def _int8_on_torch(self) -> ModelSpec:
-        if self.precision == "int8" and self.engine != "torch":
-            raise ValueError(f"precision int8 runs on the torch engine, not {self.engine!r} (the ONNX engine's "
-                             f"int8 is engine onnx-int8)")
-        return self
+    @model_validator(mode="before")
+    @classmethod
+    def _former_engine_and_precision(cls, data: Any) -> Any:
+        """The former keys "engine" and "precision" name a runtime still (logged with the key that replaces them)."""
+        if not isinstance(data, dict) or ("engine" not in data and "precision" not in data):
+            return data
+        data = dict(data)
+        engine, precision = data.pop("engine", "torch"), data.pop("precision", "float")
+        if not isinstance(engine, str) or not isinstance(precision, str):
+            raise ValueError("engine and precision are names (now one key: runtime)")
+        try:
+            former = Runtime.from_engine(engine, precision).name
+        except ValueError as exc:
+            raise ValueError(str(exc)) from None
+        if data.setdefault("runtime", former) != former:
+            raise ValueError(f"runtime {data['runtime']!r} and the former engine/precision ({former}) disagree")
+        log.warning("model %r: \"engine\"/\"precision\" are now one key: \"runtime\": %r", data.get("name"), former)
+        return data
 
 
 class Settings(BaseSettings):

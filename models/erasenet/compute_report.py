@@ -32,7 +32,7 @@ class FrameCompute:
     roi_voxels: int = 0
     visited_points: int = 0  # voxels region growing looked at
     detections: int = 0  # centres the ROI grew from (the API's compute.detections)
-    engine: str = "torch"  # what ran the networks: "torch" (this package's PyTorch engine) or "onnx" (ONNX Runtime)
+    runtime: str = "torch"  # what ran the networks (models.runtime.RUNTIMES)
 
     # ----- totals
     @property
@@ -93,5 +93,6 @@ class FrameCompute:
             "roi_voxels": self.roi_voxels,
             "visited_points": self.visited_points,
             "detections": self.detections,
-            "engine": self.engine,
+            "runtime": self.runtime,
+            "engine": self.runtime,  # the runtime's former name, kept for clients that read it
         }

@@ -89,8 +89,9 @@ class EraseNet:
     """The two-stage segmenter. Thread-safe for concurrent ``segment`` calls only if the caller
     serialises them (the segmenter's per-layer MAC counters are per call)."""
 
-    engine = "torch"
-    """What runs the networks, reported in the compute report (``models.export.onnx_engine``: "onnx")."""
+    runtime = "torch"
+    """What runs the networks (:data:`models.runtime.RUNTIMES`), reported in the compute report: "torch-int8" once
+    :func:`models.quantized.erasenet.to_int8` ran; ``models.export.onnx_engine``'s "onnx" or "onnx-int8"."""
 
     normalises_detector_input = True
     """The detector's input is normalised here (an exported graph that normalises its own input: False)."""
@@ -256,7 +257,7 @@ class EraseNet:
             detect_macs=detect_macs, segment_macs=segment_macs, segment_executed_macs=segment_executed,
             detector_params=self.params["detector"], segmenter_params=self.params["segmenter"],
             seconds={name: seconds.get(name, 0.0) for name in STEPS}, roi_voxels=len(regions),
-            visited_points=regions.visited, detections=len(centres), engine=self.engine)
+            visited_points=regions.visited, detections=len(centres), runtime=self.runtime)
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views,
                                   log_power if keep_log_power else None)
 

@@ -1,7 +1,7 @@
 """ERASE-Net on onnxruntime: the exported graphs behind :meth:`models.erasenet.model.EraseNet.segment`'s contract.
 
 The same stages as the PyTorch engine (transform, detect, grow, segment, project) and the same result
-and compute report (``compute.engine == "onnx"``): the detector graph replaces the traced detector
+and compute report (``compute.runtime == "onnx"``): the detector graph replaces the traced detector
 (its outputs are decoded by the detector's own ``decode``), the segmenter graph replaces the sparse
 MinkUNet (kernel maps from :mod:`models.export.kernel_maps_compiled`, equal to numpy's); region growing,
 Doppler refinement, projection and objects are the shared code. Useful MACs are counted from the kernel maps
@@ -98,7 +98,7 @@ class OnnxEraseNet(EraseNet):
     never run.
     """
 
-    engine = "onnx"
+    runtime = "onnx"
     """"onnx" on float graphs, "onnx-int8" on quantised ones (the manifest's ``precision``)."""
 
     def __init__(self, detector: nn.Module, segmenter: nn.Module, profile: RadarProfile | str, *,
@@ -122,7 +122,7 @@ class OnnxEraseNet(EraseNet):
             raise ValueError(f"{self.onnx_dir}: exported for preset {self.manifest['preset']!r} "
                              f"{tuple(self.manifest['cube_shape'])}, not {self.profile.name!r} {self.profile.shape}")
         self.precision = self.manifest.get("precision", "float32")
-        self.engine = "onnx" if self.precision == "float32" else f"onnx-{self.precision}"
+        self.runtime = "onnx" if self.precision == "float32" else f"onnx-{self.precision}"
         threads = torch.get_num_threads() if threads is None else threads
         fold = self.manifest.get("detector", {}).get("precision") == INT8_WEIGHTS
         self._run_detector = OnnxDetector(_session(self.onnx_dir / "detector.onnx", threads, fold_weights=fold),

@@ -29,7 +29,7 @@ def _fused_float(net: EraseNet) -> Any:
     """``net``'s fused float segmenter (ValueError when it has none)."""
     fused = net.segmenter_form
     if fused is None or getattr(fused, "precision", "float") != "float":
-        raise ValueError("--precision int8 needs the torch engine with a fused MinkUNet segmenter (a plain MinkUNet, "
+        raise ValueError("the torch-int8 runtime needs a fused MinkUNet segmenter (a plain MinkUNet, "
                          "fused_segmenter=True)")
     return fused
 
@@ -98,4 +98,5 @@ def to_int8(net: EraseNet, calibration: Int8Calibration | None = None, *, method
             except OSError as exc:  # a read-only cache costs the next start a calibration, nothing else
                 log.warning("int8 calibration not kept in %s: %s", path, exc)
     net.use_segmenter_form(int8)  # point_logits calls it as the fused float segmenter: (sparse) -> (logits, MAC tally)
+    net.runtime = "torch-int8"
     return net

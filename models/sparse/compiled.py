@@ -9,8 +9,8 @@ environment variable `RADARSEG_SPARSE_KERNELS` read at first use) is one of:
 - `compiled`: compiled where they apply; a failed build raises;
 - `reference`: always the pure-PyTorch kernels.
 
-"Engine" names the runtime only (`--engine torch|onnx|onnx-int8`, :mod:`models.runtime`): the `torch`
-runtime runs its sparse convolutions on this setting's kernels. The earlier names (the variable
+The runtime (`--runtime torch|torch-int8|onnx|onnx-int8`, :mod:`models.runtime`) is another choice: the torch
+runtimes run their sparse convolutions on this setting's kernels. The earlier names (the variable
 `RADARSEG_SPARSE_ENGINE`, the values `native` and `torch`) are refused with the new ones.
 
 The extension is built on first use with torch's extension machinery (g++ and ninja) and cached under
@@ -91,7 +91,7 @@ def get_kernels() -> str:
         settings = environment()
         if settings.sparse_engine is not None:
             raise ValueError(f"{OLD_KERNELS_ENV} is now {KERNELS_ENV} (the sparse kernels: {', '.join(KERNELS)}; "
-                             f"'engine' names the runtime, --engine torch|onnx|onnx-int8)")
+                             f"the runtime is --runtime torch|torch-int8|onnx|onnx-int8)")
         try:
             _kernels = check_kernels(settings.sparse_kernels)
         except ValueError as error:

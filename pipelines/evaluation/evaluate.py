@@ -42,7 +42,7 @@ from models.capabilities import Stage
 from models.checkpoint import load_checkpoint
 from models.erasenet.model import EraseNet
 from models.heap import freeze_loaded_heap
-from models.runtime import load_erasenet
+from models.runtime import Runtime, load_erasenet
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.spread import spread
 from pipelines.datasets.store import (
@@ -142,13 +142,14 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     kwargs: dict[str, Any] = {} if cfg.score_threshold is None else {"score_threshold": cfg.score_threshold}
     kwargs["doppler_refinement"] = DOPPLER_REFINEMENT if cfg.doppler_refinement else None
-    if cfg.engine == "torch":
+    runtime = Runtime.parse(cfg.runtime)
+    if runtime.backend == "torch":
         kwargs["device"] = cfg.device
     elif cfg.onnx_dir is not None:
         kwargs["onnx_dir"] = cfg.onnx_dir
-    if cfg.precision == "int8":  # calibrated on the store's train split, as the int8 export is given one
+    if runtime == Runtime("torch", "int8"):  # calibrated on the store's train split, as the int8 export is given one
         kwargs["calibration"] = _int8_calibration(cfg.store, det_ckpt.profile)
-    net = load_erasenet(det_ckpt, seg_ckpt, engine=cfg.engine, precision=cfg.precision, **kwargs)
+    net = load_erasenet(det_ckpt, seg_ckpt, runtime, **kwargs)
     freeze_loaded_heap()  # no full garbage collection over torch and the models every few frames
     root, frames = store_frames(cfg.store, net.profile, cfg.split, cfg.max_frames)
     split_name = cfg.split or "all"

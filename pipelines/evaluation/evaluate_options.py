@@ -6,9 +6,10 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 
-from models.runtime import ENGINES, PRECISIONS
+from models.runtime import Runtime
 from pipelines.evaluation.tracker_comparison import TRACKERS, parse_trackers
 from pipelines.jobs import always, cap, field_defaults, smoke
+from pipelines.runtime_option import add_runtime_option, runtime_of
 from radar.centres import SCORE_THRESHOLD
 
 D_THRESH_SWEEP_M = (4.0, 6.0, 8.0, 10.0, 12.0, 14.0)
@@ -29,8 +30,7 @@ class EvaluateConfig:
     oracle: bool = True  # also segment from true centres
     doppler_refinement: bool = True  # refine the detector's Doppler from the cube (radar.doppler), as EraseNet does
     device: str = "cpu"  # the torch runtime's device
-    engine: str = "torch"  # the runtime scored: torch, onnx or onnx-int8 (models.runtime)
-    precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
+    runtime: str = "torch"  # the runtime scored (models.runtime.RUNTIMES)
     onnx_dir: str | None = None  # the ONNX runtimes: this export instead of the cached one
     threads: int = smoke(0, always(1))  # torch intra-op threads (0 = torch's default); per-stage seconds with these
     progress: bool = True
@@ -42,8 +42,7 @@ class EvaluateConfig:
             raise ValueError("max_frames, pictures and sweep_frames must be >= 0")
         if any(d <= 0 for d in self.sweep):
             raise ValueError(f"sweep distances must be > 0 m, got {self.sweep}")
-        if self.engine not in ENGINES:
-            raise ValueError(f"engine must be one of {ENGINES}, got {self.engine!r}")
+        Runtime.parse(self.runtime)
         if unknown := [name for name in self.trackers if name not in TRACKERS]:
             raise ValueError(f"trackers must be among {tuple(TRACKERS)}, got {unknown}")
 
@@ -66,11 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-doppler-refinement", action="store_true",
                         help="keep the detector's own Doppler (no refinement from the cube)")
     parser.add_argument("--device", default=defaults.device, help="torch device (cpu, cuda)")
-    parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
-                        help="the runtime scored (onnx, onnx-int8: the export cached on first use)")
-    parser.add_argument("--precision", choices=PRECISIONS, default=defaults.precision,
-                        help="float, or int8: the torch engine's segmenter in the int8 sparse kernels, calibrated on "
-                             "the store's train split (simulated frames of the preset if it has none)")
+    add_runtime_option(parser, "the runtime scored: torch (default), torch-int8 (the segmenter in the int8 sparse "
+                               "kernels, calibrated on the store's train split, simulated frames of the preset if it "
+                               "has none), onnx or onnx-int8 (the export cached on first use)")
     parser.add_argument("--threads", type=int, default=defaults.threads,
                         help="torch threads (0: torch's default; 1 is faster when other jobs share the CPU)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -88,7 +85,7 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           pictures=args.pictures,
                           sweep=tuple(args.sweep), sweep_frames=args.sweep_frames,
                           score_threshold=args.score_threshold, oracle=not args.no_oracle,
-                          doppler_refinement=not args.no_doppler_refinement, device=args.device, engine=args.engine,
-                          precision=args.precision,
+                          doppler_refinement=not args.no_doppler_refinement, device=args.device,
+                          runtime=runtime_of(args),
                           threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube,
                           trackers=tuple(args.trackers))

@@ -17,14 +17,13 @@ from radar.io.npy import load_npy
 
 def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str | Path,
                  input_kind: InputKind | str | None = None, png: str | Path | None = None,
-                 score_threshold: float = SCORE_THRESHOLD, engine: str = "torch", warm_up: bool = True,
-                 precision: str = "float") -> dict[str, Any]:
+                 score_threshold: float = SCORE_THRESHOLD, runtime: str = "torch",
+                 warm_up: bool = True) -> dict[str, Any]:
     """Segment a .npy cube and return objects and compute. ``input_kind`` says what the cube holds
     (radar.input_kind: complex, magnitude, log_power, adc); a complex cube needs none, a real-valued one must
     say it. Values impossible for the kind are refused (InputKindError, a ValueError) naming the likely mistake.
-    ``engine``: "torch" or "onnx" (``models.runtime``); ``precision``: "float", or "int8" (the torch
-    engine's segmenter in the int8 sparse kernels, calibrated on simulated frames of the preset). With ``warm_up`` the
-    cube is segmented once
+    ``runtime``: what runs the pair (``models.runtime.RUNTIMES``; the int8 ones calibrate on simulated frames of
+    the preset). With ``warm_up`` the cube is segmented once
     before the run whose compute is reported, so its seconds are a steady frame's, not the process's first
     (which pays one-off costs: the first call of every kernel, allocator growth)."""
     declared = parse_kind(input_kind) if isinstance(input_kind, str) else input_kind
@@ -50,7 +49,7 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
         check_values(cube, kind)
     except ValueError as exc:
         raise DataError(cube_path, str(exc)) from None
-    net = load_erasenet(det, seg, engine=engine, precision=precision, score_threshold=score_threshold)
+    net = load_erasenet(det, seg, runtime, score_threshold=score_threshold)
     rad_kind = kind  # what the RAD cube the model reads holds
     if kind is InputKind.adc:
         from radar.adc import process_adc
@@ -66,4 +65,4 @@ def segment_file(cube_path: str | Path, *, detector: str | Path, segmenter: str 
                         title=f"ERASE-Net on {Path(cube_path).name}")
     return {"objects": [o.to_dict() for o in result.objects], "compute": result.compute.to_dict(),
             "png": None if png is None else str(png), "input": kind.value, "timed_after_warm_up": warm_up,
-            "precision": precision}
+            "runtime": str(runtime)}

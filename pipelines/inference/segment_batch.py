@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 
 from models.heap import freeze_loaded_heap
+from models.runtime import Runtime
 from pipelines.datasets import shard_frames, sharded_job
 from pipelines.datasets.history import earlier_frames, earlier_slots
 from pipelines.datasets.sharded_store import check_resumable_out, mark_shard_done, write_shard_arrays
@@ -219,15 +220,14 @@ class ShardSegmenter:
     """
 
     def __init__(self, detector: str, segmenter: str, *, score_threshold: float = SCORE_THRESHOLD,
-                 max_objects: int = MAX_OBJECTS, torch_threads: int = 1, engine: str = "torch",
-                 precision: str = "float") -> None:
+                 max_objects: int = MAX_OBJECTS, torch_threads: int = 1, runtime: str = "torch") -> None:
         import torch
 
         from models.runtime import load_erasenet
 
         torch.set_num_threads(torch_threads)  # the ONNX engine takes its thread count from torch's too
         started = time.perf_counter()
-        self.net = load_erasenet(detector, segmenter, engine=engine, precision=precision,
+        self.net = load_erasenet(detector, segmenter, runtime,
                                  score_threshold=score_threshold, max_objects=max_objects)
         # One inference on a noise-floor frame: the first torch call of a process is slow, and it should
         # not count against the first shard.
@@ -290,7 +290,7 @@ REPORT_PICTURES = 3  # frames drawn in the report beside the store (most detecti
 def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     """Run the job; returns its figures (frames, written, quarantined, shards run/skipped, workers, frames/s)."""
     plan = plan_job(cfg)
-    if cfg.engine == "onnx":  # export once here, not in every actor at once (they share this node's cache)
+    if Runtime.parse(cfg.runtime).backend == "onnx":  # exported once here, not in every actor at once (one cache)
         from models.checkpoint import load_pair
         from models.export.export_cache import exported_dir
 
@@ -298,8 +298,7 @@ def main(cfg: SegmentBatchConfig) -> dict[str, Any]:
     job = sharded_job.ShardedJob(plan=plan, create_store=create_predictions, stage=ShardSegmenter,
                                  stage_args=(cfg.detector, cfg.segmenter),
                                  stage_kwargs={"score_threshold": cfg.score_threshold, "max_objects": cfg.max_objects,
-                                               "torch_threads": cfg.torch_threads, "engine": cfg.engine,
-                                               "precision": cfg.precision},
+                                               "torch_threads": cfg.torch_threads, "runtime": cfg.runtime},
                                  reduce=reduce_summaries, finish=partial(finish_predictions, plan))
     execution = sharded_job.Execution(in_process=cfg.in_process, address=cfg.address, workers=cfg.workers,
                                       cpus_per_worker=cfg.cpus_per_worker, progress=cfg.progress, desc="segment")

@@ -8,10 +8,11 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from models.runtime import ENGINES, PRECISIONS
+from models.runtime import Runtime
 from pipelines.datasets.sharded_options import SHARD_FRAMES, add_execution_arguments
 from pipelines.datasets.sources import SourceKind, add_source_arguments, source_from_args
 from pipelines.jobs import always, cap, field_defaults, smoke
+from pipelines.runtime_option import add_runtime_option, runtime_of
 from radar.centres import MAX_OBJECTS, SCORE_THRESHOLD
 
 SOURCE_KINDS = (SourceKind.STORE, SourceKind.RECORDING)
@@ -36,8 +37,10 @@ class SegmentBatchConfig:
     shard_frames: int = smoke(SHARD_FRAMES, cap(2))
     progress: bool = True
     in_process: bool = smoke(False, always(True))  # every shard in this process (one ShardSegmenter), no Ray
-    engine: str = "torch"  # models.runtime: torch, or onnx (the exported graphs in onnxruntime)
-    precision: str = "float"  # float, or int8: the torch engine's segmenter in the int8 sparse kernels
+    runtime: str = "torch"  # what runs the pair (models.runtime.RUNTIMES)
+
+    def __post_init__(self) -> None:
+        Runtime.parse(self.runtime)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -62,12 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cpus-per-worker", type=float, default=defaults.cpus_per_worker,
                         help="CPUs reserved per actor")
     parser.add_argument("--torch-threads", type=int, default=defaults.torch_threads, help="torch threads per actor")
-    parser.add_argument("--engine", choices=ENGINES, default=defaults.engine,
-                        help="torch (default), or onnx: the exported graphs in onnxruntime (exported once into "
-                             "each node's $RADARSEG_ONNX_CACHE, default ~/.cache/radarseg/onnx)")
-    parser.add_argument("--precision", choices=PRECISIONS, default=defaults.precision,
-                        help="float (default), or int8: the torch engine's segmenter in the int8 sparse kernels, "
-                             "calibrated in each actor on simulated frames of the preset (docs/guides/int8.md)")
+    add_runtime_option(parser, "what runs the pair in each actor: torch (default), torch-int8 (the segmenter in the "
+                               "int8 sparse kernels, calibrated in each actor on simulated frames of the preset), onnx "
+                               "or onnx-int8 (exported once into each node's $RADARSEG_ONNX_CACHE, default "
+                               "~/.cache/radarseg/onnx)")
     add_execution_arguments(parser)
 
 
@@ -78,5 +79,5 @@ def config_from_args(args: argparse.Namespace) -> SegmentBatchConfig:
         split=args.split, limit=args.limit, score_threshold=args.score_threshold, max_objects=args.max_objects,
         address=args.address, workers=args.workers, cpus_per_worker=args.cpus_per_worker,
         torch_threads=args.torch_threads, shard_frames=args.shard_frames, progress=args.progress,
-        in_process=args.in_process, engine=args.engine, precision=args.precision,
+        in_process=args.in_process, runtime=runtime_of(args),
     )

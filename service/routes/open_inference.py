@@ -179,7 +179,7 @@ def model_metadata(state: State, caller: Caller, name: str = ModelName) -> JSONR
                 "parameters": {"columns": ",".join(OBJECT_COLUMNS)}},
                {"name": "compute", "datatype": "BYTES", "shape": [1]}]
     return JSONResponse({"name": name, "versions": list(VERSIONS),
-                         "platform": f"radarseg-erasenet-{served.spec.engine}",
+                         "platform": f"radarseg-erasenet-{served.spec.runtime}",
                          "inputs": inputs, "outputs": outputs,
                          "parameters": {"preset": profile.name, "class_names": ",".join(served.net.class_names)}})
 

@@ -94,7 +94,8 @@ def _compute(report: FrameCompute) -> Compute:
     """The response's compute block of the request's report (its seconds rounded to the microsecond)."""
     return Compute(macs=report.macs_by_stage(), params=report.params_by_network(),
                    seconds=report.seconds_by_stage(decimals=6), roi_voxels=report.roi_voxels,
-                   visited_points=report.visited_points, detections=report.detections, engine=report.engine)
+                   visited_points=report.visited_points, detections=report.detections, runtime=report.runtime,
+                   engine=report.runtime)
 
 
 def _check_cube_schema(header: str, served: ServedModel, input_kind: InputKind, max_depth: int) -> None:

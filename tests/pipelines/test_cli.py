@@ -116,3 +116,17 @@ def test_version_and_every_option_shows_its_default(capsys):
         assert action.help, action.option_strings
         if action.default is not None and not isinstance(action.default, bool) and action.default != []:
             assert "default" in formatter._get_help_string(action), action.option_strings
+
+
+def test_serve_serves_its_one_pair_on_the_runtime_named_the_int8_kernels_included(tiny_checkpoints, capsys):
+    """``serve --runtime torch-int8`` hands the service a model it serves in the compiled int8 kernels; the former
+    ``--engine onnx-int8`` still names its runtime, with a note."""
+    from pipelines.cli import _served_model, build_parser
+    from service.settings import ModelSpec
+
+    det, seg = (str(path) for path in tiny_checkpoints)
+    for options, runtime in ((["--runtime", "torch-int8"], "torch-int8"), ([], "torch"),
+                             (["--engine", "onnx-int8"], "onnx-int8")):
+        args = build_parser().parse_args(["serve", "--detector", det, "--segmenter", seg, *options])
+        assert ModelSpec(**_served_model(args)).runtime == runtime
+    assert "--runtime onnx-int8" in capsys.readouterr().err

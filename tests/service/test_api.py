@@ -321,16 +321,16 @@ def test_each_replica_runs_on_its_own_thread_with_the_configured_torch_threads(m
     assert client.post("/v1/segment", content=cube_body, headers=NPY).status_code == 200
 
 
-def _answers_by_engine(make_settings, client_for, cube_body, checkpoints, engines: dict[str, str]) -> dict:
-    """The /v1/segment answer of each served model ``name -> engine`` (the tiny pair, threshold 0, one object)."""
+def _answers_by_runtime(make_settings, client_for, cube_body, checkpoints, runtimes: dict[str, str]) -> dict:
+    """The /v1/segment answer of each served model ``name -> runtime`` (the tiny pair, threshold 0, one object)."""
     from service.settings import ModelSpec
 
     det, seg = checkpoints
-    models = [ModelSpec(name=name, detector=det, segmenter=seg, score_threshold=0.0, max_objects=1, engine=engine)
-              for name, engine in engines.items()]
+    models = [ModelSpec(name=name, detector=det, segmenter=seg, score_threshold=0.0, max_objects=1, runtime=runtime)
+              for name, runtime in runtimes.items()]
     client = client_for(make_settings(models=models))
     bodies = {}
-    for name in engines:
+    for name in runtimes:
         r = client.post(f"/v1/segment?model={name}&outputs=objects", content=cube_body, headers=NPY)
         assert r.status_code == 200, r.text
         bodies[name] = r.json()
@@ -340,9 +340,10 @@ def _answers_by_engine(make_settings, client_for, cube_body, checkpoints, engine
 def test_a_model_served_by_the_onnx_engine_answers_like_the_torch_one(make_settings, client_for, cube_body,
                                                                       tiny_checkpoints, monkeypatch, tmp_path):
     monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
-    bodies = _answers_by_engine(make_settings, client_for, cube_body, tiny_checkpoints,
+    bodies = _answers_by_runtime(make_settings, client_for, cube_body, tiny_checkpoints,
                                 {"tiny": "torch", "tiny-onnx": "onnx"})
-    assert bodies["tiny"]["compute"]["engine"] == "torch" and bodies["tiny-onnx"]["compute"]["engine"] == "onnx"
+    assert bodies["tiny"]["compute"]["runtime"] == "torch" and bodies["tiny-onnx"]["compute"]["runtime"] == "onnx"
+    assert all(body["compute"]["engine"] == body["compute"]["runtime"] for body in bodies.values())  # former name
     assert bodies["tiny-onnx"]["compute"]["macs"] == bodies["tiny"]["compute"]["macs"]
     classes = {name: [o["class_name"] for o in body["objects"]] for name, body in bodies.items()}
     assert classes["tiny-onnx"] == classes["tiny"]
@@ -354,10 +355,10 @@ def test_a_model_served_by_the_int8_onnx_engine_names_its_precision(make_setting
     monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
     monkeypatch.setattr("models.export.quantize.CALIBRATION_FRAMES", 2)  # a quick calibration for the test
     monkeypatch.setattr("models.export.quantize.METHODS", ("MinMax",))
-    bodies = _answers_by_engine(make_settings, client_for, cube_body, tiny_checkpoints,
+    bodies = _answers_by_runtime(make_settings, client_for, cube_body, tiny_checkpoints,
                                 {"tiny-onnx": "onnx", "tiny-int8": "onnx-int8"})
-    assert bodies["tiny-int8"]["compute"]["engine"] == "onnx-int8"
-    assert bodies["tiny-onnx"]["compute"]["engine"] == "onnx"
+    assert bodies["tiny-int8"]["compute"]["runtime"] == "onnx-int8"
+    assert bodies["tiny-onnx"]["compute"]["runtime"] == "onnx"
     manifests = [json.loads(p.read_text()) for p in (tmp_path / "onnx").glob("*/manifest.json")]
     int8 = [m for m in manifests if m.get("precision") == "int8"]
     assert len(int8) == 1 and int8[0]["quantization"]["calibration"]["source"] == "simulated"

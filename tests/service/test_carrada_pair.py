@@ -21,7 +21,7 @@ def test_the_carrada_pair_serves_its_examples_in_float_and_int8(make_settings, c
     monkeypatch.setattr(quantize, "CALIBRATION_FRAMES", 2)  # calibration frames simulated at load: fewer, faster
     specs = [ModelSpec(name="carrada", detector=PAIR / "detector.pt", segmenter=PAIR / "segmenter.pt"),
              ModelSpec(name="carrada-int8", detector=PAIR / "detector.pt", segmenter=PAIR / "segmenter.pt",
-                       precision="int8")]
+                       runtime="torch-int8")]
     client = client_for(make_settings(models=specs, warmup=False))
     assert client.get("/readyz").status_code == 200, client.get("/readyz").json()
     listing = client.get("/v1/examples", params={"model": "carrada"}).json()

@@ -52,7 +52,7 @@ def test_onnx_labels_and_detections_equal_torch_on_a_store_with_history(history_
     store, float_dir = history_export
     manifest = json.loads((float_dir / "manifest.json").read_text())
     torch_net = load_erasenet(DETECTOR, SEGMENTER)
-    onnx_net = load_erasenet(DETECTOR, SEGMENTER, engine="onnx", onnx_dir=float_dir)
+    onnx_net = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx", onnx_dir=float_dir)
     assert torch_net.history_frames == onnx_net.history_frames == manifest["detector"]["history_frames"] == 1
     assert list(manifest["detector"]["inputs"]) == ["log_power", *HISTORY_INPUTS]
     same = total = with_history = history_moved = 0
@@ -77,7 +77,7 @@ def test_onnx_labels_and_detections_equal_torch_on_a_store_with_history(history_
 
 def test_the_onnx_engine_refuses_history_it_cannot_read(history_export):
     _, float_dir = history_export
-    onnx_net = load_erasenet(DETECTOR, SEGMENTER, engine="onnx", onnx_dir=float_dir)
+    onnx_net = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx", onnx_dir=float_dir)
     cube = np.zeros(onnx_net.profile.shape, np.float32)
     with pytest.raises(ValueError, match="2 earlier frames given, the detector reads 1"):
         onnx_net.segment(cube, kind=InputKind.log_power, history=[cube, cube])

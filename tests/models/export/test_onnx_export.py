@@ -188,7 +188,7 @@ def test_the_exported_detector_stores_no_block_of_zeros(shipped):
 
 def engines(detector: Path, segmenter: Path, out: Path):
     torch.set_num_threads(1)
-    return (load_erasenet(detector, segmenter), load_erasenet(detector, segmenter, engine="onnx", onnx_dir=out))
+    return (load_erasenet(detector, segmenter), load_erasenet(detector, segmenter, runtime="onnx", onnx_dir=out))
 
 
 def test_onnx_engine_segments_like_the_torch_engine(exported):
@@ -216,7 +216,7 @@ def test_onnx_engine_segments_like_the_torch_engine(exported):
 
 def test_numpy_decoding_equals_the_detectors(shipped):
     detector, segmenter, out = shipped
-    onnx = load_erasenet(detector, segmenter, engine="onnx", onnx_dir=out)
+    onnx = load_erasenet(detector, segmenter, runtime="onnx", onnx_dir=out)
     for frame in simulate_sequence(onnx.profile.name, 2, seed=11):
         outputs = onnx._run_detector(transforms.log_power(frame.cube))
         expected = onnx.detector.decode(outputs, k=onnx.max_objects, score_threshold=0.05)[0]

@@ -65,8 +65,8 @@ def test_int8_graphs_are_standard_onnx_and_the_manifest_names_their_precision(in
 
 def test_int8_engine_agrees_with_float_on_roi_labels_and_objects(int8_export):
     float_dir, int8_dir = int8_export
-    reference = load_erasenet(DETECTOR, SEGMENTER, engine="onnx", onnx_dir=float_dir)
-    int8 = load_erasenet(DETECTOR, SEGMENTER, engine="onnx-int8", onnx_dir=int8_dir)
+    reference = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx", onnx_dir=float_dir)
+    int8 = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx-int8", onnx_dir=int8_dir)
     assert reference.engine == "onnx" and int8.engine == "onnx-int8"
     for frame in simulate_sequence("small", 2, seed=2026, sequence_index=3):
         want = reference.segment(frame.cube)
@@ -87,7 +87,7 @@ def test_documented_example_runs_the_int8_graphs_without_torch(int8_export, tmp_
     from tests.models.export.test_onnx_export import run_documented_example
 
     _, int8_dir = int8_export
-    engine = load_erasenet(DETECTOR, SEGMENTER, engine="onnx-int8", onnx_dir=int8_dir)
+    engine = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx-int8", onnx_dir=int8_dir)
     frame = next(simulate_sequence(engine.profile.name, 1, seed=7))
     labels = run_documented_example(int8_dir, frame.cube, tmp_path)
     expected = engine.segment(frame.cube)
@@ -98,9 +98,9 @@ def test_documented_example_runs_the_int8_graphs_without_torch(int8_export, tmp_
 def test_an_onnx_dir_of_the_other_precision_is_refused(int8_export):
     float_dir, int8_dir = int8_export
     with pytest.raises(ValueError, match="int8 export, but float32"):
-        load_erasenet(DETECTOR, SEGMENTER, engine="onnx", onnx_dir=int8_dir)
+        load_erasenet(DETECTOR, SEGMENTER, runtime="onnx", onnx_dir=int8_dir)
     with pytest.raises(ValueError, match="float32 export, but int8"):
-        load_erasenet(DETECTOR, SEGMENTER, engine="onnx-int8", onnx_dir=float_dir)
+        load_erasenet(DETECTOR, SEGMENTER, runtime="onnx-int8", onnx_dir=float_dir)
 
 
 def test_roi_label_agreement_counts_voxels_labelled_by_either():

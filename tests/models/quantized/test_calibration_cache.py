@@ -43,9 +43,9 @@ def cube():
 
 def test_a_second_load_reads_the_calibration_back(calibrations, tiny_checkpoints, cube):
     root, runs = calibrations
-    first = load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    first = load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     assert len(runs) == 1 and len(list(root.glob("*.json"))) == 1
-    second = load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    second = load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     assert len(runs) == 1  # read back, not calibrated
     assert second.precision == "int8" and isinstance(second.segmenter_form, Int8MinkUNet)
     assert second.segmenter_form.activation_scales and all(
@@ -53,30 +53,30 @@ def test_a_second_load_reads_the_calibration_back(calibrations, tiny_checkpoints
         for a, b in zip(first.segmenter_form.activation_scales, second.segmenter_form.activation_scales, strict=True))
     a, b = first.segment(cube), second.segment(cube)
     assert len(a.regions) > 0 and np.array_equal(a.labels, b.labels)
-    load_erasenet(*tiny_checkpoints, precision="int8", score_threshold=0.0, max_objects=2)
+    load_erasenet(*tiny_checkpoints, runtime="torch-int8", score_threshold=0.0, max_objects=2)
     assert len(runs) == 2 and len(list(root.glob("*.json"))) == 2  # other seeds, another ROI: its own calibration
 
 
 def test_a_corrupt_or_stale_calibration_is_calibrated_again(calibrations, tiny_checkpoints, caplog):
     root, runs = calibrations
-    load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     (path,) = root.glob("*.json")
     kept = json.loads(path.read_text())
     record = json.loads(path.read_text())
     record["ranges"]["activation_scales"][0][0] *= 2  # a changed value, its sha256 not
     path.write_text(json.dumps(record))
     with caplog.at_level(logging.WARNING, logger="models.quantized.erasenet"):
-        load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+        load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     assert len(runs) == 2 and "corrupt" in caplog.text
     assert json.loads(path.read_text()) == kept  # written anew
     path.write_text(path.read_text()[:-20])  # cut short
-    load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     assert len(runs) == 3 and json.loads(path.read_text()) == kept
 
 
 def test_a_file_of_another_key_is_refused_as_stale(calibrations, tiny_checkpoints):
     root, _ = calibrations
-    net = load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    net = load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     (path,) = root.glob("*.json")
     key = json.loads(path.read_text())["key"]
     other = {**key, "segmenter_sha256": "0" * 64}
@@ -137,7 +137,7 @@ def test_a_tampered_calibration_is_never_used(sealed, tiny_checkpoints, caplog):
     import hashlib
 
     root, runs = sealed
-    load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     (path,) = root.glob("*.json")
     kept = json.loads(path.read_text())
     record = json.loads(path.read_text())
@@ -147,7 +147,7 @@ def test_a_tampered_calibration_is_never_used(sealed, tiny_checkpoints, caplog):
     record["mac"] = hashlib.sha256(b"guess").hexdigest()
     path.write_text(json.dumps(record))
     with caplog.at_level(logging.WARNING, logger="models.quantized.erasenet"):
-        load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+        load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     assert len(runs) == 2 and "not sealed by this machine's cache key" in caplog.text
     assert json.loads(path.read_text()) == kept
 
@@ -155,13 +155,13 @@ def test_a_tampered_calibration_is_never_used(sealed, tiny_checkpoints, caplog):
 def test_any_error_in_a_sealed_calibration_means_a_fresh_one(sealed, tiny_checkpoints, caplog):
     """A list of the wrong length under a valid seal crashed with IndexError; a 3 GB file was read whole."""
     root, runs = sealed
-    load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+    load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     (path,) = root.glob("*.json")
     record = json.loads(path.read_text())
     record["ranges"]["activation_scales"] = record["ranges"]["activation_scales"][:-1]
     _reseal(path, record)
     with caplog.at_level(logging.WARNING, logger="models.quantized.erasenet"):
-        net = load_erasenet(*tiny_checkpoints, precision="int8", **SEEDS)
+        net = load_erasenet(*tiny_checkpoints, runtime="torch-int8", **SEEDS)
     assert len(runs) == 2 and "activation scale vectors" in caplog.text
     net.segment(next(simulate_sequence("small", 1, seed=5)).cube)
     with path.open("r+b") as huge:

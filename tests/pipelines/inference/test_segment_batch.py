@@ -106,7 +106,7 @@ def test_job_on_the_onnx_engine_writes_what_the_torch_engine_predicts(small_stor
                                                                      monkeypatch):
     monkeypatch.setenv("RADARSEG_ONNX_CACHE", str(tmp_path / "onnx"))
     torch_cfg = _config(f"store:{small_store}", tiny_checkpoints, tmp_path / "torch.zarr", split="val")
-    onnx_cfg = _config(f"store:{small_store}", tiny_checkpoints, tmp_path / "onnx.zarr", split="val", engine="onnx")
+    onnx_cfg = _config(f"store:{small_store}", tiny_checkpoints, tmp_path / "onnx.zarr", split="val", runtime="onnx")
     assert main(onnx_cfg)["written"] == main(torch_cfg)["written"] > 0
     assert len(list((tmp_path / "onnx").glob("*/manifest.json"))) == 1  # exported once, before the shards
     torch_root, onnx_root = open_predictions(torch_cfg.out), open_predictions(onnx_cfg.out)

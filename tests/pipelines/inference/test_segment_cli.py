@@ -37,11 +37,11 @@ def test_segment_command_runs_the_onnx_engine_from_checkpoints_alone(tmp_path, c
     np.save(cube_path, next(simulate_sequence("small", 1, seed=2)).cube)
     args = ["segment", str(cube_path), "--detector", str(det), "--segmenter", str(seg), "--score-threshold", "0",
             "--json"]
-    assert main([*args, "--engine", "onnx"]) == 0
+    assert main([*args, "--runtime", "onnx"]) == 0
     onnx = json.loads(capsys.readouterr().out)
     assert main(args) == 0
     torch = json.loads(capsys.readouterr().out)
-    assert onnx["compute"]["engine"] == "onnx" and torch["compute"]["engine"] == "torch"
+    assert onnx["compute"]["runtime"] == "onnx" and torch["compute"]["runtime"] == "torch"
     assert onnx["compute"]["macs"] == torch["compute"]["macs"]
     assert [o["class_name"] for o in onnx["objects"]] == [o["class_name"] for o in torch["objects"]]
     assert len(list((tmp_path / "cache").glob("*/manifest.json"))) == 1  # exported on first use, into the cache
