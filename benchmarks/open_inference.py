@@ -28,7 +28,7 @@ from benchmarks.recording_export import machine
 from pipelines.demo.serve_process import serving
 from radar.simulate import simulate_sequence
 from radar.transforms import log_power
-from service.http_server import server_command
+from service.server.http_server import server_command
 
 RESULTS = Path(__file__).resolve().parent / "results" / "open_inference.json"
 MODEL = "small"  # the first model the default settings serve (the shipped pair)

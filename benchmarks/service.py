@@ -53,7 +53,7 @@ import httpx  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipelines.demo.serve_process import free_port, stop_process, wait_ready  # noqa: E402
-from service.http_server import server_command  # noqa: E402
+from service.server.http_server import server_command  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "benchmarks" / "results" / "service.json"

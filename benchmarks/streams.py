@@ -24,7 +24,7 @@ import numpy as np
 from benchmarks.harness import int_options_main
 from pipelines.demo.serve_process import serving
 from radar.simulate import simulate_sequence
-from service.http_server import server_command
+from service.server.http_server import server_command
 
 RESULTS = Path(__file__).resolve().parent / "results" / "streams.json"
 NPY = {"content-type": "application/x-npy"}

@@ -9,18 +9,18 @@ from typing import Annotated
 from fastapi import Depends, Request, Security
 from fastapi.security import APIKeyHeader, HTTPAuthorizationCredentials, HTTPBearer
 
-from service.billing import Billing
-from service.errors import ApiError
+from service.accounting.billing import Billing
+from service.accounting.ledger import Ledger
+from service.accounting.metrics import ServiceMetrics
+from service.accounting.tenants import Authenticator, Principal
 from service.example_cache import ExampleCache
+from service.http.errors import ApiError
 from service.inference import ModelPool
-from service.ledger import Ledger
-from service.metrics import ServiceMetrics
+from service.inputs.upload import UploadGate
 from service.settings import Settings
-from service.stream_history import StreamHistory
-from service.stream_recording import StreamRecordings
-from service.stream_store import StreamStore
-from service.tenants import Authenticator, Principal
-from service.upload import UploadGate
+from service.streams.history import StreamHistory
+from service.streams.recording import StreamRecordings
+from service.streams.store import StreamStore
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """The app factory: ``create_app(settings)`` builds a FastAPI app that owns its model pool, usage
 ledger and metrics registry. ``python -m service`` (``radarseg serve``) runs it behind the HTTP limits of the
-settings (``service.http_server``), ``uvicorn --factory service.main:create_app`` plainly, and Ray Serve through
+settings (``service.server.http_server``), ``uvicorn --factory service.main:create_app`` plainly, and Ray Serve through
 :func:`build_app`.
 
 Models load and the ledger opens in the lifespan, so importing this module does no work; when a
@@ -26,24 +26,24 @@ from sqlalchemy.exc import SQLAlchemyError
 from starlette.concurrency import run_in_threadpool
 
 from models.heap import freeze_loaded_heap
-from service.billing import Billing
+from service.accounting.billing import Billing
+from service.accounting.ledger import Ledger
+from service.accounting.metrics import MetricsMiddleware, ServiceMetrics
+from service.accounting.tenants import Authenticator
 from service.deps import ServiceState
-from service.errors import DeclaredBodyLimit, install_error_handlers
 from service.example_cache import ExampleCache
+from service.http.errors import DeclaredBodyLimit, install_error_handlers
+from service.http.security_headers import SecurityHeaders
 from service.inference import ModelPool
-from service.ledger import Ledger
-from service.metrics import MetricsMiddleware, ServiceMetrics
-from service.query import reject_unknown_query
+from service.inputs.query import reject_unknown_query
+from service.inputs.unread_body import CloseOnUnreadBody
+from service.inputs.upload import UploadGate
 from service.routes import examples, health, metrics, models, open_inference, segment, streams, usage, viewer
 from service.routes.docs import install_docs
 from service.schemas import ErrorBody
-from service.security_headers import SecurityHeaders
 from service.settings import DEPLOYMENT_NAME, Settings  # noqa: F401 (DEPLOYMENT_NAME: deploy/serve.yaml's name)
-from service.stream_history import StreamHistory
-from service.stream_store import StreamStore
-from service.tenants import Authenticator
-from service.unread_body import CloseOnUnreadBody
-from service.upload import UploadGate
+from service.streams.history import StreamHistory
+from service.streams.store import StreamStore
 
 log = logging.getLogger(__name__)
 
@@ -116,7 +116,7 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
     install_error_handlers(app)
     install_docs(app)
     # FastAPI's body limit on the one route that reads a body (GET routes never read one).
-    # The API routes refuse query parameters they do not take (service.query); the viewer page reads its own.
+    # The API routes refuse query parameters they do not take (service.inputs.query); the viewer page reads its own.
     strict = [Depends(reject_unknown_query)]
     app.include_router(segment.router, max_body_size=settings.max_body_bytes, dependencies=strict)
     app.include_router(streams.router, max_body_size=settings.max_body_bytes, dependencies=strict)
@@ -135,7 +135,7 @@ def create_app(settings: Settings | None = None, *, load_in_background: bool = F
 
 def _document_errors_as_sent(app: FastAPI) -> None:
     """The OpenAPI document as the service answers: parameter validation errors in the ErrorBody shape
-    (service.errors) instead of FastAPI's default HTTPValidationError, and the 400 for ambiguous credentials
+    (service.http.errors) instead of FastAPI's default HTTPValidationError, and the 400 for ambiguous credentials
     on every operation that takes a key (service.deps.get_principal)."""
     build = app.openapi
 

@@ -126,14 +126,14 @@ class Settings(BaseSettings):
     max_upload_bytes: Annotated[int, Field(ge=1024, le=16 * 2**30)] = 512 * 2**20  # their announced bytes
     max_tenant_uploads: Annotated[int, Field(ge=1, le=4096)] = 8  # the same bounds per tenant
     max_tenant_upload_bytes: Annotated[int, Field(ge=1024, le=16 * 2**30)] = 2 * (64 * 2**20 + 65536)
-    # HTTP head limits (the `service.http_server` runner enforces them before the app sees a request): 431 beyond
+    # HTTP head limits (the `service.server.http_server` runner enforces them before the app sees a request): 431 beyond
     max_header_bytes: Annotated[int, Field(ge=1024, le=2**20)] = 65536  # request line and headers together
     max_headers: Annotated[int, Field(ge=8, le=1000)] = 100
     header_timeout_s: Annotated[float, Field(ge=0.5, le=600)] = 30.0  # a request head complete within this (408)
     # writing one answer: from the first time the client's socket stops taking it, the answer must be taken within
     # this, or the connection is cut (a client reading at 100 bytes/s holds no buffer for long)
     write_timeout_s: Annotated[float, Field(ge=0.5, le=3600)] = 60.0
-    # Connections (the `service.http_server` runner): at most this many open at once; a new one beyond closes the
+    # Connections (the `service.server.http_server` runner): at most this many open at once; a new one beyond closes the
     # connection that has waited longest for a request head (idle keep-alive or a stalled head), or is refused
     # with 503 when every one is busy. None: the process's file limit (RLIMIT_NOFILE, raised to its hard limit
     # when allowed) less FILE_RESERVE descriptors for the ledger, checkpoints and logs, at most 4096.
@@ -167,7 +167,7 @@ class Settings(BaseSettings):
     stream_claim_s: Annotated[float, Field(ge=1, le=3600)] = 30.0
     max_streams_per_tenant: Annotated[int, Field(ge=1, le=10000)] = 16
     # a detector that reads earlier frames gets a stream's frames before this one from the replica that ran them
-    # (service/stream_history.py), kept as float16 within this many bytes over every stream (0: never kept)
+    # (service/streams/history.py), kept as float16 within this many bytes over every stream (0: never kept)
     stream_history_bytes: Annotated[int, Field(ge=0, le=2**36)] = 256 * 2**20
 
     # the example sequences of GET /v1/examples (each simulated once per radar, unbilled) kept within this many bytes

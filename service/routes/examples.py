@@ -13,8 +13,8 @@ from urllib.parse import quote
 from fastapi import APIRouter, Path, Query, Response
 
 from service.deps import Caller, ServiceState, State
-from service.errors import ApiError
 from service.example_cache import ExampleSequence, NoExamples
+from service.http.errors import ApiError
 from service.inference import ServedModel
 from service.routes.errors_doc import error_responses
 from service.schemas import ErrorBody, ExampleInfo, ExampleObject, ExamplesResponse

@@ -6,7 +6,7 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from service.deps import State
-from service.public_text import without_directories
+from service.http.public_text import without_directories
 from service.schemas import Health, Readiness
 
 router = APIRouter(tags=["health"])

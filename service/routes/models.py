@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from service.deps import Caller, State
-from service.public_text import without_directories
+from service.http.public_text import without_directories
 from service.routes.errors_doc import error_responses
 from service.schemas import ModelInfo, ModelsResponse
 

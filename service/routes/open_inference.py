@@ -9,9 +9,9 @@
     log_power  FP16/FP32/FP64 [R, A, D] its log power in dB
     adc        FP32/FP64 [S, C, V, 2]   raw ADC samples (samples, chirps, virtual elements), real and imaginary
     adc_iq     INT16 [S, C, V, 2] or [C, RX, S, 2]  the same samples as a TI radar gives them, int16 with I and Q on a
-               trailing axis of 2, in either layout /v1/segment?input=adc takes (service.adc_upload: "sck", or "ti"
-               (chirps, rx, samples), told apart by shape); UINT16 is read too, only to be refused as /v1 refuses
-               undecoded words
+               trailing axis of 2, in either layout /v1/segment?input=adc takes (service.inputs.adc_upload: "sck",
+               or "ti" (chirps, rx, samples), told apart by shape); UINT16 is read too, only to be refused as /v1
+               refuses undecoded words
 
 and gets the outputs ``labels`` (UINT8 [R, A, D]), ``ra_mask`` (UINT8 [R, A]), ``rd_mask`` (UINT8 [R, D]),
 ``objects`` (FP32 [K, 8], columns in its parameters) and ``compute`` (BYTES [1]: the request's compute block, id and
@@ -37,13 +37,15 @@ from starlette.requests import ClientDisconnect
 
 from models.erasenet.model import SegmentedObject
 from radar.adc import LAYOUTS, adc_shape
-from service.adc_upload import AXES, AdcFrameInput
+from service.accounting.tenants import Principal
 from service.deps import Caller, ServiceState, State
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.inference import ServedModel
-from service.json_body import declared_length
-from service.json_tensors import MAX_VALUE_CHARS, max_json_values
-from service.open_inference import (
+from service.inputs.adc_upload import AXES, AdcFrameInput
+from service.inputs.json_body import declared_length
+from service.inputs.upload import ExpectedCube, check_values, paced
+from service.protocols.json_tensors import MAX_VALUE_CHARS, max_json_values
+from service.protocols.open_inference import (
     HEADER_LENGTH,
     ExpectedInputs,
     InferRequest,
@@ -57,8 +59,6 @@ from service.open_inference import (
 from service.routes.errors_doc import error_responses
 from service.routes.segment import Admitted, run_billed
 from service.schemas import InputKind, MaskEncoding
-from service.tenants import Principal
-from service.upload import ExpectedCube, check_values, paced
 
 router = APIRouter(tags=["open inference protocol"])
 
@@ -103,7 +103,7 @@ def protocol_error(status: int, message: str, headers: dict[str, str] | None = N
 
 def _input_shapes(served: ServedModel) -> ExpectedInputs:
     """Input name -> (the shapes it may have, accepted datatypes); ``adc_iq``: a frame in each layout of
-    service.adc_upload, with I and Q on a trailing axis of 2."""
+    service.inputs.adc_upload, with I and Q on a trailing axis of 2."""
     profile = served.net.profile
     shapes = {"complex": [(*profile.shape, 2)], "magnitude": [profile.shape], "log_power": [profile.shape],
               "adc": [(*adc_shape(profile), 2)],
@@ -245,9 +245,9 @@ async def _read_body(request: Request, state: ServiceState, tenant: str, served:
 
 
 def _cube(parsed: InferRequest, served: ServedModel) -> tuple[InputKind, np.ndarray]:
-    """The one input as the cube /v1/segment would have read (complex from its trailing axis of 2; an ADC frame
-    decoded to complex samples in the "sck" layout by service.adc_upload, as /v1/segment?input=adc decodes it), its
-    values checked as /v1/segment checks them."""
+    """The one input as the cube /v1/segment would have read (complex from its trailing axis of 2; an ADC
+    frame decoded to complex samples in the "sck" layout by service.inputs.adc_upload, as /v1/segment?input=adc
+    decodes it), its values checked as /v1/segment checks them."""
     if len(parsed.inputs) != 1:
         raise ProtocolError(400, f"send exactly one input (one of {list(INPUTS)}), got {sorted(parsed.inputs)}")
     ((name, array),) = parsed.inputs.items()

@@ -19,15 +19,17 @@ from models.erasenet.model import SegmentationResult
 from radar.adc import adc_shape
 from radar.input_kind import SCHEMA_CONTENT
 from radar.schema import SchemaMismatch, check_schema
-from service.adc_upload import AdcFrameInput
-from service.capture_upload import read_capture_body
+from service.accounting.tenants import Principal
 from service.deps import Caller, ServiceState, State
 from service.encoding import encode_array
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.inference import NotReady, Saturated, ServedModel
 from service.input_views import input_views
-from service.json_body import declared_length
-from service.json_header import load_json_header
+from service.inputs.adc_upload import AdcFrameInput
+from service.inputs.capture_upload import read_capture_body
+from service.inputs.json_body import declared_length
+from service.inputs.json_header import load_json_header
+from service.inputs.upload import ExpectedCube, check_declared_length, paced, read_cube
 from service.routes.errors_doc import error_responses
 from service.schemas import (
     Compute,
@@ -39,8 +41,6 @@ from service.schemas import (
     SegmentResponse,
     VoxelsOut,
 )
-from service.tenants import Principal
-from service.upload import ExpectedCube, check_declared_length, paced, read_cube
 
 router = APIRouter(tags=["segmentation"])
 

@@ -3,7 +3,7 @@
 ``POST /v1/streams`` opens one (201 ``{"id": ...}``), ``POST /v1/streams/{id}/frames?seq=N`` takes a cube and
 answers the /v1/segment answer with each object's ``track_id`` and velocity vector and the stream's tracks,
 ``GET /v1/streams/{id}`` shows it, ``DELETE /v1/streams/{id}`` closes it. The tracker's state lives in the ledger's
-database (:mod:`service.stream_store`): any replica serves the next frame, and one restarted mid-stream loses no
+database (:mod:`service.streams.store`): any replica serves the next frame, and one restarted mid-stream loses no
 track. A frame is billed as a /v1/segment request, once its tracks are written: a frame whose stream was closed
 (DELETE) while it ran is a 404 ``stream_closed`` and one whose hold was taken by another frame a 409
 ``stream_claim_lost``, neither billed; every billed answer carries its compute and request id.
@@ -24,10 +24,10 @@ from fastapi import APIRouter, Header, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
 from radar.tracking import Measurements, Track, Tracker, TrackerConfig, TrackerStep, TrackStatus
+from service.accounting.ledger import utc_now
 from service.deps import Caller, ServiceState, State
-from service.errors import ApiError
-from service.json_body import json_request_body, read_json
-from service.ledger import utc_now
+from service.http.errors import ApiError
+from service.inputs.json_body import json_request_body, read_json
 from service.routes.errors_doc import error_responses
 from service.routes.segment import REQUEST_BODY, admit, read_body, respond, run_billed
 from service.schemas import (
@@ -39,8 +39,8 @@ from service.schemas import (
     TrackedObjectOut,
     TrackOut,
 )
-from service.stream_recording import RecordingFormat, record_frame, recording_bytes
-from service.stream_store import Claim, Refusal, StreamRow
+from service.streams.recording import RecordingFormat, record_frame, recording_bytes
+from service.streams.store import Claim, Refusal, StreamRow
 
 router = APIRouter(tags=["streams"])
 
@@ -103,7 +103,7 @@ async def create_stream(request: Request, state: State, caller: Caller) -> Strea
     """A new stream on ``model`` (the default model if omitted); its frames are tracked together. At most
     ``max_streams_per_tenant`` live streams per tenant (429 beyond, Retry-After until the first expires). The JSON
     body is read only once the key is checked, and is at most ``max_json_body_bytes`` (413 beyond)."""
-    body = await read_json(request, state, caller.tenant, StreamCreate)
+    body = await read_json(request, state.settings, state.uploads, caller.tenant, StreamCreate)
     try:
         served = state.pool.get(None if body is None else body.model)
     except KeyError as exc:
@@ -144,7 +144,7 @@ async def stream_recording(stream_id: StreamId, state: State, caller: Caller,
                                            "schemas), ros2 (ROS 2 messages in MCAP) or rrd (Rerun)")]
                            = RecordingFormat.mcap) -> Response:
     """The frames of the stream this replica segmented, as a recording: points, objects with track ids and
-    velocity arrows, RA / RD label maps, each frame at ``seq`` frame periods (service/stream_recording.py)."""
+    velocity arrows, RA / RD label maps, each frame at ``seq`` frame periods (service/streams/recording.py)."""
     stream = await state.billing.read(state.streams.get, caller.tenant, stream_id)
     if isinstance(stream, Refusal):
         raise _refused(stream, state, stream_id)

@@ -6,9 +6,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
+from service.accounting.ledger import DayTotals, utc_today
 from service.deps import Caller, State
-from service.errors import ApiError
-from service.ledger import DayTotals, utc_today
+from service.http.errors import ApiError
 from service.routes.errors_doc import error_responses
 from service.schemas import DayUsage, HeldQuota, TenantUsage, UsageResponse, UsageTotals
 

@@ -13,7 +13,7 @@ from importlib.resources import files
 from fastapi import APIRouter
 from fastapi.responses import HTMLResponse, Response
 
-from service.errors import ApiError
+from service.http.errors import ApiError
 
 router = APIRouter(tags=["viewer"])
 

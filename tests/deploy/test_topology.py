@@ -18,7 +18,7 @@ import yaml
 
 from pipelines.datasets.store import open_store
 from pipelines.inference.predictions_store import COMPUTE_FIELDS, open_predictions
-from service.ledger import Ledger
+from service.accounting.ledger import Ledger
 from tests.deploy.conftest import radarseg_serve_command, submit_job, uvicorn_command
 from tests.pipelines.conftest import BIN, REPO, free_port, ray_env
 from tests.service.conftest import NPY, npy_bytes

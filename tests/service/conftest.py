@@ -91,7 +91,7 @@ def postgres_url() -> str:
 @pytest.fixture
 def pg_prefix(postgres_url) -> Iterator[str]:
     """A table prefix of this test's own; its ledger tables are dropped afterwards."""
-    from service.ledger import Ledger
+    from service.accounting.ledger import Ledger
 
     prefix = f"t{uuid.uuid4().hex[:10]}_"
     yield prefix
@@ -179,7 +179,7 @@ def GuardedServer(env: dict[str, str], log_path: Path, port: int | None = None, 
                   log_level: str = "warning") -> ApiProcess:
     """A ``python -m service`` process on loopback (a free port unless given): the app under uvicorn with
     the settings' HTTP limits (head size and count, port bound before the models load)."""
-    from service.http_server import server_command
+    from service.server.http_server import server_command
 
     port = port or free_port()
     return ApiProcess(server_command(port, log_level), port, env, log_path)

@@ -25,7 +25,8 @@ def _rss_mb(pid: int) -> float:
 
 def test_no_route_reads_a_body_before_its_dependencies(make_settings):
     """FastAPI reads a declared Body() parameter before it resolves any dependency (the key check among them):
-    routes that take a body read it themselves after authentication (service.json_body, service.upload)."""
+    routes that take a body read it themselves after authentication (service.inputs.json_body,
+    service.inputs.upload)."""
     from service.main import create_app
 
     app = create_app(make_settings(api_keys=KEYS))

@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 import httpx
 import pytest
 
-from service.ledger import Ledger
+from service.accounting.ledger import Ledger
 from tests.service.conftest import KEYS, NPY, ApiProcess, GuardedServer, server_env
 
 pytestmark = pytest.mark.slow

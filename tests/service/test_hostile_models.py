@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from models.checkpoint import load_checkpoint, save_checkpoint
-from service.public_text import printable, without_directories
+from service.http.public_text import printable, without_directories
 from service.settings import ModelSpec
 from tests.service.conftest import KEYS
 

@@ -1,5 +1,6 @@
-"""The Open Inference Protocol's tensor codec (service/open_inference.py) on its own: JSON and binary inputs read as
-arrays, every mistake refused with a message naming what was expected, outputs encoded as tritonclient decodes them."""
+"""The Open Inference Protocol's tensor codec (service/protocols/open_inference.py) on its own: JSON and binary
+inputs read as arrays, every mistake refused with a message naming what was expected, outputs encoded as
+tritonclient decodes them."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 from tritonclient.http import InferResult
 
-from service.open_inference import ProtocolError, RequestedOutput, encode_response, parse_request
+from service.protocols.open_inference import ProtocolError, RequestedOutput, encode_response, parse_request
 
 EXPECTED = {"log_power": (((2, 3),), ("FP16", "FP32")), "complex": (((2, 3, 2),), ("FP32",)),
             "adc_iq": (((4, 5, 2), (5, 4, 2)), ("INT16",))}

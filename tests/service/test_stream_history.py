@@ -1,4 +1,4 @@
-"""A stream's earlier frames for a detector that reads them (service/stream_history.py), and through the service."""
+"""A stream's earlier frames for a detector that reads them (service/streams/history.py), and through the service."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from models.erasenet.model import EraseNet
 from radar import transforms
 from radar.simulate import simulate_sequence
 from service.settings import ModelSpec
-from service.stream_history import StreamHistory
+from service.streams.history import StreamHistory
 from tests.conftest import save_tiny_checkpoints
 from tests.service.conftest import NPY, npy_bytes
 

@@ -130,7 +130,7 @@ def test_too_many_streams_says_to_retry_when_the_first_stream_expires(make_setti
 def test_log_lines_escape_the_control_characters_of_names(caplog):
     import logging
 
-    from service.public_text import EscapeControlCharacters
+    from service.http.public_text import EscapeControlCharacters
 
     record = logging.LogRecord("service", logging.INFO, __file__, 1, "model %s ready: preset %s", ("tiny",
                                "lab\r\n2026-01-01 INFO forged"), None)

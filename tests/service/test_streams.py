@@ -1,4 +1,4 @@
-"""Streams (service.routes.streams, service.stream_store): order, gaps, tenancy, expiry, the per-tenant cap, one frame
+"""Streams (service.routes.streams, service.streams.store): order, gaps, tenancy, expiry, the per-tenant cap, one frame
 at a time, billing per frame, and a replica restarted mid-stream that continues every track."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from radar.simulate import simulate_sequence
-from service.ledger import Ledger
+from service.accounting.ledger import Ledger
 from service.settings import ModelSpec
-from service.stream_store import Refusal, StreamStore
+from service.streams.store import Refusal, StreamStore
 from tests.service.conftest import KEYS, NPY, npy_bytes
 
 AUTH = {tenant: {"authorization": f"Bearer {key}"} for key, tenant in KEYS.items()}

@@ -14,8 +14,8 @@ import httpx
 import numpy as np
 import pytest
 
-from service.billing import seconds_to_utc_midnight
-from service.ledger import Ledger
+from service.accounting.billing import seconds_to_utc_midnight
+from service.accounting.ledger import Ledger
 from tests.service.conftest import NPY, GuardedServer, StartWatch, npy_bytes, server_env
 from tests.service.raw_http import http_head, json_error, raw_exchange, read_answer
 

@@ -9,7 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 from pydantic import ValidationError
 
-from service.ledger import Ledger, QuotaExceeded
+from service.accounting.ledger import Ledger, QuotaExceeded
 from service.settings import Settings
 from tests.service.conftest import KEYS, NPY
 
@@ -223,8 +223,8 @@ def _billing(tmp_path, **settings):
     10,000 MACs)."""
     from types import SimpleNamespace
 
-    from service.billing import Billing
-    from service.metrics import ServiceMetrics
+    from service.accounting.billing import Billing
+    from service.accounting.metrics import ServiceMetrics
 
     ledger = Ledger(f"sqlite:///{tmp_path / 'l.sqlite3'}")
     ledger.create()
@@ -251,7 +251,7 @@ def test_the_estimate_is_the_tenants_own_and_a_refusal_never_raises_it(tmp_path)
 def test_admission_counts_every_affordable_request_and_retry_after_names_the_lease_deadline(tmp_path):
     """with quota for 6 requests in flight only 3 were admitted, and the 429 caused by the
     tenant's own leases said to wait until midnight."""
-    from service.billing import quota_error, seconds_to_utc_midnight
+    from service.accounting.billing import quota_error, seconds_to_utc_midnight
 
     billing, served = _billing(tmp_path, tenant_quotas={"anonymous": 7 * 9000})
     ledger = billing.ledger
@@ -314,7 +314,7 @@ def test_compute_that_ran_is_billed_even_past_the_quota_and_the_next_request_is_
     import asyncio
 
     from models.erasenet.compute_report import FrameCompute
-    from service.errors import ApiError
+    from service.http.errors import ApiError
 
     billing, served = _billing(tmp_path, daily_mac_quota=20_000)  # the first estimate (16,000) fits
 

@@ -8,10 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from service.errors import ApiError
+from service.http.errors import ApiError
+from service.inputs.upload import ExpectedCube, UploadGate, check_declared_length, check_values
 from service.schemas import InputKind
 from service.settings import Settings
-from service.upload import ExpectedCube, UploadGate, check_declared_length, check_values
 
 MB = 10**6
 

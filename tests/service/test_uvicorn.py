@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-from service.ledger import Ledger
+from service.accounting.ledger import Ledger
 from service.settings import REPO_ROOT, Settings, resolve_path
 from tests.service.conftest import NPY, npy_bytes, server_env
 

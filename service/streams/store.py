@@ -23,7 +23,7 @@ from typing import Any
 
 from sqlalchemy import BigInteger, Column, DateTime, String, Table, Text, delete, func, select, text, update
 
-from service.ledger import Ledger, utc_now
+from service.accounting.ledger import Ledger, utc_now
 
 
 class Refusal(StrEnum):

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from service.errors import ApiError
+from service.http.errors import ApiError
 
 MAX_NUMBER_CHARS = 64  # a number literal (sign, digits, exponent) in a header: far more than any float needs
 MAX_HEADER_JSON_BYTES = 8192

@@ -16,7 +16,7 @@ from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.error_types import ERROR_TYPES
+from service.http.error_types import ERROR_TYPES
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ def error_response(status: int, message: str, *, error: str | None = None, heade
                    **extra: Any) -> JSONResponse:
     """The JSON error body every handler answers with."""
     body = {"error": error or ERROR_TYPES.get(status, "error"), "detail": message, **extra}
-    # nosniff here too: a 500 is answered outside the app's middleware (service.security_headers)
+    # nosniff here too: a 500 is answered outside the app's middleware (service.http.security_headers)
     return JSONResponse(body, status_code=status, headers={"X-Content-Type-Options": "nosniff", **(headers or {})})
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from service.json_tensors import JsonTensorError, NumericList, max_json_body, split_request
+from service.protocols.json_tensors import JsonTensorError, NumericList, max_json_body, split_request
 
 HEADER_LENGTH = "Inference-Header-Content-Length"
 DATATYPES = {"BOOL": "?", "UINT8": "u1", "UINT16": "<u2", "UINT32": "<u4", "UINT64": "<u8", "INT8": "i1",
@@ -56,8 +56,8 @@ MAX_HEADER_LENGTH_DIGITS = len(str(MAX_HEADER_BYTES))
 
 def _json_header(body: bytes | bytearray | memoryview, header_length: str | None
                  ) -> tuple[dict[str, Any], memoryview, dict[str, NumericList]]:
-    """The request's JSON (its numeric ``data`` lists cut out, see service.json_tensors), the binary tensor data
-    after it and the cut lists by marker."""
+    """The request's JSON (its numeric ``data`` lists cut out, see service.protocols.json_tensors), the binary
+    tensor data after it and the cut lists by marker."""
     view = memoryview(body)
     if header_length is None:
         try:
@@ -182,7 +182,7 @@ def max_input_values(expected: ExpectedInputs) -> int:
 
 def max_request_bytes(expected: ExpectedInputs, *, binary: bool) -> int:
     """The longest body a request for ``expected`` could need: with binary tensor data, the JSON header and the
-    largest input in its widest datatype; as JSON, the largest input's numbers (service.json_tensors)."""
+    largest input in its widest datatype; as JSON, the largest input's numbers (service.protocols.json_tensors)."""
     if not binary:
         return max_json_body(max_input_values(expected))
     return MAX_HEADER_BYTES + max(int(np.prod(shape)) * max(np.dtype(DATATYPES[d]).itemsize for d in datatypes)

@@ -10,7 +10,7 @@ import hashlib
 import hmac
 from dataclasses import dataclass
 
-from service.errors import ApiError
+from service.http.errors import ApiError
 from service.settings import ANONYMOUS_TENANT, Settings
 
 

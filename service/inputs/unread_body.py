@@ -1,7 +1,7 @@
 """``Connection: close`` on an answer given before the request's body was read to its end (a 415, 401 or 429 of
 ``POST /v1/segment``, ``GET /healthz`` announcing a body): the rest of that body is no request, so the server closes
-the connection after the answer (``service.http_server``), and the header tells the client so instead of letting it
-send its next request into a closing socket."""
+the connection after the answer (``service.server.http_server``), and the header tells the client so instead of
+letting it send its next request into a closing socket."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 (:mod:`radar.recorders.frames`: labelled voxels as points, objects with their track ids and velocity vectors, RA /
 RD label maps) and written on request as MCAP (Foxglove's schemas), MCAP of ROS 2 messages or Rerun's ``.rrd``.
 
-Like the earlier frames a stream's detector reads (:mod:`service.stream_history`), the recording is the replica's:
+Like the earlier frames a stream's detector reads (:mod:`service.streams.history`), the recording is the replica's:
 frames run by another replica (or before a restart) are not in it, and a frame's time is its ``seq`` frame periods
 (a gap stays a gap). Streams are kept in least-recently-used order within ``max_bytes`` over every stream (a small
 frame's record is tens of KB: its labelled voxels and two label maps); a stream beyond it loses its oldest frames

@@ -5,7 +5,7 @@ A model whose detector reads ``history_frames`` earlier frames gets, on each fra
 the frames before it in the stream, when this replica ran them and they are consecutive (``seq - 1``, ``seq - 2``,
 ...). Anything else (a gap, a frame run by another replica, a restarted replica, a stream evicted for memory) is an
 absent earlier frame, which the detector reads as a single cube: the answer stays correct, only without history.
-The tracker's state, which must survive replicas, lives in the ledger's database (service/stream_store.py); a
+The tracker's state, which must survive replicas, lives in the ledger's database (service/streams/store.py); a
 cube per frame does not belong there. Frames are kept as float16 log power (1 MB per ``small`` frame), in
 least-recently-used order under ``max_bytes``.
 """

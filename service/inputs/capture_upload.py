@@ -22,9 +22,9 @@ from radar.errors import DataError
 from radar.profiles import RadarProfile
 from radar.ti.capture import frames_from_bytes
 from radar.ti.dca1000 import CaptureFormat, FrameGeometry
-from service.errors import ApiError
+from service.http.errors import ApiError
+from service.inputs.upload import ExpectedCube, UploadGate, UploadTicket, check_values, paced
 from service.settings import Settings
-from service.upload import ExpectedCube, UploadGate, UploadTicket, check_values, paced
 
 SOURCE = "capture"  # how the reader's lines name the body
 

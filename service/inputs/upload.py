@@ -25,8 +25,8 @@ from radar.errors import DataError
 from radar.input_kind import ACCEPTED_DTYPES, InputKindError, resolve_kind
 from radar.input_kind import check_values as check_kind_values
 from radar.io.npy import MAGIC, MAX_HEADER_LEN, NpyHeader, parse_npy_header
-from service.adc_upload import AdcFrameInput
-from service.errors import ApiError
+from service.http.errors import ApiError
+from service.inputs.adc_upload import AdcFrameInput
 from service.schemas import InputKind
 from service.settings import Settings
 
@@ -34,7 +34,7 @@ from service.settings import Settings
 @dataclass(frozen=True)
 class ExpectedCube:
     """What a model accepts: its cube shape and the input kind the client announced; for ``?input=adc``, ``adc``:
-    the ADC frame's layouts and sample types (service.adc_upload)."""
+    the ADC frame's layouts and sample types (service.inputs.adc_upload)."""
 
     model: str
     shape: tuple[int, int, int]

@@ -1,5 +1,5 @@
 """Quota billing of segmentation requests: a lease on the tenant's daily MAC quota before inference, the
-request billed after it (``service.ledger`` holds the counters and the two atomic steps).
+request billed after it (``service.accounting.ledger`` holds the counters and the two atomic steps).
 
 The reservation estimate is the tenant's own: the largest MACs billed to it for the model among its last
 ``HISTORY`` requests (in the ledger, so it survives restarts and is shared by every process on the same ledger);
@@ -35,10 +35,10 @@ from typing import Any, TypeVar
 from sqlalchemy.exc import SQLAlchemyError
 
 from models.erasenet.compute_report import FrameCompute
-from service.errors import ApiError
+from service.accounting.ledger import DayTotals, Lease, Ledger, QuotaExceeded
+from service.accounting.metrics import ServiceMetrics
+from service.http.errors import ApiError
 from service.inference import ServedModel
-from service.ledger import DayTotals, Lease, Ledger, QuotaExceeded
-from service.metrics import ServiceMetrics
 from service.schemas import RequestUsage
 from service.settings import Settings
 

@@ -15,9 +15,9 @@ from fastapi import Request
 from pydantic import BaseModel, ValidationError
 from starlette.requests import ClientDisconnect
 
-from service.deps import ServiceState
-from service.errors import ApiError
-from service.upload import paced
+from service.http.errors import ApiError
+from service.inputs.upload import UploadGate, paced
+from service.settings import Settings
 
 M = TypeVar("M", bound=BaseModel)
 MAX_LENGTH_DIGITS = 19  # a Content-Length beyond 2**63 is no length any client sends
@@ -38,10 +38,11 @@ def _too_large(limit: int, what: str) -> ApiError:
                     headers={"Connection": "close"})
 
 
-async def read_json(request: Request, state: ServiceState, tenant: str, model: type[M]) -> M | None:
+async def read_json(request: Request, settings: Settings, uploads: UploadGate, tenant: str,
+                    model: type[M]) -> M | None:
     """The request's JSON body as ``model`` (None for an empty body); 413 past ``max_json_body_bytes``, 415 for a
     body that is not ``application/json``, 422 for one that does not validate, 503 when the upload gate is full."""
-    limit = state.settings.max_json_body_bytes
+    limit = settings.max_json_body_bytes
     length = declared_length(request)
     if length is not None and length > limit:
         raise _too_large(limit, f"of {length} bytes")
@@ -51,9 +52,9 @@ async def read_json(request: Request, state: ServiceState, tenant: str, model: t
     if media_type != "application/json":
         raise ApiError(415, f"content type {media_type or '(none)'!r} is not accepted: send application/json")
     data = bytearray()
-    with state.uploads.admit(tenant, length) as ticket:
+    with uploads.admit(tenant, length) as ticket:
         try:
-            async for chunk in paced(request.stream(), state.settings):
+            async for chunk in paced(request.stream(), settings):
                 data += chunk
                 if len(data) > limit:
                     raise _too_large(limit, f"of more than {limit} bytes")

@@ -1,5 +1,5 @@
-"""The ``error`` field of each HTTP status the service answers with (its own module: ``service.http_server`` answers
-refusals with it before the app, and FastAPI, have been imported)."""
+"""The ``error`` field of each HTTP status the service answers with (its own module: ``service.server.http_server``
+answers refusals with it before the app, and FastAPI, have been imported)."""
 
 ERROR_TYPES = {
     400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found", 405: "method_not_allowed",

@@ -7,7 +7,7 @@ from typing import Any
 
 from fastapi import Request
 
-from service.errors import ApiError
+from service.http.errors import ApiError
 
 
 def known_query_parameters(request: Request) -> list[str]:

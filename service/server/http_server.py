@@ -9,7 +9,7 @@ What an ASGI app cannot do itself, because it happens before a request reaches i
   it sent before and whether or not it has a key: a request head must be complete within ``header_timeout_s``
   of its first byte, of the connection, or of the previous answer (408; arriving bytes never restart that
   clock), an idle connection between requests is closed after ``keep_alive_s`` (uvicorn's own
-  ``timeout_keep_alive``), a body is paced by the app (``service.upload.paced``), and a connection whose request
+  ``timeout_keep_alive``), a body is paced by the app (``service.inputs.upload.paced``), and a connection whose request
   was answered before its body arrived (``GET /healthz`` announcing a megabyte) is closed after the answer;
 - at most ``max_connections`` connections are open (the file limit bounds them anyway: see
   :func:`connection_cap`); a new one beyond closes the connection that has waited longest for a request head,
@@ -44,10 +44,10 @@ import httptools
 import uvicorn
 from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 
-from service.error_types import ERROR_TYPES
-from service.public_text import EscapeControlCharacters
+from service.http.error_types import ERROR_TYPES
+from service.http.public_text import EscapeControlCharacters
+from service.server.starting_app import StartingApp
 from service.settings import Settings
-from service.starting_app import StartingApp
 
 log = logging.getLogger(__name__)
 
@@ -350,7 +350,7 @@ def server_command(port: int, log_level: str = "warning") -> list[str]:
 
 def serve(settings: Settings, *, log_level: str = "info") -> None:
     """Bind the port and answer on it at once; the app is built (imports) on a thread and loads its models in the
-    background (``service.starting_app``); run until stopped."""
+    background (``service.server.starting_app``); run until stopped."""
     sock = bind(settings.host, settings.port)
     refusals = RefusalCounter()
 
