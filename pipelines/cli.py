@@ -10,6 +10,7 @@ import time
 from typing import Any, NamedTuple
 
 from pipelines.jobs import USER_ERRORS, report_error, run_job, with_defaults_shown
+from pipelines.radar_option import RADAR_HELP, add_radar_option
 from pipelines.runtime_option import add_runtime_option, runtime_of
 from radar.centres import SCORE_THRESHOLD
 from radar.errors import UserError
@@ -67,11 +68,11 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
         if not args.adc:
             raise UserError("--format dca1000 writes ADC samples: add --adc")
-        out = simulate_capture_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
+        out = simulate_capture_recording(preset=args.profile, sequences=args.sequences, frames=args.frames,
                                          seed=args.seed, out=args.out)
         print(f"recording written to {out} (ADC as DCA1000 captures, seq_*/adc_data.bin)")
         return 0
-    out = simulate_recording(preset=args.preset, sequences=args.sequences, frames=args.frames,
+    out = simulate_recording(preset=args.profile, sequences=args.sequences, frames=args.frames,
                              seed=args.seed, out=args.out, adc=args.adc)
     print(f"recording written to {out}")
     return 0
@@ -258,7 +259,7 @@ def _cmd_models_summary(args: argparse.Namespace) -> int:
 
     from pipelines.evaluation.summary import SHIPPED, format_summary, models_summary
 
-    rows = models_summary(tuple(args.preset or ()), tuple(args.checkpoint or SHIPPED))
+    rows = models_summary(tuple(args.profile or ()), tuple(args.checkpoint or SHIPPED))
     print(json.dumps(rows, indent=2) if args.json else format_summary(rows))
     return 0
 
@@ -399,7 +400,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _add_data_commands(sub: Any) -> None:
     """simulate, the jobs, prune, store."""
     sim = sub.add_parser("simulate", help="simulate a labelled recording with the FMCW scene simulator")
-    sim.add_argument("--preset", default="small", help="carrada, nxp, small, or a .toml/.json profile file")
+    add_radar_option(sim, former=True, default="small")
     sim.add_argument("--sequences", type=int, default=2, help="sequences (scenes) to simulate")
     sim.add_argument("--frames", type=int, default=8, help="frames per sequence")
     sim.add_argument("--seed", type=int, default=0, help="seed of the scenes and the noise")
@@ -480,11 +481,11 @@ def _add_frame_commands(sub: Any) -> None:
     radar_cmd = sub.add_parser("radar", help="radar profiles")
     radar_sub = radar_cmd.add_subparsers(dest="radar_command", required=True)
     show = radar_sub.add_parser("show", help="print what a profile derives (bins, resolutions, limits)")
-    show.add_argument("profile", help="carrada, nxp, small, or a .toml/.json profile file")
+    show.add_argument("profile", help=RADAR_HELP)
     show.set_defaults(func=_cmd_radar_show)
     tune = radar_sub.add_parser("tune-growing", help="derive a radar's region-growing settings from a sweep on its "
                                                      "simulated frames (prints the profile file's table)")
-    tune.add_argument("profile", help="carrada, nxp, small, or a .toml/.json profile file")
+    tune.add_argument("profile", help=RADAR_HELP)
     tune.add_argument("--sequences", type=int, default=6, help="simulated sequences")
     tune.add_argument("--frames", type=int, default=2, help="frames per sequence")
     tune.add_argument("--seed", type=int, default=0, help="scene seed")
@@ -505,7 +506,7 @@ def _add_process_adc_command(sub: Any) -> None:
     adc = sub.add_parser("process-adc", help="raw complex ADC samples of one frame -> RAD cube (.npy)")
     adc.add_argument("adc", help=".npy of complex ADC samples, or a capture (.bin: DCA1000 adc_data.bin, mmWave "
                                  "Studio PREFIX_Raw_0.bin) read with the profile's [capture] settings")
-    adc.add_argument("--profile", required=True, help="carrada, nxp, small, or a .toml/.json profile file")
+    add_radar_option(adc, required=True)
     adc.add_argument("--layout", choices=["sck", "ti"], default="sck",
                      help="sck: (sample, chirp, virtual element); ti: TX-interleaved (chirp, rx, sample)")
     adc.add_argument("--coupling", choices=["auto", "tdm", "none"], default="auto",
@@ -533,11 +534,11 @@ def _add_model_commands(sub: Any) -> None:
     models = sub.add_parser("models", help="describe the models")
     models_sub = models.add_subparsers(dest="models_command", required=True)
     summary = models_sub.add_parser("summary", help="params and MACs of the shipped models (or --checkpoint), "
-                                                    "and of the full-size models per --preset")
+                                                    "and of the full-size models per --profile")
     summary.add_argument("--checkpoint", action="append",
                          help="a detector or segmenter checkpoint instead of the shipped ones; repeat for several")
-    summary.add_argument("--preset", action="append", choices=sorted(BUILTIN_PRESETS),
-                         help="also the registry's full-size models for this preset; repeat for several")
+    add_radar_option(summary, former=True, append=True, choices=sorted(BUILTIN_PRESETS),
+                     help="also the registry's full-size models for this preset; repeat for several")
     summary.add_argument("--json", action="store_true", help="print the rows as JSON (for machines)")
     summary.set_defaults(func=_cmd_models_summary)
 

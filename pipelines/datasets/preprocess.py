@@ -2,7 +2,7 @@
 
 ::
 
-    python -m pipelines.datasets.preprocess --sim --preset small --sequences 3 --frames 8 --seed 11 --out STORE.zarr
+    python -m pipelines.datasets.preprocess --sim --profile small --sequences 3 --frames 8 --seed 11 --out STORE.zarr
     python -m pipelines.datasets.preprocess --source recording:DIR --out STORE.zarr [--split-fractions 0.7 0.15 0.15]
     python -m pipelines.datasets.preprocess --source carrada:ROOT --out STORE.zarr      # split from data_seq_ref.json
     ray job submit --address http://127.0.0.1:8265 --working-dir . -- \

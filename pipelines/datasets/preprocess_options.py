@@ -11,6 +11,7 @@ from typing import Any
 from pipelines.datasets.sharded_options import SHARD_FRAMES, add_execution_arguments
 from pipelines.datasets.sources import SourceKind, add_source_arguments, source_from_args
 from pipelines.jobs import always, cap, field_defaults, smoke
+from pipelines.radar_option import RADAR_HELP, add_radar_option
 from radar.centres import MAX_OBJECTS
 
 SOURCE_KINDS = (SourceKind.SIM, SourceKind.RECORDING, SourceKind.ADC_RECORDING, SourceKind.CARRADA)
@@ -45,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     defaults = field_defaults(PreprocessConfig)
     add_source_arguments(parser, SOURCE_KINDS)
     parser.add_argument("--out", required=True, help="store path, e.g. data/small.zarr (shared by all Ray nodes)")
-    parser.add_argument("--preset", help="sim: radar preset (carrada, nxp, small; default small) or a profile file")
+    add_radar_option(parser, former=True, help=f"sim: {RADAR_HELP} (default small)")
     parser.add_argument("--sequences", type=int, help="sim: number of sequences (default 2)")
     parser.add_argument("--frames", type=int, help="sim: frames per sequence (default 8)")
     parser.add_argument("--seed", type=int, default=defaults.seed, help="sim: scene seed")
@@ -59,7 +60,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> PreprocessConfig:
     return PreprocessConfig(
         source=source_from_args(args, SOURCE_KINDS), out=str(Path(args.out).expanduser().absolute()),
-        preset=args.preset, sequences=args.sequences, frames=args.frames, seed=args.seed,
+        preset=args.profile, sequences=args.sequences, frames=args.frames, seed=args.seed,
         split_fractions=None if args.split_fractions is None else tuple(args.split_fractions),
         address=args.address, tasks=args.tasks, shard_frames=args.shard_frames, max_objects=args.max_objects,
         progress=args.progress, in_process=args.in_process,
