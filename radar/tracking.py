@@ -323,6 +323,16 @@ class Tracker:
         self.frames += frames
         return TrackerStep(track_ids, list(self.tracks))
 
+    def predicted_positions(self, *, frames: int = 1) -> np.ndarray:
+        """(T, 2) where each confirmed or lost track expects its object ``frames`` frame periods on (x, y in m),
+        without changing any track: the prior of the next frame's detection (:mod:`radar.track_priors`).
+        Tentative tracks predict nothing."""
+        if not isinstance(frames, int) or frames < 1:
+            raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
+        F, _ = self._transition(frames * self.config.frame_period_s)
+        means = [t.mean for t in self.tracks if t.status is not TrackStatus.tentative]
+        return (np.array(means) @ F.T)[:, :2] if means else np.zeros((0, 2))
+
     def _alive(self, track: Track) -> bool:
         if track.status is TrackStatus.tentative:
             return track.misses <= self.config.tentative_max_misses

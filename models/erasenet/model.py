@@ -35,6 +35,7 @@ from radar.profiles import RadarProfile, get_profile
 from radar.region_growing import RegionGrowingConfig, Regions, grow_regions
 from radar.roi import roi_points
 from radar.schema import check_schema, cube_schema
+from radar.track_priors import TrackPriors, centres_with_priors
 
 OBJECT_CENTRES = ("seed", "voxels")
 """Where an object is placed (``EraseNet(object_centre=)``): its seed's centre and Doppler, or its voxels' mean."""
@@ -76,6 +77,8 @@ class SegmentationResult:
     # with segment(keep_log_power=True): the frame's log power (R, A, D) dB, float32, as the model computed it (what
     # the next frame of a stream reads as its history)
     log_power: np.ndarray | None = None
+    # with segment(priors=...): the centres that the tracks' predictions added (radar.track_priors)
+    prior_seeds: int = 0
 
 
 @contextmanager
@@ -198,8 +201,8 @@ class EraseNet:
     @torch.no_grad()
     def segment(self, cube: np.ndarray, *, kind: InputKind = InputKind.complex, centres: Centres | None = None,
                 schema: dict[str, Any] | None = None, views: bool = False,
-                history: Sequence[np.ndarray | None] | None = None, keep_log_power: bool = False
-                ) -> SegmentationResult:
+                history: Sequence[np.ndarray | None] | None = None, keep_log_power: bool = False,
+                priors: TrackPriors | None = None) -> SegmentationResult:
         """Segment one frame: a RAD cube (R, A, D) holding ``kind`` (complex, its magnitude, or its log power in dB;
         radar.input_kind), whose dtype must fit that kind.
 
@@ -211,7 +214,12 @@ class EraseNet:
         ``history`` (optional, for a detector with :attr:`history_frames`): the earlier frames' log power (R, A, D)
         dB, the latest first, None for one that does not exist; without it the detector sees a single cube.
         ``keep_log_power``: return the frame's log power too (``SegmentationResult.log_power``).
+        ``priors`` (optional): where confirmed tracks expect their objects (:mod:`radar.track_priors`); a prediction
+        with no centre near it is seeded from the detector's best centre near it above the priors' lower score
+        (``SegmentationResult.prior_seeds`` counts them).
         """
+        if priors is not None and centres is not None:
+            raise ValueError("priors read the detector's heatmap: give no centres= with them")
         if schema is not None:
             check_schema(self.schema(SCHEMA_CONTENT[kind]), schema)
         if centres is None and self._run_detector is None:
@@ -228,7 +236,7 @@ class EraseNet:
         with _stage(seconds, "transform"):
             log_power = transforms.to_log_power(cube, kind)
             x = self._detector_input(log_power, in_place=one_buffer) if centres is None else None
-        detect_macs = 0
+        detect_macs = prior_seeds = 0
         if centres is None:
             with _stage(seconds, "detect"):
                 outputs = self._detector_outputs(x, history)
@@ -237,7 +245,10 @@ class EraseNet:
                 with _stage(seconds, "transform"):
                     np.copyto(log_power, cube)
             with _stage(seconds, "detect"):
-                centres = self._decode(outputs, log_power, self.score_threshold)
+                lowest = self.score_threshold if priors is None else min(self.score_threshold,
+                                                                         priors.config.threshold)
+                centres, prior_seeds = centres_with_priors(self._decode(outputs, log_power, lowest),
+                                                           self.score_threshold, priors, self.profile)
                 detect_macs = self.detector_macs()
         with _stage(seconds, "grow"):
             regions = grow_regions(log_power, centres, self.profile, self.region_config)
@@ -259,7 +270,7 @@ class EraseNet:
             seconds={name: seconds.get(name, 0.0) for name in STEPS}, roi_voxels=len(regions),
             visited_points=regions.visited, detections=len(centres), runtime=self.runtime)
         return SegmentationResult(labels, ra_mask, rd_mask, objects, centres, regions, compute, input_views,
-                                  log_power if keep_log_power else None)
+                                  log_power if keep_log_power else None, prior_seeds)
 
     @torch.no_grad()
     def detect(self, log_power: np.ndarray, *, score_threshold: float | None = None,

@@ -72,11 +72,13 @@ from radar.doppler import DOPPLER_REFINEMENT
 from radar.errors import UserError
 from radar.input_kind import InputKind
 from radar.region_growing import RegionGrowingConfig, grow_regions
+from radar.track_priors import SequenceTracks, TrackPriors, TrackPriorsConfig
 from radar.tracking import TrackerConfig
 
 log = logging.getLogger(__name__)
 
 AP_SCORE_THRESHOLD = 0.01  # detections kept for the PR curve
+LATER_FROM = 2  # frames_with_history scores a sequence's frames from this frame index on
 
 
 def _int8_calibration(store: str, profile: Any) -> Any:
@@ -119,6 +121,10 @@ class _Tallies:
     oracle_confusion: ViewConfusion
     sweep: dict[tuple[str, float], _RecallCounter]
     predicted_seeds: _RecallCounter = field(default_factory=_RecallCounter)
+    # frames with history: the frames of a sequence after its first LATER_FROM (what tracks can help)
+    later_confusion: ViewConfusion | None = None
+    later_seeds: _RecallCounter = field(default_factory=_RecallCounter)
+    prior_seeds: int = 0
     truth_seeds: _RecallCounter = field(default_factory=_RecallCounter)
     macs: dict[str, list[float]] = field(default_factory=dict)
     seconds: dict[str, list[float]] = field(default_factory=dict)
@@ -127,7 +133,8 @@ class _Tallies:
     def empty(cls, profile: Any, distances: tuple[float, ...]) -> _Tallies:
         num_classes = profile.num_classes
         return cls(DetectionScorer(profile), ViewConfusion(num_classes), ViewConfusion(num_classes),
-                   {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in distances})
+                   {(seeds, d): _RecallCounter() for seeds in ("predicted", "truth") for d in distances},
+                   later_confusion=ViewConfusion(num_classes))
 
 
 def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
@@ -163,14 +170,24 @@ def evaluate(cfg: EvaluateConfig) -> dict[str, Any]:
     sequence_ids, frame_indices = root["sequence_id"][:], root["frame_index"][:]
     history_frames = 0 if cfg.single_cube else net.history_frames
     earlier = earlier_slots(root, history_frames) if history_frames else None
+    sequence_tracks = None
+    if cfg.track_priors is not None:  # each sequence's frames in order: its tracks predict the next one
+        priors_config = TrackPriorsConfig(cfg.track_priors, cfg.track_priors_gate_m)
+        sequence_tracks = SequenceTracks(TrackerConfig.for_profile(net.profile), priors_config)
+        frames = frames[np.lexsort((frame_indices[frames], sequence_ids[frames]))]
     pictures: list[str] = []
     started = time.perf_counter()
     for slot in progress(frames, desc=f"evaluate {split_name}", unit="frame", disable=not cfg.progress):
         slot = int(slot)
+        sequence, index = int(sequence_ids[slot]), int(frame_indices[slot])
         frame = {name: array[slot] for name, array in arrays.items()}
         history = None if earlier is None else earlier_frames(arrays["input"], earlier[slot])
-        picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames, history=history)
-        tracking.add(sequence_ids[slot], frame_indices[slot], picture[2], picture[3].objects)
+        priors = None if sequence_tracks is None else sequence_tracks.priors(sequence, index)
+        picture = _score_frame(net, cfg, tallies, frame, in_sweep=slot in sweep_frames, history=history,
+                               priors=priors, later=index >= LATER_FROM)
+        if sequence_tracks is not None:
+            sequence_tracks.step(sequence, index, picture[3].objects)
+        tracking.add(sequence, index, picture[2], picture[3].objects)
         if slot in picture_frames:
             title = f"{split_name} frame {slot}: ground truth (top) / prediction (bottom)"
             pictures.append(_frame_picture(net, picture, out / f"frame_{slot:05d}.png", title=title))
@@ -216,10 +233,12 @@ def store_frames(store: str | Path, profile: Any, split: str | None, max_frames:
 
 
 def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: dict[str, np.ndarray], *,
-                 in_sweep: bool, history: list[np.ndarray | None] | None = None
-                 ) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, Any]:
-    """Add one frame to every tally (``history``: its earlier frames' log power, for a detector that reads them);
-    returns what its picture needs: log power, truth masks, object table, the segmentation result."""
+                 in_sweep: bool, history: list[np.ndarray | None] | None = None, priors: TrackPriors | None = None,
+                 later: bool = False) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray, Any]:
+    """Add one frame to every tally (``history``: its earlier frames' log power, for a detector that reads them;
+    ``priors``: its sequence's tracks' predictions; ``later``: a frame with history, scored in
+    ``frames_with_history`` too); returns what its picture needs: log power, truth masks, object table, the
+    segmentation result."""
     profile = net.profile
     log_power = frame["input"].astype(np.float32)  # (R, A, D) dB
     instances = frame["instances"]
@@ -232,9 +251,13 @@ def _score_frame(net: EraseNet, cfg: EvaluateConfig, tallies: _Tallies, frame: d
     tallies.detection.add(scored, table)
 
     # the whole chain at the operating threshold
-    result = net.segment(log_power, kind=InputKind.log_power, history=history)
+    result = net.segment(log_power, kind=InputKind.log_power, history=history, priors=priors)
     tallies.confusion.add_masks(truth, result.ra_mask, result.rd_mask)
     tallies.predicted_seeds.add(result.regions, instances)
+    tallies.prior_seeds += result.prior_seeds
+    if later:
+        tallies.later_confusion.add_masks(truth, result.ra_mask, result.rd_mask)
+        tallies.later_seeds.add(result.regions, instances)
     for name, value in result.compute.macs_by_stage().items():
         tallies.macs.setdefault(name, []).append(value)
     for name, value in result.compute.seconds_by_stage().items():
@@ -304,6 +327,13 @@ def _metrics(cfg: EvaluateConfig, net: EraseNet, checkpoints: tuple[Any, Any], t
                       for (seeds, d), counter in tallies.sweep.items()],
         },
         "segmentation": {view.upper(): summary for view, summary in tallies.confusion.summary(class_names).items()},
+        "frames_with_history": {
+            "from_frame_index": LATER_FROM, "frames": tallies.later_seeds.frames,
+            "region_growing_recall": tallies.later_seeds.summary()["recall"],
+            "segmentation": {view.upper(): summary
+                             for view, summary in tallies.later_confusion.summary(class_names).items()}},
+        "track_priors": None if cfg.track_priors is None else {
+            "threshold": cfg.track_priors, "gate_m": cfg.track_priors_gate_m, "seeds_added": tallies.prior_seeds},
         "cost": {"params": net.params | {"total": sum(net.params.values())},
                  "macs_mean": {k: float(np.mean(v)) for k, v in tallies.macs.items()},
                  "seconds_mean": {k: float(np.mean(v)) for k, v in tallies.seconds.items()}},

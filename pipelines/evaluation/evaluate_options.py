@@ -36,6 +36,8 @@ class EvaluateConfig:
     progress: bool = True
     single_cube: bool = False  # a detector that reads earlier frames sees each frame alone (no history)
     trackers: tuple[str, ...] = ()  # also compare these trackers on the same objects (tracker_comparison.TRACKERS)
+    track_priors: float | None = None  # seed from confirmed tracks' predictions down to this score (radar.track_priors)
+    track_priors_gate_m: float = 3.0  # how near a track's prediction it must be (radar.track_priors.PRIOR_GATE_M)
 
     def __post_init__(self) -> None:
         if self.max_frames < 0 or self.pictures < 0 or self.sweep_frames < 0:
@@ -45,6 +47,8 @@ class EvaluateConfig:
         Runtime.parse(self.runtime)
         if unknown := [name for name in self.trackers if name not in TRACKERS]:
             raise ValueError(f"trackers must be among {tuple(TRACKERS)}, got {unknown}")
+        if self.track_priors is not None and not 0 < self.track_priors < 1:
+            raise ValueError(f"track_priors must be a score in (0, 1), got {self.track_priors}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -77,6 +81,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"also run these trackers on the same objects and score them with GOSPA, HOTA, MOTA, "
                              f"IDF1 and velocity error (comma-separated: {','.join(TRACKERS)}; Stone Soup's and "
                              f"HOTA need the 'tracking' extra)")
+    parser.add_argument("--track-priors", type=float, metavar="SCORE", default=defaults.track_priors,
+                        help="where a confirmed track's predicted position has no detection, seed region growing "
+                             "from the detector's best centre near it scored at least SCORE (below the operating "
+                             "score); the segmenter decides. Off by default")
+    parser.add_argument("--track-priors-gate", type=float, metavar="METRES", default=defaults.track_priors_gate_m,
+                        help="with --track-priors: how near a track's predicted position the centre must be (m)")
 
 
 def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
@@ -88,4 +98,5 @@ def config_from_args(args: argparse.Namespace) -> EvaluateConfig:
                           doppler_refinement=not args.no_doppler_refinement, device=args.device,
                           runtime=runtime_of(args),
                           threads=args.threads, progress=not args.no_progress, single_cube=args.single_cube,
-                          trackers=tuple(args.trackers))
+                          trackers=tuple(args.trackers), track_priors=args.track_priors,
+                          track_priors_gate_m=args.track_priors_gate)

@@ -87,7 +87,18 @@ def _segmentation(metrics: dict[str, Any]) -> list[str]:
         oracle = metrics["segmentation_truth_seeds"]
         rows += [[f"{view} (true centres as seeds)", *[fmt_pct(oracle[view]["iou"][c]) for c in classes],
                   fmt_pct(oracle[view]["mIoU"])] for view in ("RA", "RD")]
+    later = metrics.get("frames_with_history")
+    if later and later["frames"]:
+        rows += [[f"{view} (frames after the first {later['from_frame_index']} of a sequence)",
+                  *[fmt_pct(later["segmentation"][view]["iou"][c]) for c in classes],
+                  fmt_pct(later["segmentation"][view]["mIoU"])] for view in ("RA", "RD")]
     lines += md_table(header, rows)
+    if later and later["frames"]:
+        lines += ["", f"Region-growing recall on those {later['frames']} frames: "
+                      f"{fmt_num(later['region_growing_recall'])}."]
+    if priors := metrics.get("track_priors"):
+        lines += ["", f"Tracks as priors: {priors['seeds_added']} seeds added where a confirmed track's prediction "
+                      f"had no detection (score >= {priors['threshold']:g} within {priors['gate_m']:g} m)."]
     return lines
 
 

@@ -148,3 +148,29 @@ def test_a_detector_that_reads_history_is_evaluated_with_it_or_on_single_cubes(s
     # the first frame of the sequence has no history: scored alike; the later two read their earlier frames
     assert runs[False]["detection"]["n_predictions"] != runs[True]["detection"]["n_predictions"] or \
         runs[False]["segmentation"]["RA"]["confusion"] != runs[True]["segmentation"]["RA"]["confusion"]
+
+
+def test_track_priors_act_only_on_frames_with_history_and_are_counted(tmp_path_factory, tmp_path):
+    """With --track-priors the first two frames of each sequence (no confirmed track yet) are scored exactly as
+    without; the frames after them are tallied in frames_with_history, and the seeds the tracks added are counted."""
+    from tests.pipelines.conftest import sim_store
+
+    store = sim_store(tmp_path_factory, "small", sequences=3, frames=6, seed=64, split_fractions=(1.0, 0.0, 0.0),
+                      shard_frames=6)
+    common = {"detector": str(SHIPPED / "detector.pt"), "segmenter": str(SHIPPED / "segmenter.pt"),
+              "store": str(store), "split": None, "pictures": 0, "sweep_frames": 0, "oracle": False,
+              "progress": False, "threads": 1, "score_threshold": 0.6}  # a strict operating score misses objects
+    plain = evaluate(EvaluateConfig(out=str(tmp_path / "plain"), **common))
+    primed = evaluate(EvaluateConfig(out=str(tmp_path / "priors"), track_priors=0.05, **common))
+    assert plain["track_priors"] is None
+    assert primed["track_priors"]["threshold"] == 0.05 and primed["track_priors"]["gate_m"] == 3.0
+    assert primed["track_priors"]["seeds_added"] >= 1, primed["track_priors"]
+    for metrics in (plain, primed):
+        assert metrics["frames_with_history"]["frames"] == 3 * 4 and metrics["frames_with_history"]["from_frame_index"] == 2
+    for view in ("RA", "RD"):
+        def early(metrics):
+            return (np.array(metrics["segmentation"][view]["confusion"])
+                    - np.array(metrics["frames_with_history"]["segmentation"][view]["confusion"]))
+        assert (early(plain) == early(primed)).all()
+    with pytest.raises(ValueError, match="track_priors"):
+        EvaluateConfig(out="o", track_priors=1.5, **common)
