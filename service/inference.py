@@ -33,6 +33,7 @@ from models.erasenet.model import EraseNet, SegmentationResult
 from models.runtime import load_erasenet
 from radar.adc import process_adc
 from radar.input_kind import InputKind
+from radar.track_priors import TrackPriors
 from service.radar_check import radar_refusal
 from service.settings import ModelSpec, Settings, resolve_path
 
@@ -145,22 +146,25 @@ class ServedModel:
             self._held -= 1
 
     async def run(self, cube: np.ndarray, *, kind: InputKind, tdm_compensation: bool = True,
-                  views: bool = False, history: list[np.ndarray | None] | None = None) -> SegmentationResult:
+                  views: bool = False, history: list[np.ndarray | None] | None = None,
+                  priors: TrackPriors | None = None) -> SegmentationResult:
         """Segment on an inference thread; the slot (taken by :meth:`acquire`) is released when inference ends,
         even if the awaiting request was cancelled. ``kind`` says what ``cube`` holds (radar.input_kind); ADC
         samples are processed into the RAD cube first (with ``tdm_compensation`` or without; timed as transform), once:
         ``views`` has the model return the input's RA/RD views from the same frame, inside its compute.
         ``history`` (a stream's frame, for a detector that reads earlier frames): their log power, the latest
-        first; the result then keeps this frame's log power for the next one."""
+        first; the result then keeps this frame's log power for the next one. ``priors``: where the stream's tracks
+        expect their objects (radar.track_priors)."""
         if self._executor is None:
             self.release()
             raise NotReady(f"model {self.spec.name!r} is not ready: {self.error}")
-        future = self._executor.submit(self._segment, cube, kind, tdm_compensation, views, history)
+        future = self._executor.submit(self._segment, cube, kind, tdm_compensation, views, history, priors)
         future.add_done_callback(lambda _: self.release())
         return await asyncio.wrap_future(future)
 
-    def _segment(self, cube: np.ndarray, kind: InputKind, tdm_compensation: bool,
-                 views: bool = False, history: list[np.ndarray | None] | None = None) -> SegmentationResult:
+    def _segment(self, cube: np.ndarray, kind: InputKind, tdm_compensation: bool, views: bool = False,
+                 history: list[np.ndarray | None] | None = None,
+                 priors: TrackPriors | None = None) -> SegmentationResult:
         net = self._free.get()
         try:
             adc_s = 0.0
@@ -169,7 +173,7 @@ class ServedModel:
                 cube, kind = process_adc(cube, net.profile, tdm_compensation=tdm_compensation), InputKind.complex
                 adc_s = time.perf_counter() - start
             result = net.segment(cube, kind=kind, views=views, history=history,
-                                 keep_log_power=history is not None)
+                                 keep_log_power=history is not None, priors=priors)
             result.compute = result.compute.plus_seconds("transform", adc_s)
         finally:
             self._free.put(net)

@@ -312,3 +312,6 @@ class StreamFrameResponse(SegmentResponse):
     history_frames: int = Field(0, description="earlier frames of the stream the model's detector read with this one "
                                                "(0 for a model that reads one cube, the stream's first frame, a gap, "
                                                "or an earlier frame another replica ran)")
+    prior_seeds: int = Field(0, description="centres the stream's tracks added where they expected an object the "
+                                            "detector scored under its operating score (0 unless the service "
+                                            "seeds from tracks: RADARSEG_STREAM_TRACK_PRIORS)")

@@ -169,6 +169,10 @@ class Settings(BaseSettings):
     # a detector that reads earlier frames gets a stream's frames before this one from the replica that ran them
     # (service/streams/history.py), kept as float16 within this many bytes over every stream (0: never kept)
     stream_history_bytes: Annotated[int, Field(ge=0, le=2**36)] = 256 * 2**20
+    # tracks as priors (radar/track_priors.py): where a stream's confirmed track predicts an object that no centre
+    # above the operating score stands for, the detector's best centre within 3 m scored at least this seeds region
+    # growing too (None: off, the default)
+    stream_track_priors: Annotated[float | None, Field(gt=0, lt=1)] = None
 
     # the example sequences of GET /v1/examples (each simulated once per radar, unbilled) kept within this many bytes
     example_cache_bytes: Annotated[int, Field(ge=0, le=2**34)] = 128 * 2**20

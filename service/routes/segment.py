@@ -19,6 +19,7 @@ from models.erasenet.model import SegmentationResult
 from radar.adc import adc_shape
 from radar.input_kind import SCHEMA_CONTENT
 from radar.schema import SchemaMismatch, check_schema
+from radar.track_priors import TrackPriors
 from service.accounting.tenants import Principal
 from service.deps import Caller, ServiceState, State
 from service.encoding import encode_array
@@ -166,12 +167,12 @@ def _take_slot(served: ServedModel, state: ServiceState) -> None:
 
 
 async def _infer(served: ServedModel, cube: np.ndarray, input_kind: InputKind, tdm_compensation: bool,
-                 state: ServiceState, *, views: bool, history: list[np.ndarray | None] | None = None
-                 ) -> SegmentationResult:
+                 state: ServiceState, *, views: bool, history: list[np.ndarray | None] | None = None,
+                 priors: TrackPriors | None = None) -> SegmentationResult:
     """Inference in the slot taken by :func:`_take_slot` (the model releases it when inference ends)."""
     try:
         return await served.run(cube, kind=input_kind, tdm_compensation=tdm_compensation,
-                                views=views, history=history)
+                                views=views, history=history, priors=priors)
     except NotReady as exc:
         raise ApiError(503, str(exc), error="not_ready",
                        headers={"Retry-After": str(state.settings.retry_after_s)}) from None
@@ -305,17 +306,19 @@ async def read_body(request: Request, state: ServiceState, caller: Principal,
 async def run_billed(state: ServiceState, caller: Principal, admitted: Admitted, cube: np.ndarray, decode_s: float,
                      input_kind: InputKind, tdm_compensation: bool, encoding: MaskEncoding,
                      history: list[np.ndarray | None] | None = None,
-                     keep: Callable[[SegmentationResult], Awaitable[None]] | None = None) -> Billed:
+                     keep: Callable[[SegmentationResult], Awaitable[None]] | None = None,
+                     priors: TrackPriors | None = None) -> Billed:
     """Take a model slot and a lease on the tenant's quota, run, bill (the lease given back on any other way out).
     ``history``: a stream frame's earlier frames, for a detector that reads them. ``keep``: called with the result
-    before it is billed (a stream frame writes its tracks there); when it raises, nothing is billed."""
+    before it is billed (a stream frame writes its tracks there); when it raises, nothing is billed. ``priors``: a
+    stream frame's tracks' predictions (radar.track_priors)."""
     served, name, metrics = admitted.served, admitted.name, state.metrics
     _take_slot(served, state)  # a saturated model answers 503 before the quota is touched (no ledger round trips)
     # reserved (the slot given back if refused); the lease is given back unless settled
     async with state.billing.hold(caller.tenant, served, on_refused=served.release) as quota:
         # the views come from the model's own log power (ADC processed once), inside the compute that is billed
         result = await _infer(served, cube, input_kind, tdm_compensation, state, views="views" in admitted.chosen,
-                              history=history)
+                              history=history, priors=priors)
         del cube
         if keep is not None:
             await keep(result)

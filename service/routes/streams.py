@@ -23,6 +23,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Header, Path, Query, Request, Response
 from starlette.concurrency import run_in_threadpool
 
+from radar.track_priors import TrackPriors, TrackPriorsConfig
 from radar.tracking import Measurements, Track, Tracker, TrackerConfig, TrackerStep, TrackStatus
 from service.accounting.ledger import utc_now
 from service.deps import Caller, ServiceState, State
@@ -157,6 +158,16 @@ async def stream_recording(stream_id: StreamId, state: State, caller: Caller,
         "Content-Disposition": f'attachment; filename="stream-{stream_id}{form.suffix}"'})
 
 
+def _priors(claim: Claim, state: ServiceState) -> TrackPriors | None:
+    """Where the stream's confirmed tracks expect their objects in this frame, if the service seeds from them
+    (``stream_track_priors``) and the stream has tracks."""
+    threshold = state.settings.stream_track_priors
+    if threshold is None or claim.stream.state is None:
+        return None
+    tracker = Tracker.from_state(_tracker_config(state, claim.stream.model), claim.stream.state)
+    return TrackPriors(tracker.predicted_positions(frames=claim.gap), TrackPriorsConfig(threshold))
+
+
 def _track(claim: Claim, result_objects: list[Any], state: ServiceState) -> tuple[Tracker, TrackerStep]:
     """The stream's tracker after this frame (the gap since its last frame coasted)."""
     config = _tracker_config(state, claim.stream.model)
@@ -210,7 +221,7 @@ async def stream_frame(
 
     async with _holding(state, claim, kept):
         billed = await run_billed(state, caller, admitted, cube, decode_s, input_kind, tdm_compensation, encoding,
-                                  history, keep=keep)
+                                  history, keep=keep, priors=_priors(claim, state))
     tracker, step, track_s, tracker_state = kept["tracker"], kept["step"], kept["track_s"], kept["state"]
     if n_history:  # what the stream's next frame reads
         state.stream_history.keep((caller.tenant, stream_id), seq, billed.result.log_power, n_history)
@@ -226,7 +237,8 @@ async def stream_frame(
                                shape=list(net.profile.shape), class_names=list(net.class_names), views=billed.views,
                                compute=billed.compute, usage=billed.usage, seq=seq,
                                stream=_info(row, state, tracker.tracks),
-                               history_frames=sum(frame is not None for frame in history or ()))
+                               history_frames=sum(frame is not None for frame in history or ()),
+                               prior_seeds=billed.result.prior_seeds)
     response = await respond(body, billed, admitted, encoding, state, caller, objects)
     response.headers["X-Stream-Id"] = stream_id
     return response

@@ -177,3 +177,22 @@ def test_a_replica_restarted_mid_stream_loses_no_track(make_settings, client_for
     assert answers[-1]["stream"]["tracks"] == reference[-1]["stream"]["tracks"]
     after_ids = {o["track_id"] for o in answers[3]["objects"]}
     assert {t["track_id"] for t in before["tracks"]} & after_ids, "frame 3 continues tracks confirmed before"
+
+
+def test_a_stream_seeds_from_its_tracks_when_the_service_is_told_to(make_settings, client_for):
+    """RADARSEG_STREAM_TRACK_PRIORS: from the third frame on (tracks confirmed) the stream's tracks add centres the
+    strict operating score missed; the first two frames answer as without; off, nothing is added."""
+    frames = [frame.cube for frame in simulate_sequence("small", 4, seed=7)]
+    strict = ModelSpec(name="small", detector="checkpoints/detector.pt", segmenter="checkpoints/segmenter.pt",
+                       score_threshold=0.6)
+    answers = {}
+    for priors in (None, 0.05):
+        client = client_for(make_settings(models=[strict], stream_track_priors=priors))
+        stream_id = client.post("/v1/streams").json()["id"]
+        answers[priors] = [_frame(client, stream_id, seq, cube).json() for seq, cube in enumerate(frames)]
+    assert [a["prior_seeds"] for a in answers[None]] == [0, 0, 0, 0]
+    seeded = [a["prior_seeds"] for a in answers[0.05]]
+    assert seeded[:2] == [0, 0] and sum(seeded[2:]) >= 1, seeded
+    for plain, primed in zip(answers[None][:2], answers[0.05][:2], strict=True):
+        assert plain["objects"] == primed["objects"]
+    assert sum(len(a["objects"]) for a in answers[0.05][2:]) >= sum(len(a["objects"]) for a in answers[None][2:])
