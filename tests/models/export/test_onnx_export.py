@@ -196,7 +196,7 @@ def test_onnx_engine_segments_like_the_torch_engine(exported):
     frames = list(simulate_sequence(reference.profile.name, FRAMES, seed=2026))
     for frame in frames:
         expected, got = reference.segment(frame.cube), onnx.segment(frame.cube)
-        assert got.compute.engine == "onnx" and expected.compute.engine == "torch"
+        assert got.compute.runtime == "onnx" and expected.compute.runtime == "torch"
         np.testing.assert_array_equal(got.regions.voxels, expected.regions.voxels)  # same seeds, same ROI
         roi = tuple(expected.regions.voxels.T)
         assert len(expected.regions) > 0

@@ -67,13 +67,13 @@ def test_int8_engine_agrees_with_float_on_roi_labels_and_objects(int8_export):
     float_dir, int8_dir = int8_export
     reference = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx", onnx_dir=float_dir)
     int8 = load_erasenet(DETECTOR, SEGMENTER, runtime="onnx-int8", onnx_dir=int8_dir)
-    assert reference.engine == "onnx" and int8.engine == "onnx-int8"
+    assert reference.runtime == "onnx" and int8.runtime == "onnx-int8"
     for frame in simulate_sequence("small", 2, seed=2026, sequence_index=3):
         want = reference.segment(frame.cube)
         assert len(want.regions) > 0
         # the segmenter graph on the same ROI (the float pipeline's seeds): the labels of its voxels
         same_seeds = int8.segment(frame.cube, centres=want.centres)
-        assert same_seeds.compute.engine == "onnx-int8"
+        assert same_seeds.compute.runtime == "onnx-int8"
         np.testing.assert_array_equal(same_seeds.regions.voxels, want.regions.voxels)
         roi = tuple(want.regions.voxels.T)
         assert (same_seeds.labels[roi] == want.labels[roi]).mean() >= 0.99
