@@ -81,9 +81,16 @@ def test_the_http_reference_has_every_route_the_settings_and_profile_keys(site):
     from service.settings import Settings
 
     api = _text(site, "reference/http-api")
-    for path, methods in create_app(Settings()).openapi()["paths"].items():
+    openapi = create_app(Settings()).openapi()
+    for path, methods in openapi["paths"].items():
         for method in methods:
             assert f"{method.upper()} {path}" in api, f"{method.upper()} {path} is not in the HTTP reference"
+    # the schemas as tables a reader reads, not raw JSON schema
+    assert '{"type"' not in api and '"$ref"' not in api
+    for name, schema in openapi["components"]["schemas"].items():
+        assert name in api, f"schema {name} is not in the HTTP reference"
+        for field in schema.get("properties", {}):
+            assert field in api, f"{name}.{field} is not in the HTTP reference"
     settings = _text(site, "reference/settings")
     for name in Settings.model_fields:
         assert f"RADARSEG_{name.upper()}" in settings, f"RADARSEG_{name.upper()} is not in the settings reference"

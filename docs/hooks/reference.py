@@ -102,6 +102,36 @@ def _cell(text: object) -> str:
     return " ".join(str(text).split()).replace("|", "\\|")
 
 
+def _schema_text(schema: dict) -> str:
+    """A JSON schema as a reader says it: ``integer, 0 to 64``, ``one of: a, b``, ``SegmentResponse``."""
+    if "$ref" in schema:
+        name = schema["$ref"].rsplit("/", 1)[-1]
+        return f"[{name}](#{name.lower()})"
+    for key in ("anyOf", "oneOf"):
+        if key in schema:
+            return " or ".join(_schema_text(s) for s in schema[key] if s.get("type") != "null") + (
+                " or null" if any(s.get("type") == "null" for s in schema[key]) else "")
+    if "allOf" in schema and len(schema["allOf"]) == 1:
+        return _schema_text(schema["allOf"][0])
+    if "enum" in schema:
+        return "one of: " + ", ".join(f"`{v}`" for v in schema["enum"])
+    kind = schema.get("type", "any")
+    if kind == "array":
+        text = f"list of {_schema_text(schema.get('items', {}))}"
+    elif kind == "object" and "additionalProperties" in schema and isinstance(schema["additionalProperties"], dict):
+        text = f"map of {_schema_text(schema['additionalProperties'])}"
+    else:
+        text = kind + (f" ({schema['format']})" if "format" in schema else "")
+    low = schema.get("minimum", schema.get("exclusiveMinimum"))
+    high = schema.get("maximum", schema.get("exclusiveMaximum"))
+    if low is not None or high is not None:
+        text += f", {'' if low is None else low}{' to ' if low is not None and high is not None else ''}" \
+                f"{'at most ' if low is None else ''}{'' if high is None else high}"
+    if "maxLength" in schema:
+        text += f", at most {schema['maxLength']} characters"
+    return text
+
+
 def _operation(path: str, method: str, operation: dict) -> list[str]:
     lines = [f"## `{method.upper()} {path}`", ""]
     if operation.get("summary"):
@@ -110,19 +140,45 @@ def _operation(path: str, method: str, operation: dict) -> list[str]:
         lines += [operation["description"].strip(), ""]
     parameters = operation.get("parameters", [])
     if parameters:
-        lines += ["| parameter | in | required | schema | description |", "|---|---|---|---|---|"]
+        lines += ["| parameter | in | required | type | default | description |", "|---|---|---|---|---|---|"]
         for p in parameters:
-            schema = json.dumps(p.get("schema", {}), sort_keys=True)
+            schema = p.get("schema", {})
+            default = f"`{_cell(json.dumps(schema['default']))}`" if "default" in schema else ""
             lines.append(f"| `{p['name']}` | {p['in']} | {'yes' if p.get('required') else 'no'} | "
-                         f"`{_cell(schema)}` | {_cell(p.get('description', ''))} |")
+                         f"{_cell(_schema_text(schema))} | {default} | {_cell(p.get('description', ''))} |")
         lines.append("")
     if "requestBody" in operation:
-        kinds = ", ".join(f"`{kind}`" for kind in operation["requestBody"].get("content", {}))
+        kinds = ", ".join(f"`{kind}`" + (f" ({_schema_text(body['schema'])})" if "schema" in body else "")
+                          for kind, body in operation["requestBody"].get("content", {}).items())
         lines += [f"Request body: {kinds}.", ""]
     lines += ["| status | answer |", "|---|---|"]
     for status, answer in sorted(operation.get("responses", {}).items()):
-        lines.append(f"| {status} | {_cell(answer.get('description', ''))} |")
+        bodies = [_schema_text(body["schema"]) for body in answer.get("content", {}).values()
+                  if body.get("schema")]
+        shown = f": {bodies[0]}" if bodies and bodies[0] != "any" else ""
+        lines.append(f"| {status} | {_cell(answer.get('description', ''))}{_cell(shown)} |")
     return [*lines, ""]
+
+
+def _schemas(components: dict) -> list[str]:
+    """Every named schema of the answers and bodies: a table of its fields."""
+    lines = ["## Schemas", "", "The fields of the JSON bodies the routes above take and answer.", ""]
+    for name, schema in sorted(components.items()):
+        lines += [f"### {name}", ""]
+        if schema.get("description"):
+            lines += [" ".join(schema["description"].split()), ""]
+        if "enum" in schema:
+            lines += [_schema_text(schema), ""]
+            continue
+        required = set(schema.get("required", ()))
+        fields = schema.get("properties", {})
+        if fields:
+            lines += ["| field | type | required | description |", "|---|---|---|---|"]
+            for field, spec in fields.items():
+                lines.append(f"| `{field}` | {_cell(_schema_text(spec))} | {'yes' if field in required else 'no'} | "
+                             f"{_cell(spec.get('description', ''))} |")
+            lines.append("")
+    return lines
 
 
 def http_api_page() -> str:
@@ -133,10 +189,12 @@ def http_api_page() -> str:
     lines = ["# HTTP API", "", NOTE,
              f"{schema['info']['title']} {schema['info']['version']}: every route, its parameters and every answer "
              "it sends, from the service's OpenAPI schema (`GET /openapi.json` of a running service; `/docs` and "
-             "`/redoc` show it interactively). The guide is [the service and streams](../guides/service.md).", ""]
+             "`/redoc` show it interactively), and the fields of every JSON body under "
+             "[Schemas](#schemas). The guide is [the service and streams](../guides/service.md).", ""]
     for path, methods in schema["paths"].items():
         for method, operation in methods.items():
             lines += _operation(path, method, operation)
+    lines += _schemas(schema.get("components", {}).get("schemas", {}))
     return "\n".join(lines)
 
 
