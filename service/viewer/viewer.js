@@ -239,7 +239,8 @@ async function playStream(n) {
   }
   const tracks = page.result.answer.stream.tracks;
   say("ok", `example ${n} as a stream: ${example.frames} frames, ${tracks.length} track${tracks.length === 1 ? "" : "s"}`
-    + ` confirmed at the end (${tracks.map((t) => `#${t.track_id} ${t.class_name} ${t.speed.toFixed(1)} m/s`).join(", ")})`);
+    + ` confirmed at the end (${tracks.map((t) => `#${t.track_id} ${t.class_name} ${t.speed.toFixed(1)} m/s`
+      + (t.status === "lost" ? ", coasted: not seen in the last frame" : "")).join("; ")})`);
   setState("done", 200);
 }
 
@@ -622,7 +623,8 @@ function renderCompute() {
     figure(c.visited_points.toLocaleString("en"), "visited points", "visited-points"),
     figure(fmtCount(c.params.total).trim(), "parameters", "params",
       `detector ${c.params.detector}, segmenter ${c.params.segmenter}`),
-    figure(String(c.detections), "detections", "detections"),
+    figure(String(c.detections), "centres (seeds)", "detections",
+      "centres the detector found; an object is a centre whose region the segmenter labelled"),
     figure(fmtMs(c.seconds.total), "latency", "seconds-total"),
   );
   const latency = document.createElement("h2");
