@@ -25,7 +25,8 @@ from models.segmenter.minkunet import MinkUNet
 from models.sparse import SparseTensor
 from models.sparse.kernel_map import check_coords, lookup, pack_keys, unpack_keys
 
-CORNERS = torch.tensor([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dtype=torch.int64)
+CORNERS = torch.tensor([[(k >> 2) & 1, (k >> 1) & 1, k & 1] for k in range(8)], dtype=torch.int64,
+                       device="cpu")  # explicit: the module may first be imported under a meta-device context
 """(8, 3) offsets of the 8 voxels around a point, relative to the lower corner."""
 FUSE_AFTER_DECODER_STAGE = {1: 1, 3: 2}
 """Decoder stage (0-based) -> point MLP fused after it (MLP 0 is fused after the encoder)."""

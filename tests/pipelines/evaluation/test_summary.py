@@ -56,3 +56,18 @@ def test_a_baseline_checkpoint_is_a_clear_error(tmp_path, capsys):
                                       class_names=tuple(get_profile("small").all_class_names)), tmp_path / "u.pt")
     assert main(["models", "summary", "--checkpoint", str(path)]) == 2
     assert "expected a detector or a sparse segmenter checkpoint" in capsys.readouterr().err
+
+
+def test_the_registry_rows_run_in_a_fresh_interpreter():
+    """The shipped checkpoints load first (under a meta-device context, models.checkpoint), and the registry's
+    SPVCNN is imported after: its module-level tensors must still be real (a fresh `radarseg models summary
+    --profile small` once failed with 'Cannot copy out of meta tensor')."""
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "pipelines.cli", "models", "summary", "--profile", "small", "--json"],
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    rows = json.loads(done.stdout)
+    assert {row["model"] for row in rows if row["preset"] == "small"} >= {"centre_detector", "minkunet", "spvcnn"}
+    assert all(row["macs"] > 0 for row in rows)
