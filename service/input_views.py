@@ -11,7 +11,7 @@ from service.encoding import encode_array
 from service.schemas import InputView, InputViews, MaskEncoding, ViewAxes
 
 
-def quantise_view(view_db: np.ndarray, encoding: MaskEncoding) -> InputView:
+def quantize_view(view_db: np.ndarray, encoding: MaskEncoding) -> InputView:
     """A view in dB as uint8 over its own [min, max]; ``dB = low_db + value * (high_db - low_db) / 255``."""
     low, high = float(view_db.min()), float(view_db.max())
     span = high - low if high > low else 1.0
@@ -35,4 +35,4 @@ def input_views(ra_db: np.ndarray, rd_db: np.ndarray, profile: RadarProfile, enc
     """The answer's views from the model's RA view (R, A) and RD view (R, D) of the input in dB
     (``SegmentationResult.views``: computed by the model from the log power it segmented, so raw ADC is processed
     once and the views are part of the request's compute)."""
-    return InputViews(ra=quantise_view(ra_db, encoding), rd=quantise_view(rd_db, encoding), axes=view_axes(profile))
+    return InputViews(ra=quantize_view(ra_db, encoding), rd=quantize_view(rd_db, encoding), axes=view_axes(profile))

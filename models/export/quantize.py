@@ -21,7 +21,7 @@ What stays float is chosen by measurement, one thread:
   noise must not buy it: one export had chosen it against float by 0.09 ms while the int8-weights graph ran 0.003 ms
   faster still. The manifest gives each graph's ``precision`` and the three timings;
 - in the segmenter, ``Add`` (since export format 3 only the residual sums: each bias is its Gemm's C input, which
-  quantises to one QGemm with an int32 bias) is not quantised (:data:`NOT_QUANTISED`). With the biases as Adds, a
+  quantises to one QGemm with an int32 bias) is not quantised (:data:`NOT_QUANTIZED`). With the biases as Adds, a
   QLinearAdd per sum cost more than the float Add (shipped segmenter, 6 calibration frames of 12-49 k voxels,
   median of each frame's best: float 42-46 ms, every op int8 31-34 ms, all but Add 29-32 ms; voxel label agreement
   with float 99.8 %); with the 16 residual sums alone, QLinearAdd was within 2 % (46.5 against 47.2 ms on 8
@@ -78,8 +78,8 @@ CALIBRATION_FRAMES = 8
 SIMULATED_SEED = 7_204_311
 """Scene seed of the simulated calibration frames (apart from the seeds tests and benchmarks draw)."""
 SIMULATED_SEQUENCES = 2
-QUANTISED_FILES = ("detector.onnx", "segmenter.onnx")
-NOT_QUANTISED = {"detector.onnx": (), "segmenter.onnx": ("Add",)}
+QUANTIZED_FILES = ("detector.onnx", "segmenter.onnx")
+NOT_QUANTIZED = {"detector.onnx": (), "segmenter.onnx": ("Add",)}
 """Operator types each graph keeps in float (measured slower in 8 bits; see the module's docstring)."""
 DETECTOR_TIMING_ROUNDS = 5
 
@@ -184,18 +184,18 @@ def float_pipeline_feeds(float_dir: Path, detector: Checkpoint, segmenter: Check
     return detector_feeds, captured, labels
 
 
-def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndarray]], method: str,
-                   not_quantised: Sequence[str] = ()) -> None:
+def quantize_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndarray]], method: str,
+                   not_quantized: Sequence[str] = ()) -> None:
     """``quantize_static`` of one graph: QDQ, weights int8 per channel, activations uint8, ``method`` ranges;
-    the operator types in ``not_quantised`` stay float."""
+    the operator types in ``not_quantized`` stay float."""
     import onnx
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
 
     if method not in METHODS:
         raise ValueError(f"calibration method must be one of {METHODS}, got {method!r}")
     op_types = None
-    if not_quantised:
-        op_types = sorted({node.op_type for node in onnx.load(str(source)).graph.node} - set(not_quantised))
+    if not_quantized:
+        op_types = sorted({node.op_type for node in onnx.load(str(source)).graph.node} - set(not_quantized))
     source, target = Path(source).absolute(), Path(target).absolute()  # the working directory changes below
     with tempfile.TemporaryDirectory(prefix="calibrate-") as scratch:
         cwd = os.getcwd()
@@ -210,13 +210,13 @@ def quantise_graph(source: Path, target: Path, feeds: Sequence[dict[str, np.ndar
             os.chdir(cwd)
 
 
-def operator_precision(path: Path, not_quantised: Sequence[str] = ()) -> dict[str, dict[str, int]]:
+def operator_precision(path: Path, not_quantized: Sequence[str] = ()) -> dict[str, dict[str, int]]:
     """Per operator type of a QDQ graph, how many nodes compute on 8-bit data and how many do not.
 
     A node is ``int8`` when one of its inputs comes from a DequantizeLinear (onnxruntime fuses the pair into an
     8-bit kernel, or drops it around a data-movement op such as Gather, Reshape, Slice, Concat); ``float`` when
     it takes float data from elsewhere; ``index`` when it only handles integers (shapes, kernel-map rows).
-    QuantizeLinear / DequantizeLinear themselves and Constants are not counted. Operator types in ``not_quantised``
+    QuantizeLinear / DequantizeLinear themselves and Constants are not counted. Operator types in ``not_quantized``
     (left out of the quantisation) are ``float`` whatever feeds them: their DequantizeLinear inputs stay.
     """
     import onnx
@@ -232,7 +232,7 @@ def operator_precision(path: Path, not_quantised: Sequence[str] = ()) -> dict[st
         if node.op_type in ("QuantizeLinear", "DequantizeLinear", "Constant"):
             continue
         inputs = [name for name in node.input if name]
-        if node.op_type in not_quantised and any(types.get(name) in floats for name in inputs):
+        if node.op_type in not_quantized and any(types.get(name) in floats for name in inputs):
             kind = "float"
         elif any(produced_by.get(name) == "DequantizeLinear" for name in inputs):
             kind = "int8"
@@ -311,10 +311,10 @@ def export_int8(detector: Checkpoint, segmenter: Checkpoint, out: str | Path, *,
     chosen = "given" if int8_detector is not None else "measured"
     int8_detector, detector_ms = _detector_precision(out, float_dir, det_feeds, methods[0], int8_detector)
     sources = {"detector.onnx": float_dir / "detector.onnx", "segmenter.onnx": _column_segmenter(seg, out)}
-    _quantise_trials(out, sources, feeds, methods, int8_detector)
+    _quantize_trials(out, sources, feeds, methods, int8_detector)
     agreement = _agreement_by_method(out, det, seg, cubes, float_labels, float_manifest, methods, pipeline)
     best = max(methods, key=lambda method: agreement[method])  # the first of equals
-    for name in QUANTISED_FILES:  # the chosen graphs, with short internal names (most of a sparse graph's bytes)
+    for name in QUANTIZED_FILES:  # the chosen graphs, with short internal names (most of a sparse graph's bytes)
         source = out / f".{best}" / name
         if name == "detector.onnx" and not int8_detector:
             source = out / ".detector-int8-weights.onnx"
@@ -330,8 +330,8 @@ def export_int8(detector: Checkpoint, segmenter: Checkpoint, out: str | Path, *,
         "weights": "int8, symmetric, per output channel", "activations": "uint8, asymmetric, per tensor",
         "graphs": {"detector": manifest["detector"]["precision"], "segmenter": "int8"},
         "files": "internal tensor names shortened, node names and doc strings dropped (models.export.compact)",
-        "not_quantised_op_types": {"detector": list(NOT_QUANTISED["detector.onnx"]) if int8_detector else "all",
-                                   "segmenter": list(NOT_QUANTISED["segmenter.onnx"])},
+        "not_quantised_op_types": {"detector": list(NOT_QUANTIZED["detector.onnx"]) if int8_detector else "all",
+                                   "segmenter": list(NOT_QUANTIZED["segmenter.onnx"])},
         "detector_ms_one_thread": {**detector_ms, "measure": "median over the calibration frames of each one's "
                                    f"best of {DETECTOR_TIMING_ROUNDS}, interleaved", "chosen": chosen},
         "method": best, "label_agreement_by_method": agreement,
@@ -352,7 +352,7 @@ def _detector_precision(out: Path, float_dir: Path, feeds: Sequence[dict[str, np
     """Whether the detector computes in int8 (as given, or where it runs faster) and the timings: its int8 graph
     (``method``, into ``out/.METHOD``) against the float one and against float compute on int8 weights (what a
     float detector ships as, ``out/.detector-int8-weights.onnx``: a quarter of the bytes, the float speed)."""
-    quantise_graph(float_dir / "detector.onnx", out / f".{method}" / "detector.onnx", feeds, method)
+    quantize_graph(float_dir / "detector.onnx", out / f".{method}" / "detector.onnx", feeds, method)
     int8_weights(float_dir / "detector.onnx", out / ".detector-int8-weights.onnx")
     detector_ms = time_graphs({"float32": float_dir / "detector.onnx", "int8": out / f".{method}" / "detector.onnx",
                                INT8_WEIGHTS: out / ".detector-int8-weights.onnx"}, feeds)
@@ -374,18 +374,18 @@ def _column_segmenter(segmenter: Checkpoint, out: Path) -> Path:
     return path
 
 
-def _quantise_trials(out: Path, sources: dict[str, Path], feeds: dict[str, Sequence[dict[str, np.ndarray]]],
+def _quantize_trials(out: Path, sources: dict[str, Path], feeds: dict[str, Sequence[dict[str, np.ndarray]]],
                      methods: Sequence[str], int8_detector: bool) -> None:
     """Each method's graphs, quantised from ``sources`` (float graphs by file name), into ``out/.METHOD`` (the
     first method's int8 detector is there already); the float detector there when ``int8_detector`` is false."""
     for method in methods:
-        for name in QUANTISED_FILES:
+        for name in QUANTIZED_FILES:
             target = out / f".{method}" / name
             if name == "detector.onnx" and not int8_detector:
                 shutil.copyfile(sources[name], target)
             elif not (name == "detector.onnx" and method == methods[0]):
                 log.info("quantising %s (%s, %d calibration inputs)", name, method, len(feeds[name]))
-                quantise_graph(sources[name], target, feeds[name], method, NOT_QUANTISED[name])
+                quantize_graph(sources[name], target, feeds[name], method, NOT_QUANTIZED[name])
 
 
 def _agreement_by_method(out: Path, det: Checkpoint, seg: Checkpoint, cubes: Sequence[np.ndarray],
@@ -420,7 +420,7 @@ def _int8_manifest(float_manifest: dict[str, Any], float_dir: Path, out: Path, i
         graph["float_bytes"] = (float_dir / name).stat().st_size
         graph["bytes"] = (out / name).stat().st_size
         # what each operator computes in: the float graph's for a detector of int8 weights (folded at load)
-        graph["operator_precision"] = (operator_precision(out / name, NOT_QUANTISED[name]) if quantised
+        graph["operator_precision"] = (operator_precision(out / name, NOT_QUANTIZED[name]) if quantised
                                        else operator_precision(float_dir / name, ()))
         manifest[stage] = graph
     return manifest

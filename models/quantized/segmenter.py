@@ -45,7 +45,7 @@ class QTensor:
     def positions(self) -> Tensor:
         return torch.arange(self.feats.shape[1]) if self.channels is None else self.channels
 
-    def dequantise(self) -> Tensor:
+    def dequantize(self) -> Tensor:
         values = self.feats.float()
         if self.zero_point is not None:
             values = values - self.zero_point
@@ -92,7 +92,7 @@ class QuantConv:
     channels: int
 
 
-def quantise_weight(weight: Tensor, in_scale: Tensor) -> tuple[Tensor, Tensor]:
+def quantize_weight(weight: Tensor, in_scale: Tensor) -> tuple[Tensor, Tensor]:
     """(K, C, D) float weight acting on inputs of scale ``in_scale`` (C,) -> (int8 weight, scale per output (D,))."""
     scaled = weight.float() * in_scale[None, :, None]
     scale = (scaled.abs().amax(dim=(0, 1)) / QMAX_WEIGHT).clamp(min=1e-12)
@@ -100,12 +100,12 @@ def quantise_weight(weight: Tensor, in_scale: Tensor) -> tuple[Tensor, Tensor]:
     return quantised.contiguous(), scale.float().contiguous()
 
 
-def quantise_conv(conv: FoldedConv, x: QTensor, out_scale: Tensor | None) -> QuantConv:
+def quantize_conv(conv: FoldedConv, x: QTensor, out_scale: Tensor | None) -> QuantConv:
     """``conv`` on inputs quantised as ``x`` (its scales and zero points), output requantised to ``out_scale``."""
     k, _, c_out = conv.weight.shape
     full = torch.zeros(k, x.feats.shape[1], padded(c_out))
     full[:, x.positions(), :c_out] = conv.weight.float()
-    weight, scale = quantise_weight(full, x.scale)
+    weight, scale = quantize_weight(full, x.scale)
     correction = None
     if x.zero_point is not None:  # sum_c zp[c] * w[k, c, :], subtracted per present pair (zero point 1 below)
         correction = torch.einsum("c,kcd->kd", x.zero_point.long(), weight.long()).to(torch.int32).contiguous()
@@ -165,11 +165,11 @@ class Int8MinkUNet:
         self._layers: dict[tuple[int, str], QuantConv] = {}
         int8.load()  # build the kernels now, not inside the first frame
 
-    def _layer(self, run: _Run, conv: FoldedConv, x: QTensor, role: str, requantise: bool = True) -> QuantConv:
+    def _layer(self, run: _Run, conv: FoldedConv, x: QTensor, role: str, requantize: bool = True) -> QuantConv:
         key = (run.layer, role)
         if key not in self._layers:
-            out_scale = self._out_scale_vector(run, padded(conv.weight.shape[2])) if requantise else None
-            self._layers[key] = quantise_conv(conv, x, out_scale)
+            out_scale = self._out_scale_vector(run, padded(conv.weight.shape[2])) if requantize else None
+            self._layers[key] = quantize_conv(conv, x, out_scale)
         return self._layers[key]
 
     def _next(self, run: _Run) -> None:
@@ -183,7 +183,7 @@ class Int8MinkUNet:
     def _submanifold(self, x: QTensor, conv: FoldedConv, run: _Run, residual: QTensor | Tensor | None = None
                      ) -> QTensor:
         last = run.layer == len(self.activation_scales) - 1  # the classifier's input: kept float
-        layer = self._layer(run, conv, x, "submanifold", requantise=not last)
+        layer = self._layer(run, conv, x, "submanifold", requantize=not last)
         kernel_map = x.cache.kernel_map(x.stride, conv.kernel_size, 1)
         run.macs.add(kernel_map.num_pairs, layer.channels)
         neighbours, order = kernel_map.in_coordinate_order
@@ -229,7 +229,7 @@ class Int8MinkUNet:
         if block.shortcut is None:
             shortcut: QTensor | Tensor = x
         else:  # a 1x1 conv: one pair per voxel, float out
-            layer = self._layer(run, block.shortcut, x, "shortcut", requantise=False)
+            layer = self._layer(run, block.shortcut, x, "shortcut", requantize=False)
             rows = torch.arange(len(x.feats), dtype=torch.int32)[:, None]
             shortcut = int8.neighbour_conv(x.feats, rows, layer.packed, layer.scale, bias=layer.bias)
             run.macs.add(len(x.feats), layer.channels)
@@ -241,7 +241,7 @@ class Int8MinkUNet:
         return QTensor(torch.cat([up.feats, skip.feats], dim=1), torch.cat([up.scale, skip.scale]), skip.stride,
                        skip.cache, channels=positions)
 
-    def quantise_input(self, feats: Tensor, stride: int, cache: object) -> QTensor:
+    def quantize_input(self, feats: Tensor, stride: int, cache: object) -> QTensor:
         """The input features (N, C) float as uint8 with their per-feature scale and zero point."""
         scale, zero_point = self.input_range.quantisation()
         quantised = torch.round(feats / scale + zero_point).clamp(0, QMAX_ACTIVATION).to(torch.uint8)
@@ -257,10 +257,10 @@ class Int8MinkUNet:
         run = _Run()
         fused = self.fused
         x.cache.build_pyramid(x.stride, len(fused.encoder) + 1)
-        y = fused.walk(self.quantise_input(x.feats.float(), x.stride, x.cache), self, run)
+        y = fused.walk(self.quantize_input(x.feats.float(), x.stride, x.cache), self, run)
         if run.layer != len(self.activation_scales):
             raise ValueError(f"{len(self.activation_scales)} activation scales for {run.layer} activations")
-        feats = y.feats if y.feats.dtype == torch.float32 else y.dequantise()  # the last convolution's: float
+        feats = y.feats if y.feats.dtype == torch.float32 else y.dequantize()  # the last convolution's: float
         if feats.shape[1] != fused.classifier_weight.shape[0]:
             feats = feats[:, y.positions()]
         logits = feats @ fused.classifier_weight

@@ -16,7 +16,7 @@ def _db(view: dict) -> np.ndarray:
     return view["low_db"] + levels * (view["high_db"] - view["low_db"]) / 255.0
 
 
-def test_views_are_the_inputs_ra_and_rd_views_within_one_quantisation_step(make_settings, client_for, frame):
+def test_views_are_the_inputs_ra_and_rd_views_within_one_quantization_step(make_settings, client_for, frame):
     client = client_for(make_settings())
     log_power = transforms.log_power(frame.cube)
     expected = {"ra": transforms.ra_view(log_power, kind=InputKind.log_power),

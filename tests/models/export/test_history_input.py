@@ -90,7 +90,7 @@ def test_the_int8_detector_takes_the_history_input(history_export, tmp_path):
     """The int8 export's calibration feeds the detector graph the frame before each (as the float pipeline does);
     the detector quantised on them reads the history input and finds the float graph's seeds."""
     from models.export.onnx_engine import OnnxDetector, _session
-    from models.export.quantize import float_pipeline_feeds, quantise_graph
+    from models.export.quantize import float_pipeline_feeds, quantize_graph
 
     _, float_dir = history_export
     detector, segmenter = load_pair(DETECTOR, SEGMENTER)
@@ -99,7 +99,7 @@ def test_the_int8_detector_takes_the_history_input(history_export, tmp_path):
     assert [list(feed) for feed in feeds] == [["log_power", *HISTORY_INPUTS]] * 3
     assert [feed["history_present"].tolist() for feed in feeds] == [[0.0], [1.0], [1.0]]
     np.testing.assert_array_equal(feeds[2]["history"][0], cubes[1])
-    quantise_graph(float_dir / "detector.onnx", tmp_path / "detector.onnx", feeds, "MinMax")
+    quantize_graph(float_dir / "detector.onnx", tmp_path / "detector.onnx", feeds, "MinMax")
     net = detector.build().eval()
     graphs = {name: OnnxDetector(_session(path, 1), net)
               for name, path in (("float", float_dir / "detector.onnx"), ("int8", tmp_path / "detector.onnx"))}

@@ -84,8 +84,8 @@ def epilogue_reference(acc: torch.Tensor, scale, bias, residual, residual_scale,
 
 
 @pytest.mark.parametrize("residual_kind", [None, "uint8", "float"])
-@pytest.mark.parametrize("requantise", [False, True])
-def test_the_fused_epilogue(kernels, residual_kind, requantise):
+@pytest.mark.parametrize("requantize", [False, True])
+def test_the_fused_epilogue(kernels, residual_kind, requantize):
     generator = torch.Generator().manual_seed(3)
     n, k, c_in, c_out = 300, 27, 16, 24
     src = torch.randint(0, 256, (n, c_in), generator=generator, dtype=torch.uint8)
@@ -99,13 +99,13 @@ def test_the_fused_epilogue(kernels, residual_kind, requantise):
         residual_scale = torch.rand(c_out, generator=generator) * 0.01
     elif residual_kind == "float":
         residual = torch.randn(n, c_out, generator=generator)
-    out_scale = (0.02 + 0.05 * torch.rand(c_out, generator=generator)) if requantise else None
+    out_scale = (0.02 + 0.05 * torch.rand(c_out, generator=generator)) if requantize else None
     packed = kernels.pack_weight(weight)
     got = kernels.neighbour_conv_int8(src, table, packed, 0, None, scale, bias, residual, residual_scale, True,
                                       out_scale)
     acc = kernels.neighbour_conv_int8_raw(src, table, packed, c_out, 0, None)
     expected = epilogue_reference(acc, scale, bias, residual, residual_scale, True, out_scale)
-    if requantise:
+    if requantize:
         assert got.dtype == torch.uint8
         assert (got.float() - expected).abs().max() <= 1  # one step where float rounding meets a tie
         assert (got.float() != expected).float().mean() < 0.01
@@ -126,11 +126,11 @@ def test_compact_pairs_give_the_table_s_result(kernels, rows, c_in, c_out):
     residual = torch.randint(0, 256, (rows, c_out), generator=generator, dtype=torch.uint8)
     pairs = kernels.compact_pairs(table, len(src))
     assert len(pairs[2]) == int((table < len(src)).sum())
-    for requantise in (None, out_scale):
+    for requantize in (None, out_scale):
         by_table = kernels.neighbour_conv_int8(src, table, packed, 0, None, scale, bias, residual, scale, True,
-                                               requantise)
+                                               requantize)
         by_pairs = kernels.neighbour_conv_int8_pairs(src, *pairs, rows, 27, packed, 0, None, scale, bias, residual,
-                                                     scale, True, requantise)
+                                                     scale, True, requantize)
         assert torch.equal(by_table, by_pairs)
     with pytest.raises(RuntimeError, match="compact_pairs' offsets"):
         kernels.neighbour_conv_int8_pairs(src, pairs[0][:-1], pairs[1], pairs[2], rows, 27, packed, 0, None, scale,
