@@ -1,72 +1,17 @@
-"""The command-line side of TI radars: ``radarseg radar from-ti``, ``process-adc CAPTURE.bin`` and
-``simulate --adc --format dca1000`` (pipelines/cli.py registers the parsers here and calls these handlers)."""
+"""TI captures on the command line: ``process-adc CAPTURE.bin`` and ``simulate --adc --format dca1000``
+(:mod:`pipelines.cli.frame_commands` and :mod:`pipelines.cli.data_commands` call these)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from radar.errors import UserError
 
 CAPTURE_SUFFIX = ".bin"
-
-
-def add_from_ti_parser(radar_sub: Any) -> None:
-    """``radarseg radar from-ti CONFIG.cfg --out PROFILE.toml``."""
-    from radar.ti.boards import BOARDS
-
-    cmd = radar_sub.add_parser("from-ti", help="a radar profile file from a TI mmWave SDK configuration (.cfg)")
-    cmd.add_argument("config", help="the .cfg the radar was configured with (mmWave SDK CLI commands)")
-    cmd.add_argument("--out", required=True, help="profile file to write (.toml)")
-    cmd.add_argument("--name", help="the radar's name (default: the .cfg's file name)")
-    cmd.add_argument("--angle-bins", type=int, help="angle FFT size (default: 64, or the next power of two that holds "
-                                                    "the virtual array)")
-    cmd.add_argument("--board", help=f"evaluation board, for the antenna positions: {', '.join(sorted(BOARDS))}, "
-                                     f"each also spelled with awr or iwr for xwr (awr1843boost = xwr1843boost); "
-                                     f"default: none stated, a uniform line")
-    cmd.add_argument("--lvds-lanes", type=int, choices=(2, 4), default=2,
-                     help="LVDS lanes of the DCA1000 capture: 2 (xWR16xx/18xx/68xx), 4 (xWR12xx/14xx)")
-    cmd.add_argument("--no-scene", dest="scene", action="store_false",
-                     help="write no [scene] table (by default a radar that sees less than 50 m gets rooms at its "
-                          "scale: 1 to 3 people walking; docs/guides/indoor-scenes.md)")
-    cmd.set_defaults(func=cmd_from_ti)
-
-
-def cmd_from_ti(args: argparse.Namespace) -> int:
-    from radar.profiles.files import describe
-    from radar.ti.cfg import load_cfg
-    from radar.ti.convert import ti_figures, write_profile
-
-    cfg = load_cfg(args.config)
-    if args.angle_bins is not None and args.angle_bins <= 0:
-        raise UserError(f"--angle-bins must be > 0, got {args.angle_bins}")
-    name = args.name or Path(args.config).stem
-    profile = write_profile(cfg, args.out, source=Path(args.config).name, name=name, angle_bins=args.angle_bins,
-                            board=args.board, lvds_lanes=args.lvds_lanes, scene=args.scene)
-    print(f"profile {name!r} written to {args.out}: {profile.n_tx} TX (TX{', TX'.join(map(str, cfg.tx_fired))} in "
-          f"firing order) x {profile.n_rx} RX, {cfg.adc_format} {cfg.adc_bits}-bit ADC")
-    figures = ti_figures(cfg)
-    print(f"TI's figures (c = 3e8): range resolution {figures['range_resolution_m']:.4f} m, max range "
-          f"{figures['max_range_m']:.2f} m, velocity resolution {figures['velocity_resolution_mps']:.4f} m/s, max "
-          f"velocity {figures['max_velocity_mps']:.2f} m/s")
-    if cfg.ignored:
-        print(f"ignored (processing chain, monitors): {' '.join(cfg.ignored)}")
-    if cfg.unknown:
-        print(f"unknown commands, ignored: {' '.join(cfg.unknown)}")
-    for note in cfg.notes:
-        print(f"note: {note}")
-    scene = profile.extra.get("scene")
-    if scene is not None:
-        (person, (fewest, most)), = scene.classes
-        print(f"scene: rooms at the radar's scale, {fewest} to {most} {person}s at {scene.range_m[0]:g} to "
-              f"{scene.range_m[1]:g} m ([scene]; --no-scene for road scenes)")
-    rows = dict(describe(profile))
-    print(f"cube {rows['cube (R x A x D)']}; radarseg radar show {args.out} prints the rest")
-    return 0
 
 
 def add_capture_options(adc_parser: argparse.ArgumentParser) -> None:

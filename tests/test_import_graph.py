@@ -17,7 +17,7 @@ ALLOWED = {  # package -> the packages of ours it may import
     "service": {"radar", "models", "service"},
 }
 WINGS = ("datasets", "inference", "recordings", "evaluation", "training", "demo")  # pipelines' wings, lowest first
-TOP_OF_PIPELINES = "pipelines.cli"  # the one top-level module above the wings
+TOP_OF_PIPELINES = "pipelines.cli"  # the one top-level package above the wings (the command line)
 
 
 def _module_name(path: Path) -> str:
@@ -87,7 +87,7 @@ def pipelines_level(module: str) -> int:
     """0 for a top-level module of ``pipelines`` (jobs, progress, figures), 1 + the wing's index inside a wing,
     one above the highest wing for the CLI."""
     parts = module.split(".")
-    if module == TOP_OF_PIPELINES:
+    if module == TOP_OF_PIPELINES or module.startswith(f"{TOP_OF_PIPELINES}."):  # the CLI and its command groups
         return len(WINGS) + 1
     return 1 + WINGS.index(parts[1]) if len(parts) > 2 and parts[1] in WINGS else 0
 

@@ -123,7 +123,8 @@ def test_version_and_every_option_shows_its_default(capsys):
 def test_serve_serves_its_one_pair_on_the_runtime_named_the_int8_kernels_included(tiny_checkpoints, capsys):
     """``serve --runtime torch-int8`` hands the service a model it serves in the compiled int8 kernels; the former
     ``--engine onnx-int8`` still names its runtime, with a note."""
-    from pipelines.cli import _served_model, build_parser
+    from pipelines.cli import build_parser
+    from pipelines.cli.service_commands import _served_model
     from service.settings import ModelSpec
 
     det, seg = (str(path) for path in tiny_checkpoints)

@@ -166,11 +166,14 @@ def test_track_priors_act_only_on_frames_with_history_and_are_counted(tmp_path_f
     assert primed["track_priors"]["threshold"] == 0.05 and primed["track_priors"]["gate_m"] == 3.0
     assert primed["track_priors"]["seeds_added"] >= 1, primed["track_priors"]
     for metrics in (plain, primed):
-        assert metrics["frames_with_history"]["frames"] == 3 * 4 and metrics["frames_with_history"]["from_frame_index"] == 2
+        later = metrics["frames_with_history"]
+        assert later["frames"] == 3 * 4 and later["from_frame_index"] == 2
+
+    def early(metrics, view):
+        return (np.array(metrics["segmentation"][view]["confusion"])
+                - np.array(metrics["frames_with_history"]["segmentation"][view]["confusion"]))
+
     for view in ("RA", "RD"):
-        def early(metrics):
-            return (np.array(metrics["segmentation"][view]["confusion"])
-                    - np.array(metrics["frames_with_history"]["segmentation"][view]["confusion"]))
-        assert (early(plain) == early(primed)).all()
+        assert (early(plain, view) == early(primed, view)).all()
     with pytest.raises(ValueError, match="track_priors"):
         EvaluateConfig(out="o", track_priors=1.5, **common)

@@ -1,5 +1,5 @@
 """``radarseg capture`` (a DCA1000's UDP stream into a capture file, or frame by frame to a service stream) and
-``radarseg capture replay`` (a capture file sent as that stream); pipelines/cli.py registers the parsers here."""
+``radarseg capture replay`` (a capture file sent as that stream)."""
 
 from __future__ import annotations
 
@@ -23,7 +23,8 @@ BAD_FRAME_POLICIES = ("zero", "drop")
 MAX_LISTED_BAD_FRAMES = 100  # bad frames named in the summary (all are counted)
 
 
-def add_capture_parser(sub: Any) -> None:
+def add_commands(sub: Any) -> None:
+    """capture and capture replay."""
     cap = sub.add_parser("capture", help="receive a DCA1000's raw-data UDP stream: frames into a capture file (.bin) "
                                          "or posted to a service stream; `capture replay` sends a capture as one")
     cap.add_argument("--profile", help="the radar's profile file (frame size, [capture] format); required")
