@@ -60,6 +60,8 @@ def centres_with_priors(candidates: Centres, score_threshold: float, priors: Tra
     more (each candidate stands for one prior at most). ``candidates`` are sorted by descending score (a
     detector's decoding); so is the result. Returns the centres and how many the priors added."""
     strong = candidates.score >= score_threshold
+    if (priors is None or not len(priors.positions)) and strong.all():
+        return candidates, 0  # the request path without priors: nothing to filter, nothing copied
     chosen = np.zeros(len(candidates), bool)
     if priors is not None and len(priors.positions) and len(candidates):
         x, y = profile.xy(candidates.range_bin, candidates.angle_bin)
